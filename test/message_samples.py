@@ -3,7 +3,8 @@
 import numpy as np
 from std_msgs.msg import Header
 
-from sonar_ring.ros.convert import EchoArrays, echoes_to_msg
+from sonar_ring.echoes import EchoArrays
+from sonar_ring.ros.convert import echoes_to_msg
 
 SAMPLE_NAMES = ("empty", "ring", "triad", "large")
 

@@ -8,11 +8,12 @@ itself makes rclpy check every element (tens of microseconds).
 from __future__ import annotations
 
 import array
-from dataclasses import dataclass
 
 import numpy as np
 
-from sonar_ring.msg import Echoes
+from sonar_ring.echoes import EchoArrays
+from sonar_ring.landmarks import Landmarks, make_landmarks
+from sonar_ring.msg import Echoes, Landmark, LandmarkArray
 
 _TYPECODES = {np.float64: "d", np.float32: "f", np.uint8: "B", np.uint16: "H", np.uint32: "I"}
 
@@ -30,40 +31,6 @@ def to_sequence(values, dtype) -> array.array:
 def from_sequence(values, dtype) -> np.ndarray:
     """A read-only numpy view of a message sequence (``array.array``), no copy."""
     return np.frombuffer(values, dtype=dtype) if len(values) else np.empty(0, dtype=dtype)
-
-
-@dataclass(frozen=True)
-class EchoArrays:
-    """The arrays of one :class:`sonar_ring.msg.Echoes` ping, N echoes and K receivers.
-
-    Attributes
-    ----------
-    layout : str
-        Layout name the indices refer to.
-    speed_of_sound : float
-        m/s.
-    group, transmitter : ndarray of int, shape (N,)
-        Receiver group and transmitter of each echo.
-    tof : ndarray, shape (N, K)
-        Times of flight, s; NaN where a receiver missed the echo.
-    amplitude : ndarray, shape (N, K) or (N, 0)
-        Amplitudes relative to A_max, or no columns when not measured.
-    phase_delay : ndarray, shape (N, K - 1) or (N, 0)
-        Triad phase delays after receiver 0, s, or no columns.
-    """
-
-    layout: str
-    speed_of_sound: float
-    group: np.ndarray
-    transmitter: np.ndarray
-    tof: np.ndarray
-    amplitude: np.ndarray
-    phase_delay: np.ndarray
-
-    @property
-    def n_echoes(self) -> int:
-        """Number of echo rows N."""
-        return int(self.group.shape[0])
 
 
 def echoes_to_msg(echoes: EchoArrays, header) -> Echoes:
@@ -110,3 +77,66 @@ def echoes_from_msg(msg: Echoes) -> EchoArrays:
         amplitude=amplitude,
         phase_delay=phase,
     )
+
+
+def landmarks_to_msg(landmarks: Landmarks, header) -> LandmarkArray:
+    """Build a LandmarkArray message from :class:`~sonar_ring.landmarks.Landmarks`."""
+    msg = LandmarkArray(header=header)
+    msg.landmark_class = to_sequence(landmarks.landmark_class, np.uint8)
+    msg.position = to_sequence(landmarks.position, np.float64)
+    msg.normal = to_sequence(landmarks.normal, np.float64)
+    msg.bearing = to_sequence(landmarks.bearing, np.float64)
+    msg.range = to_sequence(landmarks.range, np.float64)
+    msg.covariance = to_sequence(landmarks.covariance, np.float64)
+    msg.confidence = to_sequence(landmarks.confidence, np.float32)
+    msg.segment = to_sequence(landmarks.segment, np.float64)
+    msg.observations = to_sequence(landmarks.observations, np.uint32)
+    msg.group = to_sequence(landmarks.group, np.uint16)
+    msg.echo = to_sequence(landmarks.echo, np.uint32)
+    msg.valid = landmarks.valid.tolist()
+    msg.reason = to_sequence(landmarks.reason, np.uint8)
+    return msg
+
+
+def landmarks_from_msg(msg: LandmarkArray) -> Landmarks:
+    """:class:`~sonar_ring.landmarks.Landmarks` of a LandmarkArray message.
+
+    Raises :class:`MessageError` when an array's length does not fit the number
+    of landmarks given by ``landmark_class``.
+    """
+    count = len(msg.landmark_class)
+    per_landmark = {"position": 2, "normal": 2, "covariance": 4, "confidence": 1, "segment": 4,
+                    "observations": 1, "group": 1, "echo": 1, "valid": 1, "reason": 1}
+    for name, width in per_landmark.items():
+        found = len(getattr(msg, name))
+        if found != width * count:
+            raise MessageError(f"{name} has {found} values, expected {width * count} for {count} landmarks")
+    return make_landmarks(
+        from_sequence(msg.landmark_class, np.uint8),
+        from_sequence(msg.position, np.float64).reshape(count, 2),
+        normal=from_sequence(msg.normal, np.float64).reshape(count, 2),
+        covariance=from_sequence(msg.covariance, np.float64).reshape(count, 2, 2),
+        confidence=from_sequence(msg.confidence, np.float32),
+        segment=from_sequence(msg.segment, np.float64).reshape(count, 2, 2),
+        observations=from_sequence(msg.observations, np.uint32),
+        group=from_sequence(msg.group, np.uint16),
+        echo=from_sequence(msg.echo, np.uint32),
+        valid=np.asarray(msg.valid, dtype=bool),
+        reason=from_sequence(msg.reason, np.uint8),
+    )
+
+
+def landmark_messages(msg: LandmarkArray) -> list[Landmark]:
+    """One :class:`sonar_ring.msg.Landmark` per entry of a LandmarkArray, for code that wants objects."""
+    arrays = landmarks_from_msg(msg)
+    return [
+        Landmark(header=msg.header, landmark_class=int(arrays.landmark_class[i]),
+                 x=float(arrays.position[i, 0]), y=float(arrays.position[i, 1]),
+                 normal_x=float(arrays.normal[i, 0]), normal_y=float(arrays.normal[i, 1]),
+                 bearing=float(arrays.bearing[i]), range=float(arrays.range[i]),
+                 covariance=arrays.covariance[i].ravel().tolist(), confidence=float(arrays.confidence[i]),
+                 segment=arrays.segment[i].ravel().tolist(), observations=int(arrays.observations[i]),
+                 group=int(arrays.group[i]), echo=int(arrays.echo[i]), valid=bool(arrays.valid[i]),
+                 reason=int(arrays.reason[i]))
+        for i in range(len(arrays))
+    ]

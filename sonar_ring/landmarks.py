@@ -1,0 +1,135 @@
+"""Landmarks as parallel arrays: what every stage of the pipeline passes on.
+
+A :class:`Landmarks` holds L landmarks -- planes, corners, edges or unknown
+reflectors -- as arrays whose first axis is the landmark.  It mirrors the
+``sonar_ring/LandmarkArray`` message field for field, so the ROS layer converts
+it without a loop, and the core (localiser, classifier, mapper) works on it with
+numpy.
+
+Frames and units: positions in metres in one frame (the sensor frame for
+per-ping landmarks, ``odom`` for the map), angles in radians counter-clockwise.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, fields, replace
+
+import numpy as np
+
+UNKNOWN, PLANE, CORNER, EDGE = 0, 1, 2, 3
+"""Landmark classes (the constants of ``Landmark.msg``)."""
+
+CLASS_NAMES = ("unknown", "plane", "corner", "edge")
+"""Lower-case name of each class code, indexable by the code."""
+
+
+@dataclass(frozen=True)
+class Landmarks:
+    """L landmarks as parallel arrays (index i of every field is landmark i).
+
+    Attributes
+    ----------
+    landmark_class : ndarray of uint8, shape (L,)
+        UNKNOWN, PLANE, CORNER or EDGE.
+    position : ndarray, shape (L, 2)
+        Plane: foot point G of the perpendicular from the transmitter; corner and
+        edge: the vertical line's trace, m.
+    normal : ndarray, shape (L, 2)
+        Planes: unit normal pointing from the wall towards the sensor; zero
+        otherwise.
+    covariance : ndarray, shape (L, 2, 2)
+        Covariance of ``position``, m^2.
+    confidence : ndarray of float32, shape (L,)
+        0..1, margin of the deciding classification test (0 when undecided).
+    segment : ndarray, shape (L, 2, 2)
+        Planes: the observed extent's two end points; points: the point twice, m.
+    observations : ndarray of uint32, shape (L,)
+        Sightings merged into the landmark (1 for a single ping).
+    group : ndarray of uint16, shape (L,)
+        Receiver group that produced the landmark.
+    echo : ndarray of uint32, shape (L,)
+        Row of the echo in its ping.
+    valid : ndarray of bool, shape (L,)
+        False where the landmark could not be computed; ``reason`` says why.
+    reason : ndarray of uint8, shape (L,)
+        0 (OK) or the reason code of ``sonar_ring.localise``.
+    """
+
+    landmark_class: np.ndarray
+    position: np.ndarray
+    normal: np.ndarray
+    covariance: np.ndarray
+    confidence: np.ndarray
+    segment: np.ndarray
+    observations: np.ndarray
+    group: np.ndarray
+    echo: np.ndarray
+    valid: np.ndarray
+    reason: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.landmark_class.shape[0])
+
+    @property
+    def bearing(self) -> np.ndarray:
+        """``atan2(y, x)`` of each position in its frame, shape (L,), rad."""
+        return np.arctan2(self.position[:, 1], self.position[:, 0])
+
+    @property
+    def range(self) -> np.ndarray:
+        """Distance of each position from the frame origin, shape (L,), m."""
+        return np.hypot(self.position[:, 0], self.position[:, 1])
+
+    def select(self, index) -> Landmarks:
+        """The landmarks picked by a boolean mask or an index array."""
+        return Landmarks(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+
+    def with_class(self, landmark_class, confidence) -> Landmarks:
+        """A copy with new classes and confidences (shapes (L,))."""
+        return replace(self, landmark_class=np.asarray(landmark_class, dtype=np.uint8),
+                       confidence=np.asarray(confidence, dtype=np.float32))
+
+    @staticmethod
+    def empty() -> Landmarks:
+        """No landmarks."""
+        return make_landmarks(np.empty(0, np.uint8), np.empty((0, 2)))
+
+    @staticmethod
+    def concatenate(parts) -> Landmarks:
+        """All landmarks of ``parts`` (a sequence of Landmarks), in order."""
+        parts = list(parts)
+        if not parts:
+            return Landmarks.empty()
+        return Landmarks(**{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Landmarks)})
+
+
+def make_landmarks(landmark_class, position, *, normal=None, covariance=None, confidence=None, segment=None,
+                   observations=None, group=None, echo=None, valid=None, reason=None) -> Landmarks:
+    """Build :class:`Landmarks`, filling every field not given with its neutral value.
+
+    Neutral values: zero normal, zero covariance, zero confidence, the point
+    itself as its segment, one observation, group and echo 0, valid, reason 0.
+    """
+    position = np.asarray(position, dtype=float).reshape(-1, 2)
+    count = position.shape[0]
+
+    def filled(value, shape, dtype, default):
+        if value is None:
+            return np.full(shape, default, dtype=dtype)
+        return np.broadcast_to(np.asarray(value, dtype=dtype), shape).copy()
+
+    if segment is None:
+        segment = np.repeat(position[:, None, :], 2, axis=1)
+    return Landmarks(
+        landmark_class=filled(landmark_class, (count,), np.uint8, UNKNOWN),
+        position=position,
+        normal=filled(normal, (count, 2), float, 0.0),
+        covariance=filled(covariance, (count, 2, 2), float, 0.0),
+        confidence=filled(confidence, (count,), np.float32, 0.0),
+        segment=filled(segment, (count, 2, 2), float, 0.0),
+        observations=filled(observations, (count,), np.uint32, 1),
+        group=filled(group, (count,), np.uint16, 0),
+        echo=filled(echo, (count,), np.uint32, 0),
+        valid=filled(valid, (count,), bool, True),
+        reason=filled(reason, (count,), np.uint8, 0),
+    )

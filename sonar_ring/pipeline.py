@@ -1,0 +1,220 @@
+"""One ping from echoes to labelled landmarks: the steps the nodes and ``sonar-ring process`` share.
+
+* :func:`localise_ping` -- every echo row to a landmark hypothesis per enabled
+  model (plane, corner, edge; on a triad one model-free landmark from phase
+  bearing and TOF range), with covariance;
+* :func:`classify_ping` -- the evidence of the layout picks one hypothesis per
+  echo: Barshan & Kuc's amplitude rules where two transmitters fire, geometric
+  consistency over overlapping groups on a single-emitter ring; without
+  evidence the echo stays UNKNOWN and is placed with the corner model
+  (Browne s7).
+
+Both return :class:`~sonar_ring.landmarks.Landmarks` in the sensor frame; the
+``echo`` field ties a landmark to its echo row, so the two steps can run in
+different processes.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from sonar_ring import classify, doa, localise
+from sonar_ring.echoes import EchoArrays
+from sonar_ring.geometry import Layout
+from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, Landmarks, make_landmarks
+
+MODEL_CLASS = {"plane": PLANE, "corner": CORNER, "edge": EDGE}
+"""Class code of the landmark each localisation model produces."""
+
+
+@dataclass(frozen=True)
+class Settings:
+    """What the localiser and classifier do; the nodes' parameters map onto it.
+
+    Attributes
+    ----------
+    models : tuple of str
+        Localisation models to run, a subset of ``plane``, ``corner``, ``edge``.
+    vertical_correction : bool
+        Replace each path by its exact horizontal part ``sqrt(d^2 - dz^2)``.
+    sigma_tof : float
+        Time-of-flight noise, s (covariances, consistency test).
+    sigma_speed : float
+        Speed-of-sound uncertainty, m/s.
+    sigma_amplitude : float
+        Amplitude noise relative to A_max (Barshan & Kuc rules).
+    consistency_z : float
+        Significance of the geometric-consistency test, standard deviations.
+    triad_eps : float
+        Kreczmer's eq 6 tolerance for the (n1, n2) search.
+    triad_max_angle : float
+        Largest azimuth a triad accepts, rad.
+    """
+
+    models: tuple[str, ...] = ("plane", "corner", "edge")
+    vertical_correction: bool = True
+    sigma_tof: float = 1e-6
+    sigma_speed: float = 0.0
+    sigma_amplitude: float = 0.02
+    consistency_z: float = 3.0
+    triad_eps: float = 0.3
+    triad_max_angle: float = np.radians(50.0)
+
+    def __post_init__(self):
+        unknown = set(self.models) - set(MODEL_CLASS)
+        if unknown or not self.models:
+            raise ValueError(f"models must be a non-empty subset of {sorted(MODEL_CLASS)}, got {self.models}")
+
+
+def _row_geometry(layout: Layout, echoes: EchoArrays):
+    """Transmitter and receivers of every echo row, horizontal, (N, 2) and (N, K, 2), m."""
+    group = echoes.group.astype(np.int64)
+    tx = layout.transmitters[echoes.transmitter.astype(np.int64), :2]
+    receivers = layout.receivers[layout.groups[group]]
+    return tx, receivers[..., :2], receivers[..., 2]
+
+
+def horizontal_paths(layout: Layout, echoes: EchoArrays, settings: Settings):
+    """Path lengths of every row and receiver, shape (N, K), m, and their scale d/h.
+
+    With ``settings.vertical_correction`` the exact horizontal part
+    ``sqrt(d^2 - dz^2)``; NaN where a receiver missed the echo or ``d < |dz|``.
+    The scale ``d / h`` turns a path's standard deviation into the horizontal one.
+    """
+    paths = echoes.speed_of_sound * np.asarray(echoes.tof, dtype=float)
+    if not settings.vertical_correction:
+        return paths, np.ones_like(paths)
+    tx_height = layout.transmitters[echoes.transmitter.astype(np.int64), 2]
+    dz = tx_height[:, None] - _row_geometry(layout, echoes)[2]
+    horizontal = localise.horizontal_path(paths, dz).value
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return horizontal, paths / horizontal
+
+
+def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Settings()) -> Landmarks:
+    """Landmark hypotheses for every echo row and enabled model, sensor frame.
+
+    Pairs (ring, Barshan & Kuc) give one hypothesis per model and row, with
+    ``landmark_class`` the model's class; triads give one UNKNOWN landmark per
+    row (bearing from phase, range from TOF, :func:`sonar_ring.doa.triad_landmark`).
+    Invalid hypotheses are kept with ``valid`` False and their reason code, so
+    the caller can count them.
+    """
+    if layout.kind == "triad":
+        return _localise_triads(layout, echoes, settings)
+    tx, receivers, _ = _row_geometry(layout, echoes)
+    paths, scale = horizontal_paths(layout, echoes, settings)
+    rx1, rx2 = receivers[:, 0], receivers[:, 1]
+    d1, d2 = paths[:, 0], paths[:, 1]
+    covariance_paths = localise.path_covariance(d1, d2, settings.sigma_tof, echoes.speed_of_sound,
+                                                settings.sigma_speed)
+    covariance_paths = covariance_paths * scale[:, :, None] * scale[:, None, :]
+    rows = np.arange(echoes.n_echoes)
+    parts = []
+    for model in settings.models:
+        estimate = getattr(localise, model)(tx, rx1, rx2, d1, d2)
+        covariance = localise.position_covariance(estimate, tx, rx1, rx2, covariance_paths)
+        if model == "plane":
+            normal = -np.nan_to_num(estimate.normal)
+            segment = np.nan_to_num(estimate.reflection_points)
+        else:
+            normal = None
+            segment = None
+        parts.append(make_landmarks(MODEL_CLASS[model], np.nan_to_num(estimate.position), normal=normal,
+                                    covariance=np.nan_to_num(covariance, nan=0.0), segment=segment,
+                                    group=echoes.group, echo=rows, valid=estimate.valid, reason=estimate.reason))
+    return Landmarks.concatenate(parts)
+
+
+def _localise_triads(layout: Layout, echoes: EchoArrays, settings: Settings) -> Landmarks:
+    if echoes.phase_delay.shape[1] != 2:
+        raise ValueError("triad echoes need two phase delays per row")
+    wavelength = layout.wavelength(echoes.speed_of_sound)
+    parts = []
+    for group in np.unique(echoes.group):
+        rows = np.flatnonzero(echoes.group == group)
+        members = layout.groups[group]
+        emitter = layout.transmitters[layout.group_transmitters[group, 0]]
+        result = doa.triad_landmark(
+            layout.receivers[members, :2], emitter[:2], echoes.tof[rows], echoes.phase_delay[rows, 0],
+            echoes.phase_delay[rows, 1], wavelength, echoes.speed_of_sound, settings.triad_eps,
+            settings.triad_max_angle, delay_std=settings.sigma_tof, tof_std=settings.sigma_tof,
+            height_offset=float(emitter[2] - layout.receivers[members[0], 2]),
+            speed_of_sound_std=settings.sigma_speed)
+        parts.append(make_landmarks(UNKNOWN, np.nan_to_num(result.position),
+                                    covariance=np.nan_to_num(result.covariance, nan=0.0), group=group, echo=rows,
+                                    valid=result.valid, reason=result.reason))
+    return Landmarks.concatenate(parts)
+
+
+def classify_ping(layout: Layout, echoes: EchoArrays, hypotheses: Landmarks,
+                  settings: Settings = Settings()) -> Landmarks:
+    """One labelled landmark per echo row that has a valid hypothesis.
+
+    The class comes from the evidence the layout gives: amplitude rules for
+    groups with two transmitters (both rows of an echo, matched by arrival order),
+    geometric consistency for single-emitter groups.  The position is the
+    hypothesis of the decided class, or the corner model's (Browne s7) while
+    the class is UNKNOWN or its model is not enabled; the confidence is the
+    deciding test's.
+    """
+    decided, confidence = _evidence(layout, echoes, settings)
+    count = echoes.n_echoes
+    index = {}
+    for code in (UNKNOWN, PLANE, CORNER, EDGE):
+        mine = hypotheses.landmark_class == code
+        index[code] = np.full(count, -1, dtype=np.int64)
+        index[code][hypotheses.echo[mine].astype(np.int64)] = np.flatnonzero(mine)
+
+    def usable(picked):
+        ok = picked >= 0
+        ok[ok] = hypotheses.valid[picked[ok]]
+        return ok
+
+    of_decided = np.full(count, -1, dtype=np.int64)
+    for code in (PLANE, CORNER, EDGE):
+        of_decided[decided == code] = index[code][decided == code]
+    use_decided = usable(of_decided)
+    fallback = np.where(usable(index[CORNER]), index[CORNER], index[UNKNOWN])
+    pick = np.where(use_decided, of_decided, fallback)
+    keep = usable(pick)
+    return hypotheses.select(pick[keep]).with_class(np.where(use_decided, decided, UNKNOWN)[keep],
+                                                     np.where(use_decided, confidence, 0.0)[keep])
+
+
+def _evidence(layout: Layout, echoes: EchoArrays, settings: Settings):
+    """Class decision and confidence per echo row, shapes (N,)."""
+    decided = np.full(echoes.n_echoes, UNKNOWN, dtype=np.uint8)
+    confidence = np.zeros(echoes.n_echoes)
+    if echoes.n_echoes == 0:
+        return decided, confidence
+    if layout.group_transmitters.shape[1] == 2 and echoes.amplitude.shape[1] == 2:
+        first, second = _matched_rows(layout, echoes)
+        # [[A_aa', A_ab'], [A_ba', A_bb']]: rows by transmitter, columns by receiver.
+        amplitudes = np.stack([echoes.amplitude[first], echoes.amplitude[second]], axis=1)
+        result = classify.classify_amplitudes(amplitudes, settings.sigma_amplitude)
+        for rows in (first, second):
+            decided[rows] = result.cls
+            confidence[rows] = result.confidence
+    elif layout.kind == "ring":
+        paths = echoes.speed_of_sound * np.asarray(echoes.tof, dtype=float)
+        result = classify.ring_consistency(layout, echoes.group, paths,
+                                           echoes.speed_of_sound * settings.sigma_tof, z=settings.consistency_z)
+        decided[:] = result.cls
+        confidence[:] = np.where(result.cls == EDGE, result.confidence, 0.0)
+    return decided, confidence
+
+
+def _matched_rows(layout: Layout, echoes: EchoArrays):
+    """Rows of the same echo after each of a group's two transmitters fired, by arrival order."""
+    firsts, seconds = [], []
+    for group in np.unique(echoes.group):
+        a, b = layout.group_transmitters[group]
+        rows_a = np.flatnonzero((echoes.group == group) & (echoes.transmitter == a))
+        rows_b = np.flatnonzero((echoes.group == group) & (echoes.transmitter == b))
+        count = min(len(rows_a), len(rows_b))
+        firsts.append(rows_a[:count])
+        seconds.append(rows_b[:count])
+    return np.concatenate(firsts).astype(np.int64), np.concatenate(seconds).astype(np.int64)

@@ -1,0 +1,96 @@
+"""classifier: labels each ping's hypotheses and draws them for RViz.
+
+Subscribes ``echoes`` and ``landmarks/raw`` and pairs them by stamp (the
+hypotheses of a ping carry its echoes' header).  Publishes ``landmarks``
+(sonar_ring/LandmarkArray: one labelled landmark per echo, class, confidence),
+``markers`` (visualization_msgs/MarkerArray) and ``/diagnostics``.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import OrderedDict
+
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from visualization_msgs.msg import MarkerArray
+
+from sonar_ring import pipeline
+from sonar_ring.geometry import load_layout
+from sonar_ring.msg import Echoes, LandmarkArray
+from sonar_ring.ros.convert import MessageError, landmarks_from_msg, landmarks_to_msg
+from sonar_ring.ros.diagnostics import NodeHealth
+from sonar_ring.ros.localiser import check_echoes, settings_from
+from sonar_ring.ros.markers import landmark_markers
+from sonar_ring.ros.params import Param, declare
+from sonar_ring.ros.run import spin
+
+PENDING_LIMIT = 32
+"""Pings waiting for their other half; the oldest is dropped (and counted) beyond this."""
+
+PARAMS = [
+    Param("layout", "browne_ring", "sensor layout: a name in config/layouts or a YAML path", read_only=True),
+    Param("sigma_tof", 1e-6, "time-of-flight noise for the consistency test, s", low=1e-9, high=1e-3),
+    Param("sigma_amplitude", 0.02, "amplitude noise relative to A_max (Barshan & Kuc rules)", low=1e-4,
+          high=0.16),
+    Param("consistency_z", 3.0, "significance of the edge/specular consistency test, standard deviations",
+          low=1.0, high=10.0),
+    Param("marker_lifetime", 0.5, "seconds before a ping's markers vanish", low=0.0, high=60.0),
+]
+
+
+class Classifier(Node):
+    """Hypotheses and echoes in, labelled landmarks and markers out, one message each per ping."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("classifier", **kwargs)
+        self.params = declare(self, PARAMS, self._on_change)
+        self.layout = load_layout(self.params["layout"])
+        self.settings = settings_from(self.params)
+        self.health = NodeHealth(self, hardware_id=self.layout.name)
+        self._pending: OrderedDict[tuple, dict] = OrderedDict()
+        self._landmarks = self.create_publisher(LandmarkArray, "landmarks", qos_profile_sensor_data)
+        self._markers = self.create_publisher(MarkerArray, "markers", 10)
+        self.create_subscription(Echoes, "echoes", lambda m: self._arrived("echoes", m), qos_profile_sensor_data)
+        self.create_subscription(LandmarkArray, "landmarks/raw", lambda m: self._arrived("raw", m),
+                                 qos_profile_sensor_data)
+
+    def _on_change(self, changed: dict) -> None:
+        self.settings = settings_from(self.params)
+
+    def _arrived(self, kind: str, msg) -> None:
+        key = (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id)
+        halves = self._pending.setdefault(key, {})
+        halves[kind] = msg
+        if len(halves) == 2:
+            del self._pending[key]
+            self._classify(halves["echoes"], halves["raw"])
+        while len(self._pending) > PENDING_LIMIT:
+            _, dropped = self._pending.popitem(last=False)
+            self.health.problem("unpaired_" + "_".join(sorted(dropped)), "no matching ping arrived")
+
+    def _classify(self, echoes_msg: Echoes, raw_msg: LandmarkArray) -> None:
+        started = time.perf_counter()
+        self.health.received()
+        echoes = check_echoes(echoes_msg, self.layout, self.health)
+        if echoes is None:
+            return
+        try:
+            hypotheses = landmarks_from_msg(raw_msg)
+        except MessageError as error:
+            self.health.problem("malformed_message", str(error))
+            return
+        labelled = pipeline.classify_ping(self.layout, echoes, hypotheses, self.settings)
+        self._landmarks.publish(landmarks_to_msg(labelled, echoes_msg.header))
+        self._markers.publish(landmark_markers(labelled, echoes_msg.header, "landmarks",
+                                               self.params["marker_lifetime"]))
+        self.health.processed(time.perf_counter() - started, published=2)
+
+
+def main(args=None) -> None:
+    """Run the classifier until Ctrl-C or shutdown."""
+    spin(Classifier, args=args)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,239 @@
+"""driver: echoes from the hardware, a topic or the scene simulator, one message per ping.
+
+Publishes
+    ``echoes`` (sonar_ring/Echoes, sensor-data QoS) -- every ping;
+    ``range`` (sensor_msgs/Range) -- per group, the nearest echo (REP 117), for Nav2;
+    ``odom`` (nav_msgs/Odometry) and ``truth`` (sonar_ring/LandmarkArray) --
+    ``source:=simulator`` only: the simulated robot pose and, per echo row, the
+    true reflector class and position in the sensor frame;
+    ``/diagnostics``.
+Subscribes
+    ``tof_in`` (sonar_ring/Echoes) -- ``source:=topic`` only.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections import deque
+
+import numpy as np
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+from sensor_msgs.msg import Range
+from std_msgs.msg import Header
+
+from sonar_ring.echoes import EchoArrays, sanitize
+from sonar_ring.geometry import load_layout
+from sonar_ring.landmarks import make_landmarks
+from sonar_ring.msg import Echoes
+from sonar_ring.msg import LandmarkArray as LandmarkArrayMsg
+from sonar_ring.ros.convert import MessageError, echoes_from_msg, echoes_to_msg, landmarks_to_msg
+from sonar_ring.ros.diagnostics import NodeHealth
+from sonar_ring.ros.params import Param, declare
+from sonar_ring.ros.run import spin
+from sonar_ring.simulate import Noise, Simulator, load_scene
+
+SOURCES = ("hardware", "topic", "simulator")
+HARDWARE_QUEUE = 64
+"""Decoded frames waiting to be published; older ones are dropped (and counted) beyond this."""
+
+PARAMS = [
+    Param("source", "simulator", "where echoes come from", choices=SOURCES, read_only=True),
+    Param("layout", "browne_ring", "sensor layout: a name in config/layouts or a YAML path", read_only=True),
+    Param("frame_id", "sonar_ring", "frame of the echoes (sensor frame at the ring centre)"),
+    Param("device", "udp://0.0.0.0:5600", "hardware: serial:///dev/ttyUSB0?baud=921600, udp://HOST:PORT or "
+          "tcp://HOST:PORT", read_only=True),
+    Param("silence_timeout", 2.0, "hardware: seconds without bytes before reconnecting", low=0.1, high=60.0,
+          read_only=True),
+    Param("scene", "room", "simulator: a name in config/scenes or a YAML path", read_only=True),
+    Param("ping_rate", 0.0, "simulator: pings per second (0: the layout's rate)", low=0.0, high=2000.0),
+    Param("sigma_tof", 1e-6, "simulator: time-of-flight noise, s", low=0.0, high=1e-3),
+    Param("sigma_amplitude", 0.02, "simulator: amplitude noise relative to A_max", low=0.0, high=1.0),
+    Param("seed", 0, "simulator: noise seed", low=0, high=2**31 - 1, read_only=True),
+    Param("loops", 0, "simulator: laps of the scene trajectory before stopping (0: forever)", low=0, high=10**6,
+          read_only=True),
+    Param("speed_of_sound", 0.0, "m/s to use when the source gives none (0: 20 degC dry air)", low=0.0,
+          high=400.0),
+    Param("publish_range", True, "publish one sensor_msgs/Range per group on `range`"),
+]
+
+
+class Driver(Node):
+    """Publishes each ping of the selected source as one Echoes message."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("driver", **kwargs)
+        self.params = declare(self, PARAMS, self._on_change)
+        self.layout = load_layout(self.params["layout"])
+        self.health = NodeHealth(self, hardware_id=f"{self.params['source']}:{self.layout.name}")
+        self._max_tof = 2.5 * self.layout.max_range / 300.0
+        self._echo_publisher = self.create_publisher(Echoes, "echoes", qos_profile_sensor_data)
+        self._range_publisher = self.create_publisher(Range, "range", qos_profile_sensor_data)
+        self.pings_published = 0
+        source = self.params["source"]
+        if source == "simulator":
+            self._start_simulator()
+        elif source == "topic":
+            self.create_subscription(Echoes, "tof_in", self._on_topic, qos_profile_sensor_data)
+        else:
+            self._start_hardware()
+
+    # ------------------------------------------------------------------ sources
+
+    def _start_simulator(self) -> None:
+        self.scene = load_scene(self.params["scene"])
+        self._simulator = Simulator(self.scene, self.layout)
+        self._rng = np.random.default_rng(self.params["seed"])
+        rate = self.params["ping_rate"] or self.layout.ping_rate
+        if self.scene.trajectory is not None:
+            self._poses = self.scene.trajectory.poses(rate)[1]
+        else:
+            self._poses = self.scene.sensor_pose[None, :]
+        self._pose_index = 0
+        self._laps_left = self.params["loops"] or -1
+        self._odom_publisher = self.create_publisher(Odometry, "odom", 10)
+        self._truth_publisher = self.create_publisher(LandmarkArrayMsg, "truth", 10)
+        self._timer = self.create_timer(1.0 / rate, self._simulate_ping)
+
+    def _simulate_ping(self) -> None:
+        if self._laps_left == 0:
+            return
+        started = time.perf_counter()
+        pose = self._poses[self._pose_index]
+        noise = Noise(tof=self.params["sigma_tof"], amplitude=self.params["sigma_amplitude"])
+        ping = self._simulator.ping(pose, noise=noise, rng=self._rng)
+        header = self._header()
+        self.health.received()
+        echoes = EchoArrays(layout=self.layout.name, speed_of_sound=ping.speed_of_sound, group=ping.group,
+                            transmitter=ping.transmitter, tof=ping.tof, amplitude=ping.amplitude,
+                            phase_delay=ping.phase_delay)
+        self._publish(echoes, header)
+        self._odom_publisher.publish(_odometry(pose, header))
+        truth = make_landmarks(ping.truth_class, ping.truth_position,
+                               normal=np.nan_to_num(ping.truth_normal), echo=np.arange(ping.n_echoes),
+                               group=ping.group)
+        self._truth_publisher.publish(landmarks_to_msg(truth, header))
+        self.health.processed(time.perf_counter() - started, published=1)
+        self._pose_index += 1
+        if self._pose_index == len(self._poses):
+            self._pose_index = 0
+            self._laps_left -= 1
+
+    def _on_topic(self, msg: Echoes) -> None:
+        started = time.perf_counter()
+        self.health.received()
+        try:
+            echoes = echoes_from_msg(msg)
+        except MessageError as error:
+            self.health.problem("malformed_message", str(error))
+            return
+        if echoes.tof.shape[1] != self.layout.receivers_per_group:
+            self.health.problem("wrong_receivers_per_group", f"got {echoes.tof.shape[1]}, layout "
+                                f"{self.layout.name} has {self.layout.receivers_per_group}")
+            return
+        header = Header(stamp=msg.header.stamp, frame_id=self.params["frame_id"])
+        self._publish(echoes, header)
+        self.health.processed(time.perf_counter() - started)
+
+    def _start_hardware(self) -> None:
+        from sonar_ring.transport import HardwareReader
+
+        self._frames: deque = deque()
+        self._frames_lock = threading.Lock()
+        self.reader = HardwareReader(self.params["device"], self._on_frame,
+                                     silence_timeout=self.params["silence_timeout"])
+        self.reader.start()
+        self._timer = self.create_timer(0.002, self._drain_frames)
+
+    def _on_frame(self, frame) -> None:
+        """Reader thread: queue the frame with its arrival time; drop the oldest when full."""
+        with self._frames_lock:
+            if len(self._frames) >= HARDWARE_QUEUE:
+                self._frames.popleft()
+                self.health.problems["dropped_queue_full"] += 1
+            self._frames.append((self.get_clock().now(), frame))
+
+    def _drain_frames(self) -> None:
+        with self._frames_lock:
+            frames, self._frames = list(self._frames), deque()
+        for stamp, frame in frames:
+            started = time.perf_counter()
+            self.health.received()
+            header = Header(stamp=stamp.to_msg(), frame_id=self.params["frame_id"])
+            echoes = frame.echoes
+            if echoes.tof.shape[1] != self.layout.receivers_per_group:
+                self.health.problem("wrong_receivers_per_group", f"frame {frame.sequence}")
+                continue
+            self._publish(echoes, header)
+            self.health.processed(time.perf_counter() - started)
+        for reason, count in self.reader.decoder.errors.items():
+            self.health.problems[f"frame_{reason}"] = count
+
+    # ------------------------------------------------------------------ output
+
+    def _publish(self, echoes: EchoArrays, header: Header) -> None:
+        speed = echoes.speed_of_sound or self.params["speed_of_sound"] or 343.3
+        kept, problems = sanitize(echoes, self.layout.n_groups, self.layout.group_transmitters, self._max_tof)
+        for reason, count in problems.items():
+            self.health.problem(reason, f"ping at {header.stamp.sec}.{header.stamp.nanosec:09d}", count)
+        kept = EchoArrays(layout=self.layout.name, speed_of_sound=speed, group=kept.group,
+                          transmitter=kept.transmitter, tof=kept.tof, amplitude=kept.amplitude,
+                          phase_delay=kept.phase_delay)
+        self._echo_publisher.publish(echoes_to_msg(kept, header))
+        self.pings_published += 1
+        if self.params["publish_range"]:
+            for message in self._ranges(kept, header):
+                self._range_publisher.publish(message)
+
+    def _ranges(self, echoes: EchoArrays, header: Header) -> list[Range]:
+        """REP 117 ranges per group: nearest echo, +inf when the group heard nothing."""
+        nearest = np.full(self.layout.n_groups, np.inf)
+        half_path = 0.5 * echoes.speed_of_sound * np.nanmin(echoes.tof, axis=1) if echoes.n_echoes else []
+        np.minimum.at(nearest, echoes.group.astype(np.int64), half_path)
+        field_of_view = 2.0 * self.layout.beam_half_angle
+        messages = []
+        for group, value in enumerate(nearest):
+            message = Range(radiation_type=Range.ULTRASOUND, field_of_view=field_of_view, min_range=0.02,
+                            max_range=float(self.layout.max_range), range=float(value))
+            message.header.stamp = header.stamp
+            message.header.frame_id = f"{header.frame_id}/group_{group:02d}"
+            if value < message.min_range:
+                message.range = -np.inf
+            messages.append(message)
+        return messages
+
+    def _header(self) -> Header:
+        return Header(stamp=self.get_clock().now().to_msg(), frame_id=self.params["frame_id"])
+
+    def _on_change(self, changed: dict) -> None:
+        if "ping_rate" in changed and self.params["source"] == "simulator":
+            self._timer.cancel()
+            rate = changed["ping_rate"] or self.layout.ping_rate
+            self._timer = self.create_timer(1.0 / rate, self._simulate_ping)
+
+    def destroy_node(self) -> None:
+        """Stop the hardware reader thread before the node goes."""
+        if self.params["source"] == "hardware":
+            self.reader.stop()
+        super().destroy_node()
+
+
+def _odometry(pose: np.ndarray, header: Header) -> Odometry:
+    message = Odometry(child_frame_id=header.frame_id)
+    message.header.stamp = header.stamp
+    message.header.frame_id = "odom"
+    message.pose.pose.position.x, message.pose.pose.position.y = float(pose[0]), float(pose[1])
+    message.pose.pose.orientation.z = float(np.sin(pose[2] / 2))
+    message.pose.pose.orientation.w = float(np.cos(pose[2] / 2))
+    return message
+
+
+def main(args=None) -> None:
+    """Run the driver until Ctrl-C or shutdown."""
+    spin(Driver, args=args)
+
+
+if __name__ == "__main__":
+    main()

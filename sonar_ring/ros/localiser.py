@@ -1,0 +1,114 @@
+"""localiser: each ping's echoes to plane / corner / edge hypotheses with covariance.
+
+Subscribes ``echoes`` (sonar_ring/Echoes); publishes ``landmarks/raw``
+(sonar_ring/LandmarkArray, one message per ping, valid hypotheses only, in the
+echoes' frame) and ``/diagnostics`` (invalid hypotheses counted by reason: a
+receiver that missed the echo, no real solution, ...).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+from rclpy.node import Node
+from rclpy.qos import qos_profile_sensor_data
+
+from sonar_ring import localise, pipeline
+from sonar_ring.geometry import load_layout
+from sonar_ring.msg import Echoes, LandmarkArray
+from sonar_ring.ros.convert import MessageError, echoes_from_msg, landmarks_to_msg
+from sonar_ring.ros.diagnostics import NodeHealth
+from sonar_ring.ros.params import Param, declare
+from sonar_ring.ros.run import spin
+
+
+def _models_problem(models) -> str | None:
+    unknown = set(models) - set(pipeline.MODEL_CLASS)
+    if unknown or not models:
+        return f"models must be a non-empty subset of {sorted(pipeline.MODEL_CLASS)}, got {list(models)}"
+    return None
+
+
+PARAMS = [
+    Param("layout", "browne_ring", "sensor layout: a name in config/layouts or a YAML path", read_only=True),
+    Param("models", ["plane", "corner", "edge"], "localisation models to run: plane, corner, edge",
+          check=_models_problem),
+    Param("vertical_correction", True, "use the exact horizontal path sqrt(d^2 - dz^2) (vertically extruded "
+          "reflectors)"),
+    Param("sigma_tof", 1e-6, "time-of-flight noise for covariances, s", low=1e-9, high=1e-3),
+    Param("sigma_speed", 0.0, "speed-of-sound uncertainty for covariances, m/s", low=0.0, high=20.0),
+    Param("triad_eps", 0.3, "triads: Kreczmer eq 6 tolerance", low=0.001, high=1.0),
+    Param("triad_max_angle", 50.0, "triads: largest azimuth accepted, deg", low=1.0, high=90.0),
+]
+
+
+def settings_from(values: dict) -> pipeline.Settings:
+    """The pipeline settings the localiser and classifier parameters describe."""
+    return pipeline.Settings(
+        models=tuple(values.get("models", pipeline.Settings.models)),
+        vertical_correction=bool(values.get("vertical_correction", True)),
+        sigma_tof=float(values["sigma_tof"]),
+        sigma_speed=float(values.get("sigma_speed", 0.0)),
+        sigma_amplitude=float(values.get("sigma_amplitude", pipeline.Settings.sigma_amplitude)),
+        consistency_z=float(values.get("consistency_z", pipeline.Settings.consistency_z)),
+        triad_eps=float(values.get("triad_eps", pipeline.Settings.triad_eps)),
+        triad_max_angle=float(np.radians(values.get("triad_max_angle", 50.0))),
+    )
+
+
+def check_echoes(msg: Echoes, layout, health: NodeHealth):
+    """The ping's arrays, or None after counting why it cannot be used."""
+    try:
+        echoes = echoes_from_msg(msg)
+    except MessageError as error:
+        health.problem("malformed_message", str(error))
+        return None
+    if msg.layout != layout.name:
+        health.problem("layout_mismatch", f"echoes of layout {msg.layout!r}, this node runs {layout.name!r}")
+        return None
+    if echoes.tof.shape[1] != layout.receivers_per_group or np.any(echoes.group >= layout.n_groups):
+        health.problem("does_not_fit_layout", f"receivers per group or group index beyond layout {layout.name}")
+        return None
+    if not (np.isfinite(echoes.speed_of_sound) and echoes.speed_of_sound > 0):
+        health.problem("bad_speed_of_sound", f"{echoes.speed_of_sound}")
+        return None
+    return echoes
+
+
+class Localiser(Node):
+    """Echoes in, landmark hypotheses out, one message per ping."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("localiser", **kwargs)
+        self.params = declare(self, PARAMS, self._on_change)
+        self.layout = load_layout(self.params["layout"])
+        self.settings = settings_from(self.params)
+        self.health = NodeHealth(self, hardware_id=self.layout.name)
+        self._publisher = self.create_publisher(LandmarkArray, "landmarks/raw", qos_profile_sensor_data)
+        self.create_subscription(Echoes, "echoes", self._on_echoes, qos_profile_sensor_data)
+
+    def _on_change(self, changed: dict) -> None:
+        self.settings = settings_from(self.params)
+
+    def _on_echoes(self, msg: Echoes) -> None:
+        started = time.perf_counter()
+        self.health.received()
+        echoes = check_echoes(msg, self.layout, self.health)
+        if echoes is None:
+            return
+        hypotheses = pipeline.localise_ping(self.layout, echoes, self.settings)
+        invalid = hypotheses.reason[~hypotheses.valid]
+        for code, count in zip(*np.unique(invalid, return_counts=True), strict=True):
+            self.health.note(f"invalid hypothesis: {localise.REASONS[int(code)]}", int(count))
+        self._publisher.publish(landmarks_to_msg(hypotheses.select(hypotheses.valid), msg.header))
+        self.health.processed(time.perf_counter() - started)
+
+
+def main(args=None) -> None:
+    """Run the localiser until Ctrl-C or shutdown."""
+    spin(Localiser, args=args)
+
+
+if __name__ == "__main__":
+    main()
