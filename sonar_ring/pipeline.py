@@ -16,7 +16,7 @@ different processes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -24,6 +24,9 @@ from sonar_ring import classify, doa, localise
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import Layout
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, Landmarks, make_landmarks
+
+ARC_MSE = 30.0
+"""Mean-squared error along an estimate's arc bias, in squared biases (see :func:`unscented_covariance`)."""
 
 MODEL_CLASS = {"plane": PLANE, "corner": CORNER, "edge": EDGE}
 """Class code of the landmark each localisation model produces."""
@@ -93,6 +96,55 @@ def horizontal_paths(layout: Layout, echoes: EchoArrays, settings: Settings):
         return horizontal, paths / horizontal
 
 
+def unscented_covariance(model, position, tx, rx1, rx2, d1, d2, paths_covariance) -> np.ndarray:
+    """Covariance of ``position`` that stays consistent where the error bends along an arc.
+
+    A pair measures range far better than bearing, so the error region is a thin
+    arc (a banana): a tangential error ``t`` moves the estimate inwards by about
+    ``t^2 / (2 rho)``, which at a few metres exceeds the first-order radial
+    standard deviation.  A first-order (Jacobian) covariance then covers only
+    ~85 % of errors at 3 sigma, which breaks the mapper's Mahalanobis gating.
+
+    Five sigma points in path space (unscented transform, ``n + kappa = 3``)
+    give the covariance including the arc's second-order spread, and the bias
+    ``b`` of their mean (``|b| = m = sigma_t^2 / (2 rho)``, pointing inwards).
+    Along ``b`` the total mean-squared error is set to :data:`ARC_MSE` ``m^2``:
+    the arc at ``t = 3 sigma_t`` lies ``9 m`` inwards, and
+    ``(9 m)^2 / (30 m^2) = 2.7`` keeps it inside the 3-sigma ellipse
+    (Mahalanobis ``9 + 2.7 < 11.83``).  Across the arc nothing changes.
+
+    Parameters
+    ----------
+    model : callable
+        ``localise.plane``, ``corner`` or ``edge``.
+    position : ndarray, shape (N, 2)
+        The estimate at the measured paths, m.
+    tx, rx1, rx2 : ndarray, shape (N, 2)
+        Geometry, m.
+    d1, d2 : ndarray, shape (N,)
+        Measured (horizontal) path lengths, m.
+    paths_covariance : ndarray, shape (N, 2, 2)
+        Covariance of (d1, d2), m^2.
+
+    Returns
+    -------
+    ndarray, shape (N, 2, 2)
+        m^2; NaN where a sigma point has no solution (the caller keeps the
+        estimate's own validity).
+    """
+    scale = np.linalg.cholesky(3.0 * np.nan_to_num(paths_covariance) + 1e-30 * np.eye(2))
+    offsets = [np.zeros((len(d1), 2))]
+    offsets += [sign * scale[:, :, column] for column in range(2) for sign in (1.0, -1.0)]
+    points = np.stack([model(tx, rx1, rx2, d1 + o[:, 0], d2 + o[:, 1]).position for o in offsets])  # (5, N, 2)
+    weights = np.array([1 / 3] + [1 / 6] * 4)
+    mean = np.einsum("s,sni->ni", weights, points)
+    deviation = points - mean
+    covariance = np.einsum("s,sni,snj->nij", weights, deviation, deviation)
+    bias = mean - position
+    # The transform already holds 2 m^2 of arc spread along the bias; add the rest of ARC_MSE.
+    return covariance + (ARC_MSE - 2.0) * bias[:, :, None] * bias[:, None, :]
+
+
 def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Settings()) -> Landmarks:
     """Landmark hypotheses for every echo row and enabled model, sensor frame.
 
@@ -115,7 +167,8 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
     parts = []
     for model in settings.models:
         estimate = getattr(localise, model)(tx, rx1, rx2, d1, d2)
-        covariance = localise.position_covariance(estimate, tx, rx1, rx2, covariance_paths)
+        covariance = unscented_covariance(getattr(localise, model), estimate.position, tx, rx1, rx2, d1, d2,
+                                          covariance_paths)
         if model == "plane":
             normal = -np.nan_to_num(estimate.normal)
             segment = np.nan_to_num(estimate.reflection_points)
@@ -180,8 +233,16 @@ def classify_ping(layout: Layout, echoes: EchoArrays, hypotheses: Landmarks,
     fallback = np.where(usable(index[CORNER]), index[CORNER], index[UNKNOWN])
     pick = np.where(use_decided, of_decided, fallback)
     keep = usable(pick)
-    return hypotheses.select(pick[keep]).with_class(np.where(use_decided, decided, UNKNOWN)[keep],
-                                                     np.where(use_decided, confidence, 0.0)[keep])
+    labelled = hypotheses.select(pick[keep]).with_class(np.where(use_decided, decided, UNKNOWN)[keep],
+                                                        np.where(use_decided, confidence, 0.0)[keep])
+    # An undecided echo may be an edge placed with the corner model (Browne s7): its
+    # covariance carries that model discrepancy, so it stays consistent either way.
+    undecided = np.flatnonzero(~use_decided[keep] & usable(index[EDGE])[keep])
+    edge_rows = index[EDGE][keep][undecided]
+    gap = hypotheses.position[edge_rows] - labelled.position[undecided]
+    covariance = labelled.covariance.copy()
+    covariance[undecided] += gap[:, :, None] * gap[:, None, :]
+    return replace(labelled, covariance=covariance)
 
 
 def _evidence(layout: Layout, echoes: EchoArrays, settings: Settings):

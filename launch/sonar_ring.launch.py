@@ -1,0 +1,63 @@
+"""The sonar_ring graph: driver -> localiser -> classifier -> mapper, and RViz on request.
+
+    ros2 launch sonar_ring sonar_ring.launch.py                      # hardware, Browne ring
+    ros2 launch sonar_ring sonar_ring.launch.py source:=simulator    # default room scene
+    ros2 launch sonar_ring sonar_ring.launch.py source:=simulator scene:=single_pole rviz:=true
+    ros2 launch sonar_ring sonar_ring.launch.py source:=topic use_sim_time:=true   # bag replay
+
+Node parameters come from config/params/<layout>.yaml unless ``params_file`` names
+another file; the arguments below override them.
+"""
+
+from launch import LaunchDescription
+from launch.actions import DeclareLaunchArgument
+from launch.conditions import IfCondition, UnlessCondition
+from launch.substitutions import LaunchConfiguration, PathJoinSubstitution, PythonExpression
+from launch_ros.actions import Node
+from launch_ros.substitutions import FindPackageShare
+
+NODES = ("driver", "localiser", "classifier", "mapper")
+
+ARGUMENTS = {
+    "layout": ("browne_ring", "sensor layout: a name in config/layouts"),
+    "params_file": ("", "node parameters YAML (default: config/params/<layout>.yaml)"),
+    "source": ("hardware", "where echoes come from: hardware, topic or simulator"),
+    "device": ("udp://0.0.0.0:5600", "hardware device: serial:///dev/ttyUSB0?baud=921600, udp://HOST:PORT, "
+               "tcp://HOST:PORT"),
+    "scene": ("room", "simulator scene: a name in config/scenes or a YAML path"),
+    "namespace": ("", "namespace of every node and relative topic"),
+    "use_sim_time": ("false", "use /clock (bag replay)"),
+    "rviz": ("false", "start RViz with config/sonar_ring.rviz"),
+    "single_process": ("false", "run the four nodes in one process (one executor)"),
+}
+
+
+def generate_launch_description() -> LaunchDescription:
+    """Declare the arguments and the nodes."""
+    share = FindPackageShare("sonar_ring")
+    config = {name: LaunchConfiguration(name) for name in ARGUMENTS}
+    params_file = PythonExpression(["'", config["params_file"], "' or '", share, "/config/params/",
+                                    config["layout"], ".yaml'"])
+    overrides = {
+        "use_sim_time": PythonExpression(["'", config["use_sim_time"], "'.lower() == 'true'"]),
+        "layout": config["layout"],
+        "source": config["source"],
+        "device": config["device"],
+        "scene": config["scene"],
+    }
+    parameters = [params_file, overrides]
+    separate = [
+        Node(package="sonar_ring", executable=name, name=name, namespace=config["namespace"],
+             parameters=parameters, output="screen", condition=UnlessCondition(config["single_process"]))
+        for name in NODES
+    ]
+    # No name: a name would rename every node of the process; the parameters go to all of them.
+    together = Node(package="sonar_ring", executable="graph",
+                    namespace=config["namespace"], parameters=parameters, output="screen",
+                    condition=IfCondition(config["single_process"]))
+    rviz = Node(package="rviz2", executable="rviz2", name="rviz2", namespace=config["namespace"],
+                arguments=["-d", PathJoinSubstitution([share, "config", "sonar_ring.rviz"])],
+                parameters=[{"use_sim_time": overrides["use_sim_time"]}], condition=IfCondition(config["rviz"]))
+    declared = [DeclareLaunchArgument(name, default_value=default, description=text)
+                for name, (default, text) in ARGUMENTS.items()]
+    return LaunchDescription([*declared, *separate, together, rviz])

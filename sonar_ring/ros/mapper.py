@@ -1,0 +1,199 @@
+"""mapper: labelled landmarks of every ping accumulated into a map in ``odom``.
+
+Subscribes ``landmarks`` (sonar_ring/LandmarkArray, sensor frame) and ``odom``
+(nav_msgs/Odometry: pose of the robot in ``odom``; the sensor sits at
+``sensor_offset`` in the robot frame).  A ping is placed with the robot pose at
+its stamp, interpolated between the odometry messages around it; without
+odometry (``use_odometry: false``) the robot stays at ``fixed_pose``.
+
+Publishes, reliable and transient local so a late subscriber gets the latest
+map, at ``map_rate``: ``map/landmarks`` (sonar_ring/LandmarkArray in
+``odom_frame``), ``map/markers`` (MarkerArray with covariance ellipses) and
+``map/points`` (sensor_msgs/PointCloud2 of landmark points for costmaps); and
+``/diagnostics``.
+"""
+
+from __future__ import annotations
+
+import bisect
+import time
+from collections import deque
+
+import numpy as np
+from nav_msgs.msg import Odometry
+from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sensor_msgs.msg import PointCloud2, PointField
+from std_msgs.msg import Header
+from visualization_msgs.msg import MarkerArray
+
+from sonar_ring.mapping import LandmarkMap, transform_landmarks
+from sonar_ring.msg import LandmarkArray
+from sonar_ring.ros.convert import MessageError, landmarks_from_msg, landmarks_to_msg
+from sonar_ring.ros.diagnostics import NodeHealth
+from sonar_ring.ros.markers import covariance_ellipses, landmark_markers
+from sonar_ring.ros.params import Param, declare
+from sonar_ring.ros.run import spin
+
+POSE_HISTORY = 500
+"""Odometry messages kept for interpolation (10 s at 50 Hz)."""
+PENDING_LIMIT = 32
+"""Pings waiting for a later odometry message; the oldest is dropped (and counted) beyond this."""
+
+
+def _three_numbers(value) -> str | None:
+    if len(value) != 3 or not all(np.isfinite(value)):
+        return f"must be three finite numbers [x, y, yaw], got {list(value)}"
+    return None
+
+
+PARAMS = [
+    Param("odom_frame", "odom", "frame of the map (the odometry's frame)"),
+    Param("use_odometry", True, "place pings with nav_msgs/Odometry on `odom`; false: at fixed_pose", read_only=True),
+    Param("fixed_pose", [0.0, 0.0, 0.0], "robot pose [x, y, yaw] (m, m, rad) when use_odometry is false",
+          check=_three_numbers),
+    Param("sensor_offset", [0.0, 0.0, 0.0], "sensor pose [x, y, yaw] in the odometry's child frame",
+          check=_three_numbers),
+    Param("map_rate", 2.0, "map publications per second", low=0.1, high=50.0),
+    Param("min_observations", 2, "sightings a landmark needs before it is published", low=1, high=1000),
+    Param("max_points", 2000, "map capacity for corners, edges and unresolved points", low=1, high=100000,
+          read_only=True),
+    Param("max_walls", 500, "map capacity for walls", low=1, high=100000, read_only=True),
+    Param("gate", 9.21, "Mahalanobis gate d^2 for association (9.21: 99 % for 2 dof)", low=0.5, high=100.0,
+          read_only=True),
+]
+
+
+def yaw_of(orientation) -> float:
+    """Yaw of a quaternion (rotation about z), rad."""
+    return float(np.arctan2(2.0 * (orientation.w * orientation.z + orientation.x * orientation.y),
+                            1.0 - 2.0 * (orientation.y ** 2 + orientation.z ** 2)))
+
+
+def compose(pose: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """Pose ``offset`` given in the frame of ``pose``, expressed in pose's parent frame."""
+    c, s = np.cos(pose[2]), np.sin(pose[2])
+    return np.array([pose[0] + c * offset[0] - s * offset[1], pose[1] + s * offset[0] + c * offset[1],
+                     pose[2] + offset[2]])
+
+
+def point_cloud(points: np.ndarray, header: Header) -> PointCloud2:
+    """A PointCloud2 of (P, 2) points at z = 0, float32 x, y, z."""
+    xyz = np.zeros((points.shape[0], 3), dtype=np.float32)
+    xyz[:, :2] = points
+    fields = [PointField(name=name, offset=4 * i, datatype=PointField.FLOAT32, count=1)
+              for i, name in enumerate("xyz")]
+    return PointCloud2(header=header, height=1, width=points.shape[0], fields=fields, is_bigendian=False,
+                       point_step=12, row_step=12 * points.shape[0], data=xyz.tobytes(), is_dense=True)
+
+
+class Mapper(Node):
+    """Landmarks and odometry in, the map out at ``map_rate``."""
+
+    def __init__(self, **kwargs) -> None:
+        super().__init__("mapper", **kwargs)
+        self.params = declare(self, PARAMS)
+        self.map = LandmarkMap(max_points=self.params["max_points"], max_walls=self.params["max_walls"],
+                               gate=self.params["gate"])
+        self.health = NodeHealth(self, hardware_id="map")
+        self._stamps: list[int] = []
+        self._poses: deque = deque(maxlen=POSE_HISTORY)
+        self._pending: deque = deque()
+        self._changed = False
+        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
+        self._map_landmarks = self.create_publisher(LandmarkArray, "map/landmarks", latched)
+        self._map_markers = self.create_publisher(MarkerArray, "map/markers", latched)
+        self._map_points = self.create_publisher(PointCloud2, "map/points", latched)
+        self.create_subscription(LandmarkArray, "landmarks", self._on_landmarks, qos_profile_sensor_data)
+        if self.params["use_odometry"]:
+            self.create_subscription(Odometry, "odom", self._on_odometry, 50)
+        self._timer = self.create_timer(1.0 / self.params["map_rate"], self.publish_map)
+
+    # ------------------------------------------------------------------ poses
+
+    def _on_odometry(self, msg: Odometry) -> None:
+        stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        pose = msg.pose.pose
+        if self._stamps and stamp <= self._stamps[-1]:
+            self.health.problem("odometry_out_of_order", f"stamp {stamp} after {self._stamps[-1]}")
+            return
+        if len(self._stamps) == POSE_HISTORY:
+            self._stamps.pop(0)
+        self._stamps.append(stamp)
+        self._poses.append(np.array([pose.position.x, pose.position.y, yaw_of(pose.orientation)]))
+        while self._pending and self._pose_at(self._pending[0][0]) is not None:
+            stamp, landmarks_msg = self._pending.popleft()
+            self._integrate(landmarks_msg, self._pose_at(stamp))
+
+    def _pose_at(self, stamp: int) -> np.ndarray | None:
+        """Robot pose at ``stamp`` (ns), interpolated; None while no later odometry exists."""
+        if not self.params["use_odometry"]:
+            return np.asarray(self.params["fixed_pose"], dtype=float)
+        index = bisect.bisect_left(self._stamps, stamp)
+        if index == len(self._stamps):
+            return None
+        if self._stamps[index] == stamp or index == 0:
+            return self._poses[index]
+        before, after = self._poses[index - 1], self._poses[index]
+        weight = (stamp - self._stamps[index - 1]) / (self._stamps[index] - self._stamps[index - 1])
+        turn = np.arctan2(np.sin(after[2] - before[2]), np.cos(after[2] - before[2]))
+        return np.array([*(before[:2] + weight * (after[:2] - before[:2])), before[2] + weight * turn])
+
+    # ------------------------------------------------------------------ landmarks
+
+    def _on_landmarks(self, msg: LandmarkArray) -> None:
+        self.health.received()
+        stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        if self.params["use_odometry"] and self._stamps and stamp < self._stamps[0]:
+            self.health.problem("pose_too_old", "ping older than the odometry history")
+            return
+        pose = self._pose_at(stamp)
+        if pose is None:
+            self._pending.append((stamp, msg))
+            if len(self._pending) > PENDING_LIMIT:
+                self._pending.popleft()
+                self.health.problem("no_odometry", "no odometry at or after the ping's stamp")
+            return
+        self._integrate(msg, pose)
+
+    def _integrate(self, msg: LandmarkArray, robot_pose: np.ndarray) -> None:
+        started = time.perf_counter()
+        try:
+            landmarks = landmarks_from_msg(msg)
+        except MessageError as error:
+            self.health.problem("malformed_message", str(error))
+            return
+        sensor_pose = compose(robot_pose, np.asarray(self.params["sensor_offset"], dtype=float))
+        before = self.map.counts
+        self.map.update(transform_landmarks(landmarks, sensor_pose), sensor_pose)
+        after = self.map.counts
+        for reason in ("not_finite", "degenerate"):
+            self.health.problem(f"sightings {reason}", count=getattr(after, reason) - getattr(before, reason))
+        for reason in ("ambiguous", "dropped", "evicted"):
+            self.health.note(f"sightings {reason}", getattr(after, reason) - getattr(before, reason))
+        self._changed = True
+        self.health.processed(time.perf_counter() - started, published=0)
+
+    def publish_map(self) -> None:
+        """Publish the map if it changed since the last time."""
+        if not self._changed:
+            return
+        self._changed = False
+        header = Header(stamp=self.get_clock().now().to_msg(), frame_id=self.params["odom_frame"])
+        snapshot = self.map.snapshot(min_observations=self.params["min_observations"])
+        self._map_landmarks.publish(landmarks_to_msg(snapshot, header))
+        markers = landmark_markers(snapshot, header, "map", lifetime=0.0)
+        markers.markers.append(covariance_ellipses(snapshot, header, "map"))
+        self._map_markers.publish(markers)
+        self._map_points.publish(point_cloud(self.map.points(min_observations=self.params["min_observations"]),
+                                             header))
+
+
+def main(args=None) -> None:
+    """Run the mapper until Ctrl-C or shutdown."""
+    spin(Mapper, args=args)
+
+
+if __name__ == "__main__":
+    main()
