@@ -9,7 +9,7 @@ bootstrap:
 	@bash tools/bootstrap.sh
 
 demo: bootstrap
-	@$(IN_ENV) python -m sonar_ring.ros.demo
+	@$(IN_ENV) install/sonar_ring/lib/sonar_ring/demo
 
 test: bootstrap
 	@$(IN_ENV) pytest

@@ -71,6 +71,10 @@ class NodeHealth:
         if count > 0:
             self.notes[reason] += count
 
+    def latencies(self) -> np.ndarray:
+        """Recent compute times, s, oldest first (at most the last 1000)."""
+        return np.asarray(self._latency)
+
     def rate(self) -> float:
         """Input messages per second over the recent window."""
         if len(self._arrivals) < 2:
@@ -80,7 +84,7 @@ class NodeHealth:
 
     def status(self) -> DiagnosticStatus:
         """The node's status now: WARN when problems grew since the last report."""
-        latency = np.asarray(self._latency) * 1e3
+        latency = self.latencies() * 1e3
         new_problems = self.problems - self._reported
         values = {
             "input rate (Hz)": f"{self.rate():.2f}",

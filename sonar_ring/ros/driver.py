@@ -97,6 +97,11 @@ class Driver(Node):
         self._truth_publisher = self.create_publisher(LandmarkArrayMsg, "truth", 10)
         self._timer = self.create_timer(1.0 / rate, self._simulate_ping)
 
+    @property
+    def pings_per_lap(self) -> int:
+        """Simulator: poses of one pass over the scene's trajectory (1 without one)."""
+        return len(self._poses)
+
     def _simulate_ping(self) -> None:
         if self._laps_left == 0:
             return

@@ -1,0 +1,171 @@
+"""The nodes with real rclpy and Fast DDS on loopback: accuracy, markers, map, parameters, bad input."""
+
+import os
+import signal
+import subprocess
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from sonar_ring.msg import Echoes, LandmarkArray
+from std_msgs.msg import Header
+from visualization_msgs.msg import Marker, MarkerArray
+
+from sonar_ring.echoes import EchoArrays
+from sonar_ring.ros.classifier import Classifier
+from sonar_ring.ros.convert import echoes_to_msg, landmarks_from_msg
+from sonar_ring.ros.driver import Driver
+from sonar_ring.ros.graph import NODES
+from sonar_ring.ros.localiser import Localiser
+from sonar_ring.simulate import load_scene
+
+pytestmark = pytest.mark.ros
+
+CHI2_2DOF_3SIGMA = 11.83  # P(chi2_2 <= 11.83) = 99.73 %, the 2-D "3 sigma"
+MAP_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
+@pytest.fixture
+def ros():
+    rclpy.init()
+    yield
+    rclpy.try_shutdown()
+
+
+def stamp_key(msg):
+    return msg.header.stamp.sec, msg.header.stamp.nanosec
+
+
+class Listener:
+    """Collects the graph's outputs by ping stamp."""
+
+    def __init__(self, namespace=""):
+        self.node = rclpy.create_node("test_listener", namespace=namespace)
+        self.landmarks, self.truth, self.markers, self.maps = {}, {}, [], []
+        sub = self.node.create_subscription
+        sub(LandmarkArray, "landmarks", lambda m: self.landmarks.__setitem__(stamp_key(m), m), qos_profile_sensor_data)
+        sub(LandmarkArray, "truth", lambda m: self.truth.__setitem__(stamp_key(m), m), 10)
+        sub(MarkerArray, "markers", self.markers.append, 10)
+        sub(LandmarkArray, "map/landmarks", self.maps.append, MAP_QOS)
+
+    def paired(self):
+        return [(landmarks_from_msg(self.landmarks[k]), landmarks_from_msg(self.truth[k]))
+                for k in sorted(self.landmarks) if k in self.truth]
+
+
+def spin_until(executor, done, timeout):
+    deadline = time.monotonic() + timeout
+    while not done() and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=0.05)
+    return done()
+
+
+def mahalanobis_squared(landmarks, truth):
+    error = landmarks.position - truth.position[landmarks.echo]
+    return np.einsum("ni,nij,nj->n", error, np.linalg.inv(landmarks.covariance), error)
+
+
+def assert_markers_valid(marker_array):
+    assert marker_array.markers
+    for marker in marker_array.markers:
+        assert marker.header.frame_id
+        assert marker.scale.x > 0 and (marker.type == Marker.LINE_LIST or marker.scale.y > 0)
+        assert len(marker.colors) == len(marker.points)
+        assert all(colour.a > 0 for colour in marker.colors)
+        assert marker.ns.startswith("landmarks/")
+
+
+def test_graph_in_one_process_matches_ground_truth(ros):
+    nodes = [cls() for cls in NODES]
+    listener = Listener()
+    executor = SingleThreadedExecutor()
+    for node in [*nodes, listener.node]:
+        executor.add_node(node)
+    assert spin_until(executor, lambda: len(listener.paired()) >= 60 and listener.maps, timeout=30)
+    d2 = np.concatenate([mahalanobis_squared(found, truth) for found, truth in listener.paired()])
+    assert d2.size > 1000
+    assert np.mean(d2 <= CHI2_2DOF_3SIGMA) >= 0.99
+    assert_markers_valid(listener.markers[-1])
+    assert {m.ns for m in listener.markers[-1].markers} == {f"landmarks/{c}" for c in
+                                                             ("unknown", "plane", "corner", "edge")}
+    mapper = nodes[3]
+    counts = mapper.map.counts
+    assert counts.fused > 5 * counts.created, "repeated sightings must fuse into existing entries"
+    scene = load_scene("room")
+    true_points = np.vstack([scene.corner_point, scene.edges])
+    snapshot = mapper.map.snapshot(min_observations=5)
+    points = snapshot.position[snapshot.landmark_class >= 2]
+    nearest = np.min(np.linalg.norm(points[:, None, :] - true_points[None, :, :], axis=-1), axis=1)
+    assert points.size and np.median(nearest) < 0.05
+    for node in [*nodes, listener.node]:
+        node.destroy_node()
+
+
+def test_graph_as_separate_processes_publishes_and_exits_cleanly(ros):
+    namespace = f"/separate_{os.getpid()}"
+    lib = Path(os.environ["AMENT_PREFIX_PATH"].split(":")[0]) / "lib" / "sonar_ring"
+    processes = [subprocess.Popen([str(lib / name), "--ros-args", "-r", f"__ns:={namespace}",
+                                   "-p", "source:=simulator"]) for name in ("driver", "localiser", "classifier",
+                                                                            "mapper")]
+    try:
+        listener = Listener(namespace)
+        executor = SingleThreadedExecutor()
+        executor.add_node(listener.node)
+        assert spin_until(executor, lambda: len(listener.paired()) >= 20 and listener.maps, timeout=40)
+        d2 = np.concatenate([mahalanobis_squared(found, truth) for found, truth in listener.paired()])
+        assert np.mean(d2 <= CHI2_2DOF_3SIGMA) >= 0.99
+        assert len(landmarks_from_msg(listener.maps[-1])) > 0
+        listener.node.destroy_node()
+    finally:
+        for process in processes:
+            process.send_signal(signal.SIGINT)
+        codes = [process.wait(timeout=20) for process in processes]
+    assert codes == [0, 0, 0, 0]
+
+
+def test_invalid_parameter_changes_are_refused_and_the_old_value_kept(ros):
+    localiser, classifier, driver = Localiser(), Classifier(), Driver()
+    result = localiser.set_parameters([Parameter("models", value=["plane", "wall"])])[0]
+    assert not result.successful and "models must be a non-empty subset" in result.reason
+    assert localiser.get_parameter("models").value == ["plane", "corner", "edge"]
+    result = classifier.set_parameters([Parameter("sigma_tof", value=-1.0)])[0]
+    assert not result.successful
+    assert classifier.get_parameter("sigma_tof").value == 1e-6
+    result = driver.set_parameters([Parameter("source", value="topic")])[0]
+    assert not result.successful and "read-only" in result.reason
+    assert localiser.set_parameters([Parameter("models", value=["corner"])])[0].successful
+    assert localiser.settings.models == ("corner",)
+    for node in (localiser, classifier, driver):
+        node.destroy_node()
+
+
+def test_bad_messages_are_counted_and_the_next_ping_still_flows(ros):
+    driver = Driver(parameter_overrides=[Parameter("source", value="topic")])
+    source = rclpy.create_node("test_source")
+    publisher = source.create_publisher(Echoes, "tof_in", qos_profile_sensor_data)
+    out = []
+    source.create_subscription(Echoes, "echoes", out.append, qos_profile_sensor_data)
+    executor = SingleThreadedExecutor()
+    for node in (driver, source):
+        executor.add_node(node)
+    good = EchoArrays(layout="browne_ring", speed_of_sound=343.0, group=np.array([3, 60], np.uint16),
+                      transmitter=np.array([0, 0], np.uint8), tof=np.array([[0.01, 0.0101], [0.01, np.nan]]),
+                      amplitude=np.empty((2, 0), np.float32), phase_delay=np.empty((2, 0)))
+    malformed = echoes_to_msg(good, Header(frame_id="sonar_ring"))
+    malformed.tof = malformed.tof[:3]
+    spin_until(executor, lambda: driver.count_subscribers("echoes") > 0 and publisher.get_subscription_count() > 0,
+               timeout=5)
+    publisher.publish(malformed)
+    publisher.publish(echoes_to_msg(good, Header(frame_id="sonar_ring")))
+    assert spin_until(executor, lambda: out, timeout=10)
+    assert driver.health.problems["malformed_message"] == 1
+    assert driver.health.problems["unknown_group"] == 1  # group 60 of a 48-pair ring
+    kept = out[0]
+    assert list(kept.group) == [3] and len(kept.tof) == 2
+    for node in (driver, source):
+        node.destroy_node()
