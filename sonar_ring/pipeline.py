@@ -16,7 +16,8 @@ different processes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+import functools
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -51,7 +52,8 @@ class Settings:
     consistency_z : float
         Significance of the geometric-consistency test, standard deviations.
     triad_eps : float
-        Kreczmer's eq 6 tolerance for the (n1, n2) search.
+        Kreczmer's eq 6 tolerance for the (n1, n2) search; 0 derives it from
+        the layout with his robustness procedure (:func:`triad_eps_for`).
     triad_max_angle : float
         Largest azimuth a triad accepts, rad.
     """
@@ -62,7 +64,7 @@ class Settings:
     sigma_speed: float = 0.0
     sigma_amplitude: float = 0.02
     consistency_z: float = 3.0
-    triad_eps: float = 0.3
+    triad_eps: float = 0.0
     triad_max_angle: float = np.radians(50.0)
 
     def __post_init__(self):
@@ -96,8 +98,20 @@ def horizontal_paths(layout: Layout, echoes: EchoArrays, settings: Settings):
         return horizontal, paths / horizontal
 
 
-def unscented_covariance(model, position, tx, rx1, rx2, d1, d2, paths_covariance) -> np.ndarray:
-    """Covariance of ``position`` that stays consistent where the error bends along an arc.
+def sigma_point_paths(d1, d2, paths_covariance):
+    """Path lengths at the five sigma points of the unscented transform (``n + kappa = 3``).
+
+    Returns two arrays of shape (5, N): point 0 is the measurement itself, so
+    one batched model call gives the estimate and its spread together.
+    """
+    scale = np.linalg.cholesky(3.0 * np.nan_to_num(paths_covariance) + 1e-30 * np.eye(2))  # (N, 2, 2)
+    offsets = np.stack([np.zeros((len(d1), 2))]
+                       + [sign * scale[:, :, column] for column in range(2) for sign in (1.0, -1.0)])
+    return d1[None, :] + offsets[:, :, 0], d2[None, :] + offsets[:, :, 1]
+
+
+def unscented_covariance(points) -> np.ndarray:
+    """Covariance of an estimate that stays consistent where its error bends along an arc.
 
     A pair measures range far better than bearing, so the error region is a thin
     arc (a banana): a tangential error ``t`` moves the estimate inwards by about
@@ -105,44 +119,38 @@ def unscented_covariance(model, position, tx, rx1, rx2, d1, d2, paths_covariance
     standard deviation.  A first-order (Jacobian) covariance then covers only
     ~85 % of errors at 3 sigma, which breaks the mapper's Mahalanobis gating.
 
-    Five sigma points in path space (unscented transform, ``n + kappa = 3``)
-    give the covariance including the arc's second-order spread, and the bias
-    ``b`` of their mean (``|b| = m = sigma_t^2 / (2 rho)``, pointing inwards).
-    Along ``b`` the total mean-squared error is set to :data:`ARC_MSE` ``m^2``:
-    the arc at ``t = 3 sigma_t`` lies ``9 m`` inwards, and
-    ``(9 m)^2 / (30 m^2) = 2.7`` keeps it inside the 3-sigma ellipse
-    (Mahalanobis ``9 + 2.7 < 11.83``).  Across the arc nothing changes.
+    The five sigma points (:func:`sigma_point_paths`) give the covariance
+    including the arc's second-order spread, and the bias ``b`` of their mean
+    (``|b| = m = sigma_t^2 / (2 rho)``, pointing inwards).  Along ``b`` the
+    total mean-squared error is set to :data:`ARC_MSE` ``m^2``: the arc at
+    ``t = 3 sigma_t`` lies ``9 m`` inwards, and ``(9 m)^2 / (30 m^2) = 2.7``
+    keeps it inside the 3-sigma ellipse (Mahalanobis ``9 + 2.7 < 11.83``).
+    Across the arc nothing changes.
 
     Parameters
     ----------
-    model : callable
-        ``localise.plane``, ``corner`` or ``edge``.
-    position : ndarray, shape (N, 2)
-        The estimate at the measured paths, m.
-    tx, rx1, rx2 : ndarray, shape (N, 2)
-        Geometry, m.
-    d1, d2 : ndarray, shape (N,)
-        Measured (horizontal) path lengths, m.
-    paths_covariance : ndarray, shape (N, 2, 2)
-        Covariance of (d1, d2), m^2.
+    points : ndarray, shape (5, N, 2)
+        The estimator evaluated at the five sigma points, point 0 the estimate, m.
 
     Returns
     -------
     ndarray, shape (N, 2, 2)
-        m^2; NaN where a sigma point has no solution (the caller keeps the
-        estimate's own validity).
+        m^2; NaN where a sigma point has no solution (the estimate's own
+        validity still decides whether it is used).
     """
-    scale = np.linalg.cholesky(3.0 * np.nan_to_num(paths_covariance) + 1e-30 * np.eye(2))
-    offsets = [np.zeros((len(d1), 2))]
-    offsets += [sign * scale[:, :, column] for column in range(2) for sign in (1.0, -1.0)]
-    points = np.stack([model(tx, rx1, rx2, d1 + o[:, 0], d2 + o[:, 1]).position for o in offsets])  # (5, N, 2)
     weights = np.array([1 / 3] + [1 / 6] * 4)
     mean = np.einsum("s,sni->ni", weights, points)
     deviation = points - mean
     covariance = np.einsum("s,sni,snj->nij", weights, deviation, deviation)
-    bias = mean - position
+    bias = mean - points[0]
     # The transform already holds 2 m^2 of arc spread along the bias; add the rest of ARC_MSE.
     return covariance + (ARC_MSE - 2.0) * bias[:, :, None] * bias[:, None, :]
+
+
+def _first(batch):
+    """The estimate at sigma point 0 (the measurement) of a batched model call."""
+    return replace(batch, **{f.name: getattr(batch, f.name)[0] for f in fields(batch)
+                             if isinstance(getattr(batch, f.name), np.ndarray)})
 
 
 def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Settings()) -> Landmarks:
@@ -165,10 +173,11 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
     covariance_paths = covariance_paths * scale[:, :, None] * scale[:, None, :]
     rows = np.arange(echoes.n_echoes)
     parts = []
+    sigma_d1, sigma_d2 = sigma_point_paths(d1, d2, covariance_paths)
     for model in settings.models:
-        estimate = getattr(localise, model)(tx, rx1, rx2, d1, d2)
-        covariance = unscented_covariance(getattr(localise, model), estimate.position, tx, rx1, rx2, d1, d2,
-                                          covariance_paths)
+        batch = getattr(localise, model)(tx, rx1, rx2, sigma_d1, sigma_d2)
+        estimate = _first(batch)
+        covariance = unscented_covariance(batch.position)
         if model == "plane":
             normal = -np.nan_to_num(estimate.normal)
             segment = np.nan_to_num(estimate.reflection_points)
@@ -181,19 +190,34 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
     return Landmarks.concatenate(parts)
 
 
+@functools.lru_cache(maxsize=32)
+def triad_eps_for(b1: float, b2: float, max_angle: float, wavelength: float, speed_of_sound: float) -> float:
+    """Kreczmer's eq 6 tolerance for a triad: the eps of :func:`sonar_ring.doa.robustness`.
+
+    Cached: the procedure takes about 0.1 s and the arguments change only with
+    the layout (the speed of sound is rounded to 1 m/s by the caller).
+    """
+    return doa.robustness(b1, b2, max_angle, wavelength, speed_of_sound).eps
+
+
 def _localise_triads(layout: Layout, echoes: EchoArrays, settings: Settings) -> Landmarks:
     if echoes.phase_delay.shape[1] != 2:
         raise ValueError("triad echoes need two phase delays per row")
-    wavelength = layout.wavelength(echoes.speed_of_sound)
+    speed = float(round(echoes.speed_of_sound))
+    wavelength = layout.wavelength(speed)
     parts = []
     for group in np.unique(echoes.group):
         rows = np.flatnonzero(echoes.group == group)
         members = layout.groups[group]
         emitter = layout.transmitters[layout.group_transmitters[group, 0]]
+        receivers = layout.receivers[members, :2]
+        baselines = np.linalg.norm(np.diff(receivers, axis=0), axis=1)
+        eps = settings.triad_eps or triad_eps_for(float(baselines[0]), float(baselines[1]),
+                                                  settings.triad_max_angle, wavelength, speed)
         result = doa.triad_landmark(
-            layout.receivers[members, :2], emitter[:2], echoes.tof[rows], echoes.phase_delay[rows, 0],
-            echoes.phase_delay[rows, 1], wavelength, echoes.speed_of_sound, settings.triad_eps,
-            settings.triad_max_angle, delay_std=settings.sigma_tof, tof_std=settings.sigma_tof,
+            receivers, emitter[:2], echoes.tof[rows], echoes.phase_delay[rows, 0],
+            echoes.phase_delay[rows, 1], wavelength, echoes.speed_of_sound, eps,
+            settings.triad_max_angle, delay_std=doa.delay_std(settings.sigma_tof, 0.0), tof_std=settings.sigma_tof,
             height_offset=float(emitter[2] - layout.receivers[members[0], 2]),
             speed_of_sound_std=settings.sigma_speed)
         parts.append(make_landmarks(UNKNOWN, np.nan_to_num(result.position),
