@@ -4,9 +4,8 @@ import sys
 import time
 
 import rclpy
-from rclpy.qos import QoSProfile, ReliabilityPolicy
-
 from message_samples import SAMPLE_NAMES, sample_message
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sonar_ring.msg import Echoes
 
 

@@ -5,14 +5,13 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
+import rclpy
 from message_samples import SAMPLE_NAMES, sample_arrays, sample_message
 from numpy.testing import assert_array_equal
-
-import rclpy
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from sonar_ring.msg import Echoes, Landmark, LandmarkArray
+
 from sonar_ring.ros.convert import MessageError, echoes_from_msg
 
 pytestmark = pytest.mark.ros

@@ -1,0 +1,926 @@
+"""Scenes and a physically based forward model for the three sensors.
+
+A *scene* lists its reflectors -- walls (vertical planes given as segments),
+right-angle corners where two walls meet, and edges (convex junctions, poles,
+chair legs: vertical lines) -- all extruded vertically without limit.  The
+forward model computes, for one sensor pose, what the hardware would report:
+for every receiver group, every transmitter of the group and every reflector
+that returns an echo, the time of flight at each receiver of the group, the
+amplitude and (for Kreczmer triads) the phase delays; and with every echo the
+ground truth that produced it.  Only the listed reflectors echo: there are no
+higher-order reflections beyond a corner's double bounce.
+
+Physics, exact for vertically extruded reflectors (horizontal distances are
+taken in the scene's (x, y) plane, ``dz`` is transmitter minus receiver height):
+
+* wall: image ``T'`` of the transmitter in the wall line, horizontal path
+  ``|T' - R|``; the echo exists only when ``T`` and ``R`` are on the same side
+  and the reflection point (where ``R T'`` crosses the wall line) lies on the
+  segment;
+* corner: double reflection, ``T'' = 2 C - T``, horizontal path ``|T'' - R|``;
+  the echo exists only when ``T`` and ``R`` are inside the corner's quadrant
+  and both reflection points lie on the two walls' segments;
+* edge: diffraction at the edge point ``P``, horizontal path ``|T - P| + |P - R|``;
+* every path: ``d = sqrt(h**2 + dz**2)``; blocked when any of its horizontal
+  legs crosses a wall of the scene; dropped beyond the receive window
+  ``d > 2 * layout.max_range``.
+
+Amplitudes follow Barshan & Kuc (1990): the product of the transmit and the
+receive gain (their eq 4), each ``exp(-2 alpha**2 / theta0**2)`` (eq 3) of the
+horizontal angle ``alpha`` between the leg and the transducer's axis, with
+``theta0 = asin(0.61 lambda / a)`` (eq 2; 90 deg when ``0.61 lambda / a >= 1``,
+where the piston has no first null).  This reproduces their eqs 5-11.  The
+ring's emitter is isotropic (gain 1).  A receiver hears nothing beyond its
+acceptance half-angle ``layout.beam_half_angle``, and a directional transmitter
+(the same kind of transducer) sends nothing beyond it.  Each reflector class has a
+relative reflectivity (defaults :data:`DEFAULT_REFLECTIVITY`; Barshan & Kuc
+note edges echo much more weakly than planes and corners).  A time-variable
+gain is assumed, as in the paper, so amplitudes do not fall with range, and
+``A_max = 1`` is the amplitude of a plane at normal incidence on the axes of
+both transducers.  Amplitudes below the detection threshold (default -30 dB,
+the paper's) are not reported.
+
+Noise (:class:`Noise`): Gaussian time-of-flight noise, amplitude noise (the
+paper's sigma = 2 % of ``A_max``), zero-crossing jitter for the phase delays,
+and an optional timer that truncates times to whole ticks (Kreczmer's 0.33 us).
+Random numbers come only from the ``numpy.random.Generator`` passed in.
+
+Frames and units: scenes live in a world (``odom``) frame; a pose is the sensor
+frame's ``(x, y, yaw)`` in it (m, m, rad); everything a :class:`Ping` returns is
+in the sensor frame (m, s, rad; REP 103).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from sonar_ring.geometry import CONFIG_DIR, Layout, speed_of_sound
+
+# The class codes of Landmark.msg, defined once in sonar_ring.landmarks; re-exported
+# because ground truth is labelled with them.
+from sonar_ring.landmarks import CLASS_NAMES as CLASS_NAMES
+from sonar_ring.landmarks import CORNER as CORNER
+from sonar_ring.landmarks import EDGE as EDGE
+from sonar_ring.landmarks import PLANE as PLANE
+from sonar_ring.landmarks import UNKNOWN as UNKNOWN
+
+# --------------------------------------------------------------------------- constants
+
+REFLECTOR_TYPES = {"wall": PLANE, "corner": CORNER, "edge": EDGE}
+"""Scene-file reflector ``type`` and the class code of its echoes."""
+
+DEFAULT_REFLECTIVITY = {"plane": 1.0, "corner": 1.0, "edge": 0.3}
+"""Relative echo strength per class; a scene file may override any of them."""
+
+DEFAULT_THRESHOLD = 10.0 ** (-30.0 / 20.0)
+"""Detection threshold, relative to ``A_max``: -30 dB (Barshan & Kuc, section II)."""
+
+_TIME_EPS = 1e-9
+"""Fraction of a leg's length at either end where crossing a wall is not a
+blockage: legs start and end *on* the reflecting walls."""
+
+
+class SceneError(ValueError):
+    """A scene file or mapping is malformed; the message names file and field."""
+
+
+# --------------------------------------------------------------------------- scene
+
+@dataclass(frozen=True)
+class Trajectory:
+    """A robot path through a scene, sampled at a ping rate.
+
+    Attributes
+    ----------
+    waypoints : ndarray, shape (P, 2)
+        Way points in the world frame, m; the sensor moves along straight
+        lines between them at constant speed.
+    speed : float
+        Speed along the path, m/s.
+    loop : bool
+        True to return from the last way point to the first (one lap).
+    yaw : float or None
+        Fixed sensor yaw, rad (a rail or a sideways-moving robot); None to face
+        along the direction of travel.
+    """
+
+    waypoints: np.ndarray
+    speed: float
+    loop: bool
+    yaw: float | None
+
+    def poses(self, rate: float) -> tuple[np.ndarray, np.ndarray]:
+        """Sample one pass of the path at ``rate`` pings per second.
+
+        Parameters
+        ----------
+        rate : float
+            Pings per second, Hz (normally ``layout.ping_rate``).
+
+        Returns
+        -------
+        times : ndarray, shape (N,)
+            Ping times from the start, s.
+        poses : ndarray, shape (N, 3)
+            Sensor pose ``(x, y, yaw)`` at each time, world frame, m and rad.
+        """
+        points = np.vstack([self.waypoints, self.waypoints[:1]]) if self.loop else self.waypoints
+        legs = np.diff(points, axis=0)
+        leg_length = np.hypot(legs[:, 0], legs[:, 1])
+        start = np.concatenate([[0.0], np.cumsum(leg_length)])
+        step = self.speed / rate
+        # A loop's last sample would repeat the first; an open path ends on its last way point.
+        count = int(math.floor(start[-1] / step + 1e-9)) + (0 if self.loop else 1)
+        s = np.arange(count) * step
+        x = np.interp(s, start, points[:, 0])
+        y = np.interp(s, start, points[:, 1])
+        if self.yaw is None:
+            leg = np.clip(np.searchsorted(start, s, side="right") - 1, 0, len(legs) - 1)
+            yaw = np.arctan2(legs[leg, 1], legs[leg, 0])
+        else:
+            yaw = np.full(count, self.yaw)
+        return s / self.speed, np.column_stack([x, y, yaw])
+
+
+@dataclass(frozen=True)
+class Scene:
+    """Reflectors, air and an optional trajectory, in the world frame.
+
+    Reflector index ``f`` (``truth_reflector`` of a ping) counts the file's
+    ``reflectors`` list in order; ``kind_index[f]`` is its row in ``walls``,
+    ``corner_point`` (and the other corner arrays) or ``edges``, whichever its
+    class says.
+
+    Attributes
+    ----------
+    name : str
+        Scene name (the YAML file stem by convention).
+    reflector_names : tuple of str
+        Name of each reflector, shape (F,).
+    reflector_class : ndarray of int, shape (F,)
+        :data:`PLANE`, :data:`CORNER` or :data:`EDGE` for each reflector.
+    kind_index : ndarray of int, shape (F,)
+        Row of each reflector in the array of its kind.
+    walls : ndarray, shape (W, 2, 2)
+        Wall segments ``[[x0, y0], [x1, y1]]``, m.  Every wall also blocks paths.
+    corner_point : ndarray, shape (C, 2)
+        Corner vertices, m.
+    corner_arm : ndarray, shape (C, 2, 2)
+        Unit vectors along the corner's two walls, away from the vertex.
+    corner_arm_length : ndarray, shape (C, 2)
+        Length of those walls, m.
+    corner_walls : ndarray of int, shape (C, 2)
+        Row in ``walls`` of each corner's two walls.
+    edges : ndarray, shape (E, 2)
+        Edge (vertical line) positions, m.
+    reflectivity : ndarray, shape (4,)
+        Relative echo strength indexed by class code (UNKNOWN unused).
+    temperature_c : float
+        Air temperature, degC.
+    relative_humidity : float
+        Relative humidity, percent.
+    sensor_pose : ndarray, shape (3,)
+        Default sensor pose ``(x, y, yaw)``, m and rad.
+    trajectory : Trajectory or None
+        Robot path for mapping runs, if the scene has one.
+    """
+
+    name: str
+    reflector_names: tuple
+    reflector_class: np.ndarray
+    kind_index: np.ndarray
+    walls: np.ndarray
+    corner_point: np.ndarray
+    corner_arm: np.ndarray
+    corner_arm_length: np.ndarray
+    corner_walls: np.ndarray
+    edges: np.ndarray
+    reflectivity: np.ndarray
+    temperature_c: float
+    relative_humidity: float
+    sensor_pose: np.ndarray
+    trajectory: Trajectory | None
+
+    @property
+    def n_reflectors(self) -> int:
+        """Number of reflectors F."""
+        return len(self.reflector_names)
+
+    @property
+    def speed_of_sound(self) -> float:
+        """Speed of sound in the scene's air, m/s."""
+        return float(speed_of_sound(self.temperature_c, self.relative_humidity))
+
+
+def scene_path(name: str) -> Path:
+    """Path of a shipped scene by name, e.g. ``scene_path("room")``."""
+    return CONFIG_DIR / "scenes" / f"{name}.yaml"
+
+
+def load_scene(source) -> Scene:
+    """Load a scene from a shipped name, a YAML path or a mapping.
+
+    Raises
+    ------
+    SceneError
+        Naming the file, the field and the expected value on any problem.
+    """
+    if isinstance(source, dict):
+        return _scene_from_mapping(source, "<mapping>")
+    path = Path(source)
+    if not path.suffix:
+        path = scene_path(str(source))
+    try:
+        mapping = yaml.safe_load(path.read_text())
+    except OSError as exc:
+        raise SceneError(f"{path}: cannot read scene ({exc.strerror})") from exc
+    except yaml.YAMLError as exc:
+        raise SceneError(f"{path}: not valid YAML ({exc})") from exc
+    if not isinstance(mapping, dict):
+        raise SceneError(f"{path}: expected a mapping at the top level")
+    mapping.setdefault("name", path.stem)
+    return _scene_from_mapping(mapping, str(path))
+
+
+_SCENE_KEYS = {"name", "description", "temperature_c", "relative_humidity", "reflectivity",
+               "sensor_pose", "reflectors", "trajectory"}
+_REFLECTOR_KEYS = {"wall": {"type", "name", "from", "to"},
+                   "corner": {"type", "name", "walls"},
+                   "edge": {"type", "name", "at"}}
+
+
+def _number(value, where, field, low=-math.inf, high=math.inf, low_open=False):
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        raise SceneError(f"{where}: field '{field}' must be a number, got {value!r}") from None
+    too_low = number <= low if low_open else number < low
+    if not math.isfinite(number) or too_low or number > high:
+        bound = f"{'>' if low_open else '>='} {low}" if math.isfinite(low) else "finite"
+        upper = f" and <= {high}" if math.isfinite(high) else ""
+        raise SceneError(f"{where}: field '{field}' must be a number {bound}{upper}, got {value!r}")
+    return number
+
+
+def _point(value, where, field, size=2):
+    if not (isinstance(value, list | tuple) and len(value) == size):
+        shape = "[x, y]" if size == 2 else "[x, y, yaw_deg]"
+        raise SceneError(f"{where}: field '{field}' must be {shape} in m, got {value!r}")
+    return [_number(v, where, field) for v in value]
+
+
+def _scene_from_mapping(m: dict, where: str) -> Scene:
+    unknown = set(m) - _SCENE_KEYS
+    if unknown:
+        raise SceneError(f"{where}: unknown field '{sorted(unknown)[0]}' (expected some of {sorted(_SCENE_KEYS)})")
+    temperature = _number(m.get("temperature_c", 20.0), where, "temperature_c", low=-273.15, low_open=True)
+    humidity = _number(m.get("relative_humidity", 0.0), where, "relative_humidity", low=0.0, high=100.0)
+    reflectivity = dict(DEFAULT_REFLECTIVITY)
+    given = m.get("reflectivity", {})
+    if not isinstance(given, dict) or set(given) - set(reflectivity):
+        raise SceneError(f"{where}: field 'reflectivity' must map some of {sorted(reflectivity)} "
+                         f"to numbers in (0, 1], got {given!r}")
+    for cls, value in given.items():
+        reflectivity[cls] = _number(value, where, f"reflectivity.{cls}", low=0.0, high=1.0, low_open=True)
+    pose = _point(m.get("sensor_pose", [0.0, 0.0, 0.0]), where, "sensor_pose", size=3)
+    pose[2] = math.radians(pose[2])
+
+    items = m.get("reflectors")
+    if not isinstance(items, list) or not items:
+        raise SceneError(f"{where}: field 'reflectors' must be a non-empty list of {{type: wall|corner|edge, ...}}")
+    names, classes, kind_index = [], [], []
+    walls, wall_rows, edges, corner_specs = [], {}, [], []
+    for k, item in enumerate(items):
+        here = f"{where}: reflectors[{k}]"
+        if not isinstance(item, dict) or item.get("type") not in REFLECTOR_TYPES:
+            got = item.get("type") if isinstance(item, dict) else item
+            raise SceneError(f"{here}: field 'type' must be one of {', '.join(REFLECTOR_TYPES)}, got {got!r}")
+        kind = item["type"]
+        extra = set(item) - _REFLECTOR_KEYS[kind]
+        if extra:
+            raise SceneError(f"{here}: unknown field '{sorted(extra)[0]}' for a {kind} "
+                             f"(expected {sorted(_REFLECTOR_KEYS[kind])})")
+        name = str(item.get("name", f"{kind}{k}"))
+        if name in names:
+            raise SceneError(f"{here}: field 'name' must be unique, {name!r} is used twice")
+        names.append(name)
+        classes.append(REFLECTOR_TYPES[kind])
+        if kind == "wall":
+            start, end = _point(item.get("from"), here, "from"), _point(item.get("to"), here, "to")
+            if start == end:
+                raise SceneError(f"{here}: fields 'from' and 'to' must differ (a wall needs a length)")
+            wall_rows[name] = len(walls)
+            kind_index.append(len(walls))
+            walls.append([start, end])
+        elif kind == "edge":
+            kind_index.append(len(edges))
+            edges.append(_point(item.get("at"), here, "at"))
+        else:
+            kind_index.append(len(corner_specs))
+            corner_specs.append((here, item.get("walls")))
+
+    walls = np.array(walls, dtype=float).reshape(-1, 2, 2)
+    corner_point, corner_arm, corner_length, corner_walls = _corners(corner_specs, walls, wall_rows)
+    trajectory = _trajectory(m["trajectory"], f"{where}: trajectory") if "trajectory" in m else None
+    return Scene(
+        name=str(m.get("name", Path(where).stem)),
+        reflector_names=tuple(names),
+        reflector_class=np.array(classes, dtype=int),
+        kind_index=np.array(kind_index, dtype=int),
+        walls=walls,
+        corner_point=corner_point,
+        corner_arm=corner_arm,
+        corner_arm_length=corner_length,
+        corner_walls=corner_walls,
+        edges=np.array(edges, dtype=float).reshape(-1, 2),
+        reflectivity=np.array([0.0, reflectivity["plane"], reflectivity["corner"], reflectivity["edge"]]),
+        temperature_c=temperature,
+        relative_humidity=humidity,
+        sensor_pose=np.array(pose),
+        trajectory=trajectory,
+    )
+
+
+def _corners(specs, walls, wall_rows):
+    """Vertex, arms and arm lengths of each corner from the two walls it names.
+
+    The walls must share an end point (the vertex) and be perpendicular; the
+    corner reflects between them on the side their other ends lie on.
+    """
+    point, arm, length, rows = [], [], [], []
+    for here, pair in specs:
+        if not (isinstance(pair, list) and len(pair) == 2 and all(str(n) in wall_rows for n in pair)):
+            raise SceneError(f"{here}: field 'walls' must name two walls of the scene, got {pair!r}")
+        first, second = (walls[wall_rows[str(n)]] for n in pair)
+        gaps = np.linalg.norm(first[:, None, :] - second[None, :, :], axis=-1)
+        i, j = np.unravel_index(np.argmin(gaps), gaps.shape)
+        if gaps[i, j] > 1e-9:
+            raise SceneError(f"{here}: field 'walls': {pair[0]!r} and {pair[1]!r} must share an end point "
+                             f"(closest ends are {gaps[i, j]:.3g} m apart)")
+        arms = np.array([first[1 - i] - first[i], second[1 - j] - second[j]])
+        lengths = np.linalg.norm(arms, axis=-1)
+        arms = arms / lengths[:, None]
+        if abs(arms[0] @ arms[1]) > 1e-9:
+            angle = math.degrees(math.acos(np.clip(arms[0] @ arms[1], -1, 1)))
+            raise SceneError(f"{here}: field 'walls': {pair[0]!r} and {pair[1]!r} must meet at 90 deg, "
+                             f"they meet at {angle:.6g} deg")
+        point.append(first[i])
+        arm.append(arms)
+        length.append(lengths)
+        rows.append([wall_rows[str(n)] for n in pair])
+    return (np.array(point, dtype=float).reshape(-1, 2), np.array(arm, dtype=float).reshape(-1, 2, 2),
+            np.array(length, dtype=float).reshape(-1, 2), np.array(rows, dtype=int).reshape(-1, 2))
+
+
+def _trajectory(t, where) -> Trajectory:
+    if not isinstance(t, dict) or set(t) - {"waypoints", "speed", "loop", "yaw_deg"}:
+        raise SceneError(f"{where}: expected a mapping with 'waypoints', 'speed' and optional 'loop', 'yaw_deg'")
+    points = t.get("waypoints")
+    if not isinstance(points, list) or len(points) < 2:
+        raise SceneError(f"{where}: field 'waypoints' must be a list of at least two [x, y], got {points!r}")
+    waypoints = np.array([_point(p, where, f"waypoints[{k}]") for k, p in enumerate(points)])
+    if np.any(np.all(np.diff(waypoints, axis=0) == 0, axis=1)):
+        raise SceneError(f"{where}: field 'waypoints' must not repeat a point twice in a row")
+    loop = t.get("loop", True)
+    if not isinstance(loop, bool):
+        raise SceneError(f"{where}: field 'loop' must be true or false, got {loop!r}")
+    yaw = t.get("yaw_deg")
+    return Trajectory(
+        waypoints=waypoints,
+        speed=_number(t.get("speed"), where, "speed", low=0.0, low_open=True),
+        loop=loop,
+        yaw=None if yaw is None else math.radians(_number(yaw, where, "yaw_deg")),
+    )
+
+
+# --------------------------------------------------------------------------- ping
+
+@dataclass(frozen=True)
+class Noise:
+    """Measurement noise of a simulated sensor; all zero means exact data.
+
+    Attributes
+    ----------
+    tof : float
+        Standard deviation of each receiver's time of flight, s.
+    amplitude : float
+        Standard deviation of each amplitude, relative to ``A_max``
+        (Barshan & Kuc measured 0.02).
+    phase : float
+        Standard deviation of each receiver's rising zero-crossing time, s;
+        the phase delays of a triad take it twice (receiver k and receiver 0).
+    timer : float
+        Timer tick, s (Kreczmer: 0.33e-6).  Times of flight and phase delays
+        are truncated to whole ticks, as a counter reports them; 0 disables.
+    """
+
+    tof: float = 0.0
+    amplitude: float = 0.0
+    phase: float = 0.0
+    timer: float = 0.0
+
+    def __post_init__(self):
+        for field in ("tof", "amplitude", "phase", "timer"):
+            value = getattr(self, field)
+            if not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"Noise: field '{field}' must be a finite number >= 0, got {value!r}")
+
+    @property
+    def random(self) -> bool:
+        """True when any random noise is switched on (a generator is needed)."""
+        return self.tof > 0 or self.amplitude > 0 or self.phase > 0
+
+
+NOISE_FREE = Noise()
+"""Exact times of flight, amplitudes and phase delays."""
+
+
+@dataclass(frozen=True)
+class Ping:
+    """Everything one ping of one sensor reports, plus the truth behind it.
+
+    One row is one echo from one reflector, heard by the K receivers of group
+    ``group[n]`` after transmitter ``transmitter[n]`` fired.  Rows are sorted by
+    group, transmitter, then arrival time (earliest receiver).  All positions are
+    in the sensor frame.
+
+    Attributes
+    ----------
+    layout : str
+        Name of the layout the indices refer to.
+    time : float
+        Time of the ping (from the start of a run), s.
+    pose : ndarray, shape (3,)
+        True sensor pose ``(x, y, yaw)`` in the world frame, m and rad.
+    speed_of_sound : float
+        Speed of sound of the air the echoes travelled in, m/s.
+    group : ndarray of int, shape (N,)
+        Receiver group index in the layout.
+    transmitter : ndarray of int, shape (N,)
+        Index into ``layout.transmitters`` of the transmitter that fired.
+    tof : ndarray, shape (N, K)
+        Time of flight transmitter -> reflector -> receiver k, s; NaN where
+        receiver k of the group did not hear this echo.
+    amplitude : ndarray, shape (N, K)
+        Echo amplitude relative to ``A_max``; NaN where not heard.
+    phase_delay : ndarray, shape (N, K - 1) for triads, else (N, 0)
+        Kreczmer's ``t0k``: time from receiver 0's rising zero crossing to the
+        next rising zero crossing of receiver k, i.e. ``(arrival_k - arrival_0)``
+        modulo one carrier period ``1 / layout.frequency``, in ``[0, period)``, s.
+        NaN where receiver 0 or receiver k did not hear the echo.
+    truth_reflector : ndarray of int, shape (N,)
+        Index of the reflector in the scene's ``reflectors`` list.
+    truth_class : ndarray of int, shape (N,)
+        :data:`PLANE`, :data:`CORNER` or :data:`EDGE`.
+    truth_position : ndarray, shape (N, 2)
+        The landmark as the localiser defines it, m: for a plane the foot point
+        ``G = (T + T') / 2`` of the perpendicular from the transmitter that fired
+        to the wall line; for a corner or an edge, its vertex.
+    truth_normal : ndarray, shape (N, 2)
+        Planes: unit normal of the wall pointing from the wall to the
+        transmitter's side (``(T - T') / |T - T'|``); NaN for corners and edges.
+    truth_reflection_point : ndarray, shape (N, K, 2)
+        Where the echo heard by receiver k last touched the reflector (the
+        point a receiver "sees"), m; NaN where not heard.
+    """
+
+    layout: str
+    time: float
+    pose: np.ndarray
+    speed_of_sound: float
+    group: np.ndarray
+    transmitter: np.ndarray
+    tof: np.ndarray
+    amplitude: np.ndarray
+    phase_delay: np.ndarray
+    truth_reflector: np.ndarray
+    truth_class: np.ndarray
+    truth_position: np.ndarray
+    truth_normal: np.ndarray
+    truth_reflection_point: np.ndarray
+
+    @property
+    def n_echoes(self) -> int:
+        """Number of echo rows N."""
+        return int(self.group.shape[0])
+
+    def path_length(self) -> np.ndarray:
+        """Path lengths ``d = c * tof``, shape (N, K), m (NaN where not heard)."""
+        return self.speed_of_sound * self.tof
+
+
+PING_ROW_FIELDS = ("group", "transmitter", "tof", "amplitude", "phase_delay", "truth_reflector",
+                   "truth_class", "truth_position", "truth_normal", "truth_reflection_point")
+"""Fields of :class:`Ping` with one entry per echo row."""
+
+
+def stack_pings(pings) -> dict:
+    """Concatenate the rows of several pings into one table of arrays.
+
+    Parameters
+    ----------
+    pings : sequence of Ping
+        Pings of one layout.
+
+    Returns
+    -------
+    dict of str to ndarray
+        Every field of :data:`PING_ROW_FIELDS` with the rows of all pings in
+        order, ``ping`` (N,) the index of the ping each row came from, and the
+        per-ping ``time`` (P,), ``pose`` (P, 3) and ``speed_of_sound`` (P,).
+    """
+    if not pings:
+        raise ValueError("stack_pings: need at least one ping")
+    table = {name: np.concatenate([getattr(p, name) for p in pings]) for name in PING_ROW_FIELDS}
+    table["ping"] = np.repeat(np.arange(len(pings)), [p.n_echoes for p in pings])
+    table["time"] = np.array([p.time for p in pings])
+    table["pose"] = np.array([p.pose for p in pings]).reshape(-1, 3)
+    table["speed_of_sound"] = np.array([p.speed_of_sound for p in pings])
+    return table
+
+
+def transducer_half_angle(layout: Layout, speed: float) -> float:
+    """Gaussian beam half-angle ``theta0`` of the layout's transducers, rad.
+
+    Barshan & Kuc eq 2, ``asin(0.61 lambda / a)`` with ``lambda = speed /
+    layout.frequency``; 90 deg for transducers so small (``0.61 lambda >= a``)
+    that the piston has no first null, such as Kreczmer's 10 mm receivers.
+    """
+    ratio = 0.61 * layout.wavelength(speed) / layout.aperture_radius
+    return float(np.arcsin(min(ratio, 1.0)))
+
+
+def _cross(u, v):
+    return u[..., 0] * v[..., 1] - u[..., 1] * v[..., 0]
+
+
+def _dot(u, v):
+    return u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1]
+
+
+def _angle_off_axis(direction, axis):
+    """Signed angle from unit ``axis`` to ``direction`` (both (..., 2)), rad."""
+    return np.arctan2(_cross(axis, direction), _dot(axis, direction))
+
+
+def _blocked(starts, ends, walls):
+    """Whether each leg ``starts[i] -> ends[i]`` crosses any wall.
+
+    Parameters
+    ----------
+    starts, ends : ndarray, shape (n, 2)
+        Leg end points, m.
+    walls : ndarray, shape (W, 2, 2)
+        Wall segments, m.
+
+    Returns
+    -------
+    ndarray of bool, shape (n,)
+        True where a wall crosses the leg strictly between its ends; touching a
+        wall at a leg's end (the leg's own reflection point) does not count, nor
+        does running along a wall (parallel).
+    """
+    p = starts[:, None, :]
+    r = ends[:, None, :] - p
+    a = walls[None, :, 0]
+    s = walls[None, :, 1] - a
+    denominator = _cross(r, s)
+    ap = a - p
+    with np.errstate(divide="ignore", invalid="ignore"):
+        along_leg = _cross(ap, s) / denominator
+        along_wall = _cross(ap, r) / denominator
+    hit = ((denominator != 0) & (along_leg > _TIME_EPS) & (along_leg < 1 - _TIME_EPS)
+           & (along_wall >= 0) & (along_wall <= 1))
+    return hit.any(axis=1)
+
+
+@dataclass
+class _Paths:
+    """Echo paths of one reflector kind, broadcast over (F, G, M, K).
+
+    ``legs`` are (start, end) pairs of horizontal path legs; ``out_point`` is
+    where the transmitted ray first meets the reflector, ``in_point`` where the
+    received ray last left it; truth arrays are (F, G, M, 2).
+    """
+
+    reflector: np.ndarray
+    horizontal: np.ndarray
+    exists: np.ndarray
+    out_point: np.ndarray
+    in_point: np.ndarray
+    legs: list
+    truth_position: np.ndarray
+    truth_normal: np.ndarray
+
+
+class Simulator:
+    """Forward model of one sensor layout in one scene.
+
+    Parameters
+    ----------
+    scene : Scene
+        The reflectors and the air.
+    layout : Layout
+        The sensor.
+    threshold : float
+        Detection threshold relative to ``A_max``; weaker echoes are not
+        reported (default -30 dB).
+
+    Attributes
+    ----------
+    half_angle : float
+        Gaussian beam half-angle ``theta0`` of the transducers, rad.
+    """
+
+    def __init__(self, scene: Scene, layout: Layout, threshold: float = DEFAULT_THRESHOLD):
+        if not (math.isfinite(threshold) and threshold > 0):
+            raise ValueError(f"Simulator: threshold must be a finite number > 0, got {threshold!r}")
+        self.scene = scene
+        self.layout = layout
+        self.threshold = float(threshold)
+        self.speed = scene.speed_of_sound
+        self.half_angle = transducer_half_angle(layout, self.speed)
+        self.period = 1.0 / layout.frequency
+        # Sensor-frame transducers per (group, transmitter slot) and (group, receiver column).
+        self._tx = layout.transmitters[layout.group_transmitters]  # (G, M, 3)
+        self._tx_yaw = layout.transmitter_yaw[layout.group_transmitters]  # (G, M)
+        self._rx = layout.receivers[layout.groups]  # (G, K, 3)
+        self._rx_yaw = layout.receiver_yaw[layout.groups]  # (G, K)
+        self._dz = layout.height_offset()  # (G, M, K)
+        self._max_path = 2.0 * layout.max_range
+        self._triad = layout.kind == "triad"
+        s = scene
+        self._wall_start = s.walls[:, 0]
+        wall_vector = s.walls[:, 1] - s.walls[:, 0]
+        self._wall_length = np.hypot(wall_vector[:, 0], wall_vector[:, 1])
+        self._wall_dir = wall_vector / self._wall_length[:, None]
+        self._wall_normal = np.stack([-self._wall_dir[:, 1], self._wall_dir[:, 0]], axis=-1)
+        # Reflector index of each row of the walls / corners / edges tables (both in file order).
+        self._reflectors = {code: np.flatnonzero(s.reflector_class == code) for code in (PLANE, CORNER, EDGE)}
+
+    # ------------------------------------------------------------------ geometry per kind
+
+    def _plane_paths(self, tx, rx) -> _Paths:
+        """Single reflections: image of T in each wall line (shapes in :class:`_Paths`)."""
+        a = self._wall_start[:, None, None, None, :]
+        u = self._wall_dir[:, None, None, None, :]
+        n = self._wall_normal[:, None, None, None, :]
+        t = tx[None, :, :, None, :]  # (1, G, M, 1, 2)
+        r = rx[None, :, None, :, :]  # (1, G, 1, K, 2)
+        side_t = _dot(t - a, n)  # (W, G, M, 1)
+        side_r = _dot(r - a, n)  # (W, G, 1, K)
+        image = t - 2.0 * side_t[..., None] * n
+        same_side = side_t * side_r > 0
+        # Where T and R are on opposite sides (or on the line) the fraction is meaningless;
+        # ``same_side`` discards those entries.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            fraction = side_r / (side_r + side_t)
+            point = r + fraction[..., None] * (image - r)  # reflection point, (W, G, M, K, 2)
+            along = _dot(point - a, u)
+        length = self._wall_length[:, None, None, None]
+        exists = same_side & (along >= 0) & (along <= length)
+        delta = image - r
+        foot = tx[None] - side_t[..., 0, None] * n[:, :, :, 0]  # (W, G, M, 2)
+        normal = np.sign(side_t[..., 0, None]) * n[:, :, :, 0]
+        return _Paths(self._reflectors[PLANE], np.hypot(delta[..., 0], delta[..., 1]), exists,
+                      point, point, [(t, point), (point, r)], foot, normal)
+
+    def _corner_paths(self, tx, rx) -> _Paths:
+        """Double reflections: image ``2C - T``; reflection points on both arms."""
+        s = self.scene
+        c = s.corner_point[:, None, None, None, :]
+        arm_a = s.corner_arm[:, 0][:, None, None, None, :]
+        arm_b = s.corner_arm[:, 1][:, None, None, None, :]
+        length = s.corner_arm_length[:, None, None, None, :]
+        t = tx[None, :, :, None, :]
+        r = rx[None, :, None, :, :]
+        tu, tv = _dot(t - c, arm_a), _dot(t - c, arm_b)  # (C, G, M, 1)
+        ru, rv = _dot(r - c, arm_a), _dot(r - c, arm_b)  # (C, G, 1, K)
+        inside = (tu > 0) & (tv > 0) & (ru > 0) & (rv > 0)
+        # In coordinates along the arms the image of T through both walls is (-tu, -tv).
+        # The straight line from it to R crosses arm B at b = turn / (tu + ru) and,
+        # unfolded once, arm A at a = tu b / (b + tv), with turn = tu rv - tv ru: the
+        # order "A first" is real when turn >= 0, "B first" (arms swapped) when turn < 0.
+        turn = tu * rv - tv * ru
+        a_first = turn >= 0
+        first_arm = np.where(a_first[..., None], arm_a, arm_b)
+        last_arm = np.where(a_first[..., None], arm_b, arm_a)
+        first_length = np.where(a_first, length[..., 0], length[..., 1])
+        last_length = np.where(a_first, length[..., 1], length[..., 0])
+        # Outside the quadrant the denominators may vanish; ``inside`` discards those entries.
+        with np.errstate(divide="ignore", invalid="ignore"):
+            last = np.where(a_first, turn / (tu + ru), -turn / (tv + rv))
+            first = np.where(a_first, tu * last / (last + tv), tv * last / (last + tu))
+            first_point = c + first[..., None] * first_arm
+            last_point = c + last[..., None] * last_arm
+        exists = inside & (first <= first_length) & (last <= last_length)
+        delta = 2.0 * c - t - r
+        vertex = np.broadcast_to(s.corner_point[:, None, None, :], (len(s.corner_point),) + tx.shape)
+        return _Paths(self._reflectors[CORNER], np.hypot(delta[..., 0], delta[..., 1]), exists,
+                      first_point, last_point, [(t, first_point), (first_point, last_point), (last_point, r)],
+                      vertex, np.full(vertex.shape, np.nan))
+
+    def _edge_paths(self, tx, rx) -> _Paths:
+        """Diffraction at vertical lines: ``|T - P| + |P - R|``."""
+        p = self.scene.edges[:, None, None, None, :]
+        t = tx[None, :, :, None, :]
+        r = rx[None, :, None, :, :]
+        out, back = p - t, p - r
+        horizontal = np.hypot(out[..., 0], out[..., 1]) + np.hypot(back[..., 0], back[..., 1])
+        vertex = np.broadcast_to(self.scene.edges[:, None, None, :], (len(self.scene.edges),) + tx.shape)
+        return _Paths(self._reflectors[EDGE], horizontal, np.ones(horizontal.shape, dtype=bool),
+                      p, p, [(t, p), (p, r)], vertex, np.full(vertex.shape, np.nan))
+
+    # ------------------------------------------------------------------ one ping
+
+    def ping(self, pose, *, noise: Noise = NOISE_FREE, rng: np.random.Generator | None = None,
+             time: float = 0.0) -> Ping:
+        """Simulate one ping with the sensor at ``pose``.
+
+        Parameters
+        ----------
+        pose : array_like, shape (3,)
+            Sensor pose ``(x, y, yaw)`` in the world frame, m and rad.
+        noise : Noise
+            Measurement noise; :data:`NOISE_FREE` gives exact data.
+        rng : numpy.random.Generator, optional
+            Source of all random numbers; required when ``noise`` is random.
+        time : float
+            Time stamp to give the ping, s.
+
+        Returns
+        -------
+        Ping
+            The echoes in the sensor frame with their ground truth.
+        """
+        if noise.random and rng is None:
+            raise ValueError("Simulator.ping: a numpy.random.Generator 'rng' is needed for noisy pings")
+        pose = np.asarray(pose, dtype=float)
+        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+            raise ValueError(f"Simulator.ping: pose must be finite (x, y, yaw), got {pose!r}")
+        cos_yaw, sin_yaw = math.cos(pose[2]), math.sin(pose[2])
+        rotation = np.array([[cos_yaw, -sin_yaw], [sin_yaw, cos_yaw]])
+        tx = self._tx[..., :2] @ rotation.T + pose[:2]  # (G, M, 2), world
+        rx = self._rx[..., :2] @ rotation.T + pose[:2]  # (G, K, 2), world
+        tx_yaw = self._tx_yaw + pose[2]
+        rx_yaw = self._rx_yaw + pose[2]
+        tx_axis = np.stack([np.cos(tx_yaw), np.sin(tx_yaw)], axis=-1)[:, :, None, :]  # (G, M, 1, 2)
+        rx_axis = np.stack([np.cos(rx_yaw), np.sin(rx_yaw)], axis=-1)[:, None, :, :]  # (G, 1, K, 2)
+
+        heard = [self._heard(kind(tx, rx), tx, rx, tx_axis, rx_axis)
+                 for code, kind in ((PLANE, self._plane_paths), (CORNER, self._corner_paths),
+                                    (EDGE, self._edge_paths)) if self._reflectors[code].size]
+        columns = {key: np.concatenate([h[key] for h in heard]) for key in heard[0]}
+        return self._assemble(columns, pose, rotation, noise, rng, time)
+
+    def _heard(self, paths: _Paths, tx, rx, tx_axis, rx_axis) -> dict:
+        """The (reflector, group, slot, receiver) paths a receiver hears, as flat columns.
+
+        Keeps paths that exist geometrically, fit the receive window, leave a
+        directional transmitter and reach the receiver within the acceptance
+        half-angle, and are not blocked by a wall.
+        """
+        shape = paths.horizontal.shape
+        acceptance = self.layout.beam_half_angle
+        path = np.sqrt(paths.horizontal ** 2 + self._dz ** 2)
+        in_point = np.broadcast_to(paths.in_point, shape + (2,))
+        receive_angle = _angle_off_axis(in_point - rx[None, :, None, :, :], rx_axis)
+        candidate = paths.exists & (path <= self._max_path) & (np.abs(receive_angle) <= acceptance)
+        if self.layout.isotropic_emitter:
+            transmit_angle = np.zeros(shape)
+        else:
+            # A directional transmitter is the same kind of transducer as the receivers:
+            # the same beam limits what it sends, which keeps A_ab' = A_ba' (reciprocity)
+            # and puts the beam edge where Barshan & Kuc's eq 27 has it.
+            out_point = np.broadcast_to(paths.out_point, shape + (2,))
+            transmit_angle = _angle_off_axis(out_point - tx[None, :, :, None, :], tx_axis)
+            candidate &= np.abs(transmit_angle) <= acceptance
+        index = np.nonzero(candidate)
+        if self.scene.walls.size and index[0].size:
+            starts = np.concatenate([np.broadcast_to(start, shape + (2,))[index] for start, _ in paths.legs])
+            ends = np.concatenate([np.broadcast_to(end, shape + (2,))[index] for _, end in paths.legs])
+            blocked = _blocked(starts, ends, self.scene.walls).reshape(len(paths.legs), -1).any(axis=0)
+            index = tuple(i[~blocked] for i in index)
+        f, g, m, k = index
+        # Barshan & Kuc eqs 3-4: the product of the transmit and receive Gaussian gains.
+        gain = np.exp(-2.0 * (transmit_angle[index] ** 2 + receive_angle[index] ** 2) / self.half_angle ** 2)
+        reflector = paths.reflector[f]
+        return dict(
+            reflector=reflector,
+            group=g,
+            slot=m,
+            receiver=k,
+            path=path[index],
+            amplitude=self.scene.reflectivity[self.scene.reflector_class[reflector]] * gain,
+            in_point=in_point[index],
+            truth_position=paths.truth_position[f, g, m],
+            truth_normal=paths.truth_normal[f, g, m],
+        )
+
+    def _assemble(self, c: dict, pose, rotation, noise: Noise, rng, time: float) -> Ping:
+        """Add noise, apply the threshold and pack the heard paths into echo rows."""
+        K = self.layout.receivers_per_group
+        amplitude = c["amplitude"]
+        if noise.amplitude:
+            amplitude = amplitude + rng.normal(0.0, noise.amplitude, amplitude.shape)
+        keep = amplitude >= self.threshold
+        c = {key: value[keep] for key, value in c.items()}
+        amplitude = amplitude[keep]
+        arrival = c["path"] / self.speed
+        tof = arrival + rng.normal(0.0, noise.tof, arrival.shape) if noise.tof else arrival
+        zero_crossing = arrival + rng.normal(0.0, noise.phase, arrival.shape) if noise.phase else arrival
+
+        # One row per (reflector, group, transmitter slot); receivers are its columns.
+        n_slots = self._tx.shape[1]
+        key = (c["reflector"] * self.layout.n_groups + c["group"]) * n_slots + c["slot"]
+        row_key, row = np.unique(key, return_inverse=True)
+        N = row_key.size
+        tof_table = np.full((N, K), np.nan)
+        tof_table[row, c["receiver"]] = tof
+        amplitude_table = np.full((N, K), np.nan)
+        amplitude_table[row, c["receiver"]] = amplitude
+        crossing_table = np.full((N, K), np.nan)
+        crossing_table[row, c["receiver"]] = zero_crossing
+        point_table = np.full((N, K, 2), np.nan)
+        point_table[row, c["receiver"]] = c["in_point"]
+        first = np.empty(N, dtype=int)
+        first[row] = np.arange(row.size)  # any path of a row: they share reflector, group, slot and truth
+        reflector = c["reflector"][first]
+        group = c["group"][first]
+        transmitter = self.layout.group_transmitters[group, c["slot"][first]]
+
+        if noise.timer:
+            tof_table = np.floor(tof_table / noise.timer) * noise.timer
+        if self._triad:
+            phase = np.mod(crossing_table[:, 1:] - crossing_table[:, :1], self.period)
+            if noise.timer:
+                phase = np.floor(phase / noise.timer) * noise.timer
+        else:
+            phase = np.empty((N, 0))
+
+        order = np.lexsort((np.nanmin(tof_table, axis=1), transmitter, group))
+        to_sensor = rotation  # row vectors times R == R.T applied to column vectors
+
+        def sensor_frame(points):
+            return (points - pose[:2]) @ to_sensor
+
+        return Ping(
+            layout=self.layout.name,
+            time=float(time),
+            pose=pose.copy(),
+            speed_of_sound=self.speed,
+            group=group[order],
+            transmitter=transmitter[order],
+            tof=tof_table[order],
+            amplitude=amplitude_table[order],
+            phase_delay=phase[order],
+            truth_reflector=reflector[order],
+            truth_class=self.scene.reflector_class[reflector][order],
+            truth_position=sensor_frame(c["truth_position"][first])[order],
+            truth_normal=(c["truth_normal"][first] @ to_sensor)[order],
+            truth_reflection_point=sensor_frame(point_table)[order],
+        )
+
+    def run(self, poses, times=None, *, noise: Noise = NOISE_FREE,
+            rng: np.random.Generator | None = None) -> list[Ping]:
+        """Simulate a ping at each of several poses.
+
+        Parameters
+        ----------
+        poses : array_like, shape (P, 3)
+            Sensor poses ``(x, y, yaw)``, world frame, m and rad.
+        times : array_like, shape (P,), optional
+            Ping times, s; default ``arange(P) / layout.ping_rate``.
+        noise, rng
+            As for :meth:`ping`; one generator serves the whole run.
+
+        Returns
+        -------
+        list of Ping
+        """
+        poses = np.asarray(poses, dtype=float).reshape(-1, 3)
+        times = np.arange(len(poses)) / self.layout.ping_rate if times is None else np.asarray(times, dtype=float)
+        return [self.ping(p, noise=noise, rng=rng, time=t) for p, t in zip(poses, times, strict=True)]
+
+
+def ping(scene: Scene, layout: Layout, pose=None, *, noise: Noise = NOISE_FREE,
+         rng: np.random.Generator | None = None, threshold: float = DEFAULT_THRESHOLD) -> Ping:
+    """Simulate one ping (a one-off :class:`Simulator`; reuse one for many pings).
+
+    Parameters
+    ----------
+    scene : Scene
+    layout : Layout
+    pose : array_like, shape (3,), optional
+        Sensor pose ``(x, y, yaw)``, world frame, m and rad; default the
+        scene's ``sensor_pose``.
+    noise, rng, threshold
+        As for :class:`Simulator` and :meth:`Simulator.ping`.
+    """
+    pose = scene.sensor_pose if pose is None else pose
+    return Simulator(scene, layout, threshold).ping(pose, noise=noise, rng=rng)
