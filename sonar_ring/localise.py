@@ -1,0 +1,896 @@
+"""Localisation core: from measured path lengths to landmarks.
+
+Every sensor of the package (Browne's single-emitter ring, Barshan & Kuc's
+transmit/receive pairs, Kreczmer's triad) reduces to one 2-D problem: a
+transmitter ``T`` and two receivers ``R1``, ``R2`` at known positions, and two
+measured path lengths ``d_n = c * tof_n`` from ``T`` via the reflector to
+``R_n``.  This module solves it for the three reflector models of the papers:
+
+* **plane** and **corner** -- through the *virtual image* ``T'`` of the
+  transmitter, the point at distance ``d1`` from ``R1`` and ``d2`` from ``R2``.
+  A plane is the perpendicular bisector of ``T T'`` (foot point
+  ``G = (T + T') / 2``, normal along ``T' - T``); a corner is the point ``G``.
+* **edge** -- a point ``P`` with ``|P - T| + |P - R_n| = d_n`` (two ellipses
+  with the common focus ``T``), which has no virtual image.
+
+Conventions
+-----------
+* Positions are ``(..., 2)`` arrays in metres, all in one frame (usually the
+  sensor frame of REP 103: x forward, y left); path lengths are ``(...)``
+  arrays in metres.  Every function broadcasts its arguments over any leading
+  shape and computes in float64 (float32 inputs are promoted).
+* Receiver order matters: ``rx1`` is the counter-clockwise (left) receiver of
+  the group (layout column 0, Browne's R1).  The *front* of the receivers is the
+  direction ``n`` obtained by turning ``rx1 - rx2`` 90 degrees clockwise; echoes
+  are taken to arrive from that half-plane, so the virtual image and edges are
+  placed in front of the line through the receivers.
+* The transmitter may be anywhere: behind the receivers (Browne's ring centre),
+  on their line (Barshan & Kuc, where ``tx`` is ``rx1`` itself; Kreczmer), or
+  elsewhere.
+* Bad *data* never raises: each result carries ``valid`` (bool, ``(...)``) and
+  ``reason`` (int8, ``(...)``, one of the codes below), and invalid entries hold
+  NaN.  Valid entries are never NaN.  Only wrong shapes or non-numeric types
+  raise :class:`ValueError`.
+
+Reason codes
+------------
+``OK`` 0, ``NOT_FINITE`` 1 (NaN or infinite input), ``DEGENERATE`` 2 (coincident
+receivers, or a singular configuration), ``NEGATIVE`` 3 (a path length <= 0),
+``NO_INTERSECTION`` 4 (``|d2 - d1| > D`` or ``d1 + d2 < D``: the circles or
+ellipses do not meet), ``TOO_SHORT`` 5 (``d_n < |T - R_n|``: shorter than the
+direct path, which no reflector can produce), ``BELOW_HEIGHT`` 6 (``d < |dz|``
+in the vertical correction), ``BEHIND`` 7 (the landmark is not in front of the
+receivers), ``AMBIGUOUS`` 8 (two edge solutions in front of the receivers),
+``NONE_VALID`` 9 (fusion without a single usable input).  An entry carries the
+code of the first check it fails: the input checks in the order NOT_FINITE,
+DEGENERATE (coincident receivers), NEGATIVE, NO_INTERSECTION, TOO_SHORT, then
+the model's own (DEGENERATE, NO_INTERSECTION, BEHIND, AMBIGUOUS).
+
+Numerics
+--------
+The formulas are arranged so that no step subtracts nearly equal rounded
+quantities: the virtual image uses the along-baseline offset
+``(d1 - d2)(d1 + d2) / (2D)`` and Heron's product
+``(D + d2 - d1)(D - d2 + d1)(d1 + d2 - D)(d1 + d2 + D)`` for its height, so
+``d1 ~ d2`` at long range and bearings near +-90 degrees stay accurate to a few
+ulps of the inputs; the edge quadratic is solved in the cancellation-free
+(citardauq) form.  See ``test/test_localise_hard_cases.py`` for the evidence.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+
+OK = 0
+NOT_FINITE = 1
+DEGENERATE = 2
+NEGATIVE = 3
+NO_INTERSECTION = 4
+TOO_SHORT = 5
+BELOW_HEIGHT = 6
+BEHIND = 7
+AMBIGUOUS = 8
+NONE_VALID = 9
+
+REASONS = {
+    OK: "ok",
+    NOT_FINITE: "NaN or infinite input",
+    DEGENERATE: "degenerate geometry (coincident receivers or singular configuration)",
+    NEGATIVE: "path length not positive",
+    NO_INTERSECTION: "no real solution (|d2 - d1| > D or d1 + d2 < D)",
+    TOO_SHORT: "path shorter than the direct transmitter-to-receiver distance",
+    BELOW_HEIGHT: "path shorter than the height difference",
+    BEHIND: "landmark not in front of the receivers",
+    AMBIGUOUS: "two edge solutions in front of the receivers",
+    NONE_VALID: "no valid input to fuse",
+}
+"""Human-readable meaning of each reason code."""
+
+
+# --------------------------------------------------------------------------- results
+
+@dataclass(frozen=True, eq=False)
+class ScalarEstimate:
+    """A scalar per entry (a bearing, a corrected path length).
+
+    Attributes
+    ----------
+    value : ndarray of float64, shape (...)
+        The estimate (rad for bearings, m for lengths); NaN where not valid.
+    valid : ndarray of bool, shape (...)
+    reason : ndarray of int8, shape (...)
+        One of the reason codes of this module (``OK`` where valid).
+    """
+
+    value: np.ndarray
+    valid: np.ndarray
+    reason: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class PointEstimate:
+    """A point landmark per entry (virtual image, corner, edge, on-axis echo).
+
+    Attributes
+    ----------
+    position : ndarray of float64, shape (..., 2)
+        Position in the frame of the inputs, m; NaN where not valid.
+    valid : ndarray of bool, shape (...)
+    reason : ndarray of int8, shape (...)
+        One of the reason codes of this module (``OK`` where valid).
+    model : str
+        ``"virtual_image"``, ``"corner"``, ``"edge"``, ``"plane"`` or ``"on_axis"``;
+        :func:`position_jacobian` uses it.
+    """
+
+    position: np.ndarray
+    valid: np.ndarray
+    reason: np.ndarray
+    model: str
+
+
+@dataclass(frozen=True, eq=False)
+class PlaneEstimate(PointEstimate):
+    """A plane per entry: its foot point, normal and the two reflection points.
+
+    Attributes
+    ----------
+    position : ndarray of float64, shape (..., 2)
+        Foot point ``G = (T + T') / 2`` of the perpendicular from the transmitter
+        onto the plane, m.
+    normal : ndarray of float64, shape (..., 2)
+        Unit normal along ``T' - T``: from the transmitter's side into the
+        reflector (away from the sensor).
+    reflection_points : ndarray of float64, shape (..., 2, 2)
+        ``[..., n, :]`` is the specular point seen by receiver n+1 (Browne's X
+        for n = 0): where the segment ``R_n T'`` crosses the plane, m.
+    """
+
+    normal: np.ndarray
+    reflection_points: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class FusedScalar:
+    """Inverse-variance fusion of scalars (Barshan & Kuc eq 41).
+
+    Attributes
+    ----------
+    value, variance : ndarray of float64, shape (...)
+    weights : ndarray of float64, shape (..., G)
+        Eq 41 weights, zero for invalid inputs.
+    valid : ndarray of bool, shape (...)
+    reason : ndarray of int8, shape (...)
+    """
+
+    value: np.ndarray
+    variance: np.ndarray
+    weights: np.ndarray
+    valid: np.ndarray
+    reason: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class FusedPoint:
+    """Information-weighted fusion of 2-D positions (eq 41 for covariance matrices).
+
+    Attributes
+    ----------
+    position : ndarray of float64, shape (..., 2)
+    covariance : ndarray of float64, shape (..., 2, 2)
+    valid : ndarray of bool, shape (...)
+    reason : ndarray of int8, shape (...)
+    """
+
+    position: np.ndarray
+    covariance: np.ndarray
+    valid: np.ndarray
+    reason: np.ndarray
+
+
+# --------------------------------------------------------------------------- input handling
+
+def _quiet(function):
+    """Run ``function`` without floating-point warnings.
+
+    Entries that divide by zero or go invalid are reported through the reason
+    codes (and hold NaN), so numpy's warnings about them would only be noise.
+    """
+
+    @functools.wraps(function)
+    def wrapper(*args, **kwargs):
+        with np.errstate(all="ignore"):
+            return function(*args, **kwargs)
+
+    return wrapper
+
+
+def _real_array(name: str, value, caller: str) -> np.ndarray:
+    array = np.asarray(value)
+    if array.dtype.kind not in "iuf":
+        raise ValueError(f"{caller}: '{name}' must be real numbers, got dtype {array.dtype}")
+    return array.astype(np.float64, copy=False)
+
+
+def _points(name: str, value, caller: str) -> np.ndarray:
+    array = _real_array(name, value, caller)
+    if array.ndim == 0 or array.shape[-1] != 2:
+        raise ValueError(f"{caller}: '{name}' must be (..., 2) positions (x, y) in m, got shape {array.shape}")
+    return array
+
+
+def _shape(caller: str, **arrays) -> tuple:
+    """Broadcast shape of the entries; points contribute their leading shape."""
+    shapes = {name: a.shape[:-1] if name in ("tx", "rx1", "rx2") else a.shape
+              for name, a in arrays.items()}
+    try:
+        return np.broadcast_shapes(*shapes.values())
+    except ValueError:
+        listing = ", ".join(f"{name} {shape}" for name, shape in shapes.items())
+        raise ValueError(f"{caller}: leading shapes do not broadcast: {listing}") from None
+
+
+def _flag(reason: np.ndarray, mask, code: int) -> None:
+    """Set ``code`` where ``mask`` holds and no earlier check has failed."""
+    reason[(reason == OK) & np.broadcast_to(mask, reason.shape)] = code
+
+
+def _finish(reason: np.ndarray, *outputs):
+    """Validity from the reason codes, and full-shape copies of the outputs with NaN where not valid.
+
+    ``outputs`` are ``(array, core)`` pairs, ``core`` the number of trailing
+    dimensions of one entry (0 for scalars, 1 for points, 2 for matrices).
+    """
+    valid = reason == OK
+    invalid = ~valid
+    results = []
+    for value, core in outputs:
+        value = np.asarray(value)
+        entry_shape = value.shape[value.ndim - core:] if core else ()
+        filled = np.array(np.broadcast_to(value, valid.shape + entry_shape))  # a fresh copy: fill it in place
+        filled[invalid] = np.nan
+        results.append(filled)
+    return valid, results
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1]
+
+
+def _norm(a: np.ndarray) -> np.ndarray:
+    # sqrt of the sum of squares: as accurate as hypot here (no overflow at sensor scales) and 3x faster
+    return np.sqrt(a[..., 0] * a[..., 0] + a[..., 1] * a[..., 1])
+
+
+@dataclass(frozen=True)
+class _Receivers:
+    """The receivers' frame: mid-point, baseline direction u (R1 to R2), front n."""
+
+    centre: np.ndarray
+    u: np.ndarray
+    n: np.ndarray
+    separation: np.ndarray
+
+
+def _receivers(rx1: np.ndarray, rx2: np.ndarray) -> _Receivers:
+    baseline = rx2 - rx1
+    separation = _norm(baseline)
+    u = baseline / separation[..., None]
+    # Turning u (R1 -> R2) counter-clockwise by 90 deg is turning R1 - R2 clockwise: the front.
+    n = np.stack([-u[..., 1], u[..., 0]], axis=-1)
+    return _Receivers(0.5 * (rx1 + rx2), u, n, separation)
+
+
+def _check_common(caller, tx, rx1, rx2, d1, d2):
+    """Validate types and shapes; return the receivers' frame and the first reason codes."""
+    tx = _points("tx", tx, caller)
+    rx1 = _points("rx1", rx1, caller)
+    rx2 = _points("rx2", rx2, caller)
+    d1 = _real_array("d1", d1, caller)
+    d2 = _real_array("d2", d2, caller)
+    shape = _shape(caller, tx=tx, rx1=rx1, rx2=rx2, d1=d1, d2=d2)
+    frame = _receivers(rx1, rx2)
+    reason = np.zeros(shape, dtype=np.int8)
+    geometry_finite = np.isfinite(tx).all(-1) & np.isfinite(rx1).all(-1) & np.isfinite(rx2).all(-1)
+    _flag(reason, ~(geometry_finite & np.isfinite(d1) & np.isfinite(d2)), NOT_FINITE)
+    _flag(reason, ~(frame.separation > 0), DEGENERATE)
+    _flag(reason, ~((d1 > 0) & (d2 > 0)), NEGATIVE)
+    return tx, rx1, rx2, d1, d2, frame, reason
+
+
+def _check_direct_path(reason, tx, rx1, rx2, d1, d2):
+    """A reflected path is never shorter than the direct one (triangle inequality)."""
+    _flag(reason, (d1 < _norm(rx1 - tx)) | (d2 < _norm(rx2 - tx)), TOO_SHORT)
+
+
+# --------------------------------------------------------------------------- virtual image
+
+def _image(caller, tx, rx1, rx2, d1, d2):
+    tx, rx1, rx2, d1, d2, frame, reason = _check_common(caller, tx, rx1, rx2, d1, d2)
+    separation = frame.separation
+    difference = d2 - d1  # exact for nearby values (Sterbenz), so no cancellation downstream
+    total = d1 + d2
+    _flag(reason, (separation + difference < 0) | (separation - difference < 0) | (total < separation),
+          NO_INTERSECTION)
+    _check_direct_path(reason, tx, rx1, rx2, d1, d2)
+    along = -difference * total / (2.0 * separation)
+    # Heron: the height over the baseline is 2 * area / D, every factor formed from inputs directly.
+    heron = (separation + difference) * (separation - difference) * (total - separation) * (total + separation)
+    height = np.sqrt(heron) / (2.0 * separation)
+    image = frame.centre + along[..., None] * frame.u + height[..., None] * frame.n
+    return tx, rx1, rx2, d1, d2, frame, reason, image
+
+
+@_quiet
+def virtual_image(tx, rx1, rx2, d1, d2) -> PointEstimate:
+    """Virtual image ``T'`` of the transmitter in a plane or corner reflector.
+
+    ``T'`` is the point at distance ``d1`` from ``rx1`` and ``d2`` from ``rx2`` in
+    front of the receivers; planes and corners share it (Browne section 2,
+    Barshan & Kuc's virtual receiver).
+
+    Parameters
+    ----------
+    tx, rx1, rx2 : array_like, shape (..., 2)
+        Transmitter and receiver positions, m, one frame.  ``rx1`` is the
+        counter-clockwise (left) receiver.
+    d1, d2 : array_like, shape (...)
+        Path lengths transmitter -> reflector -> ``rx1`` / ``rx2``, m.
+
+    Returns
+    -------
+    PointEstimate
+        ``position`` (..., 2) of ``T'``; reasons NOT_FINITE, DEGENERATE,
+        NEGATIVE, NO_INTERSECTION, TOO_SHORT.
+    """
+    *_, reason, image = _image("virtual_image", tx, rx1, rx2, d1, d2)
+    valid, (image,) = _finish(reason, (image, 1))
+    return PointEstimate(image, valid, reason, "virtual_image")
+
+
+@_quiet
+def plane(tx, rx1, rx2, d1, d2) -> PlaneEstimate:
+    """Plane reflector: foot point, unit normal and the two reflection points.
+
+    The plane is the perpendicular bisector of ``T T'`` (Browne eqs 9-18 compute
+    the reflection point X by trigonometry; this is the same geometry).
+
+    Parameters
+    ----------
+    tx, rx1, rx2 : array_like, shape (..., 2)
+        Transmitter and receiver positions, m.
+    d1, d2 : array_like, shape (...)
+        Path lengths to ``rx1`` / ``rx2``, m.
+
+    Returns
+    -------
+    PlaneEstimate
+        ``position`` = foot point ``G`` (..., 2), ``normal`` (..., 2) pointing
+        away from the sensor, ``reflection_points`` (..., 2, 2).  Reasons as
+        :func:`virtual_image`, plus DEGENERATE where ``T' = T``.
+    """
+    tx, rx1, rx2, d1, d2, frame, reason, image = _image("plane", tx, rx1, rx2, d1, d2)
+    axis = image - tx
+    length = _norm(axis)
+    _flag(reason, ~(length > 0), DEGENERATE)
+    normal = axis / length[..., None]
+    points = np.empty(reason.shape + (2, 2))
+    for n, receiver in enumerate((rx1, rx2)):
+        # Distance of the receiver from the plane over that of T' from it: where R_n T' crosses.
+        depth = 0.5 * length - _dot(receiver - tx, normal)
+        fraction = depth / (depth + 0.5 * length)
+        points[..., n, :] = receiver + fraction[..., None] * (image - receiver)
+    foot = tx + 0.5 * axis
+    valid, (foot, normal, points) = _finish(reason, (foot, 1), (normal, 1), (points, 2))
+    return PlaneEstimate(foot, valid, reason, "plane", normal, points)
+
+
+@_quiet
+def corner(tx, rx1, rx2, d1, d2) -> PointEstimate:
+    """Corner reflector (concave junction of two planes): the point ``G = (T + T') / 2``.
+
+    Browne eq 19; Barshan & Kuc's corner dot.  Also the model for a landmark of
+    unknown class (Browne section 7).
+
+    Parameters
+    ----------
+    tx, rx1, rx2 : array_like, shape (..., 2)
+        Transmitter and receiver positions, m.
+    d1, d2 : array_like, shape (...)
+        Path lengths to ``rx1`` / ``rx2``, m.
+
+    Returns
+    -------
+    PointEstimate
+        ``position`` (..., 2); reasons as :func:`virtual_image`, plus BEHIND
+        where ``G`` is not in front of the receivers.
+    """
+    tx, rx1, rx2, d1, d2, frame, reason, image = _image("corner", tx, rx1, rx2, d1, d2)
+    point = 0.5 * (tx + image)
+    _flag(reason, ~(_dot(point - frame.centre, frame.n) > 0), BEHIND)
+    valid, (point,) = _finish(reason, (point, 1))
+    return PointEstimate(point, valid, reason, "corner")
+
+
+# --------------------------------------------------------------------------- edge
+
+@_quiet
+def edge(tx, rx1, rx2, d1, d2) -> PointEstimate:
+    """Edge reflector (convex junction, pole): the point ``P`` with ``|P-T| + |P-R_n| = d_n``.
+
+    Method (Browne section 5 solves the same equations; his Appendix A closed
+    form is kept in :mod:`sonar_ring.reference.browne` for comparison).  With
+    ``k = |P - T|`` the two receivers' circles ``|P - R_n|^2 = (d_n - k)^2`` and
+    the transmitter's ``|P - T|^2 = k^2`` give, by subtraction, two equations
+    linear in ``P`` and ``k`` (the ``k^2`` terms cancel).  In the receivers'
+    frame (origin at their mid-point M, ``u`` along R1 -> R2, ``n`` to the
+    front) they make ``k`` and the along-baseline coordinate affine functions of
+    the normal coordinate ``p_n = (P - M) . n`` -- for *every* transmitter
+    position, including on the receivers' line (Barshan & Kuc, Kreczmer), where
+    a parametrisation by ``k`` is singular.  R1's circle is then a quadratic in
+    ``p_n``.  Measuring ``p_n`` from the receivers' line (not from ``T``) keeps
+    the two roots apart when the edge is close to the pair, and the quadratic is
+    solved in the cancellation-free form ``p_n = c / q, q / a`` with
+    ``q = -(b + sign(b) sqrt(b^2 - 4ac)) / 2``, which stays finite when the
+    leading coefficient ``a`` vanishes (one root escapes to infinity and is
+    discarded; ``a`` vanishes only as ``d_n -> |T - R_n|``).  A root is kept
+    when ``0 <= k <= min(d1, d2)`` and ``P`` is in front of the receivers
+    (``p_n > 0``).
+
+    Parameters
+    ----------
+    tx, rx1, rx2 : array_like, shape (..., 2)
+        Transmitter and receiver positions, m.
+    d1, d2 : array_like, shape (...)
+        Path lengths to ``rx1`` / ``rx2``, m.
+
+    Returns
+    -------
+    PointEstimate
+        ``position`` (..., 2); reasons NOT_FINITE, DEGENERATE, NEGATIVE,
+        NO_INTERSECTION, TOO_SHORT, BEHIND (no solution in front), AMBIGUOUS
+        (two solutions in front -- only for transmitters in front of the
+        receivers).
+    """
+    tx, rx1, rx2, d1, d2, frame, reason = _check_common("edge", tx, rx1, rx2, d1, d2)
+    separation = frame.separation
+    difference = d2 - d1
+    total = d1 + d2
+    _flag(reason, (separation + difference < 0) | (separation - difference < 0), NO_INTERSECTION)
+    _check_direct_path(reason, tx, rx1, rx2, d1, d2)
+    offset = tx - frame.centre
+    t_u = _dot(offset, frame.u)
+    t_n = _dot(offset, frame.n)
+    # Difference of the receivers' circles: p_u = (d1 - d2)(d1 + d2 - 2k) / (2D) = beta0 + beta1 k.
+    beta1 = difference / separation
+    beta0 = -difference * total / (2.0 * separation)
+    # Their mean minus the transmitter's circle: 2 t_n p_n = mu0 - mu1 k.
+    mu0 = 0.5 * (d1 * d1 + d2 * d2) - 0.25 * separation * separation + t_u * t_u + t_n * t_n - 2.0 * beta0 * t_u
+    mu1 = total + 2.0 * beta1 * t_u
+    # Hence k = nu0 + nu1 p_n and p_u = pi0 + pi1 p_n.
+    nu0 = mu0 / mu1
+    nu1 = -2.0 * t_n / mu1
+    pi1 = beta1 * nu1
+    # R1's circle (p_u + D/2)^2 + p_n^2 = (d1 - k)^2 as a p_n^2 + b p_n + c = 0, from its values at p_n = 0.
+    from_r1 = difference * (2.0 * nu0 - total) / (2.0 * separation) + 0.5 * separation
+    radius = d1 - nu0
+    a = (1.0 - nu1) * (1.0 + nu1) + pi1 * pi1
+    b = 2.0 * (from_r1 * pi1 + radius * nu1)
+    c = (from_r1 - radius) * (from_r1 + radius)
+    discriminant = b * b - 4.0 * a * c
+    half = -0.5 * (b + np.copysign(np.sqrt(discriminant), b))
+    shortest = np.minimum(d1, d2)
+    candidates = []
+    for offset_n in (half / a, c / half):  # the two roots: candidate normal offsets p_n
+        k = nu0 + nu1 * offset_n
+        # the squared circles admit k < 0 or d_n - k < 0; only k in [0, min d_n] is an edge, and it must be ahead
+        ahead = np.isfinite(offset_n) & (k >= 0) & (k <= shortest) & (offset_n > 0)
+        candidates.append((offset_n, k, ahead))
+    (first, k_first, first_ahead), (second, k_second, second_ahead) = candidates
+    _flag(reason, ~(mu1 > 0), DEGENERATE)
+    _flag(reason, ~(discriminant >= 0), NO_INTERSECTION)
+    _flag(reason, ~(first_ahead | second_ahead), BEHIND)
+    _flag(reason, first_ahead & second_ahead, AMBIGUOUS)
+    normal_offset = np.where(first_ahead, first, second)
+    k = np.where(first_ahead, k_first, k_second)
+    along = difference * (2.0 * k - total) / (2.0 * separation)
+    point = frame.centre + along[..., None] * frame.u + normal_offset[..., None] * frame.n
+    valid, (point,) = _finish(reason, (point, 1))
+    return PointEstimate(point, valid, reason, "edge")
+
+
+# --------------------------------------------------------------------------- baselines and helpers
+
+@_quiet
+def on_axis(tx, rx1, rx2, d1, d2) -> PointEstimate:
+    """Conventional ranger baseline: the echo placed on the receivers' axis.
+
+    The point ``P = M + r n`` on the perpendicular bisector of the receivers
+    (``M`` their mid-point, ``n`` the front) whose path ``|P - T| + |P - M|``
+    equals the mean measured path ``(d1 + d2) / 2``; for a transducer at ``M``
+    that transmits and receives this is ``r = d / 2``.  Bearing information is
+    ignored, as by a single-transducer time-of-flight ranger.
+
+    Parameters
+    ----------
+    tx, rx1, rx2 : array_like, shape (..., 2)
+        Transmitter and receiver positions, m.
+    d1, d2 : array_like, shape (...)
+        Path lengths to ``rx1`` / ``rx2``, m.
+
+    Returns
+    -------
+    PointEstimate
+        ``position`` (..., 2); reasons NOT_FINITE, DEGENERATE, NEGATIVE,
+        TOO_SHORT (mean path shorter than ``|T - M|``).
+    """
+    tx, rx1, rx2, d1, d2, frame, reason = _check_common("on_axis", tx, rx1, rx2, d1, d2)
+    mean = 0.5 * (d1 + d2)
+    offset = frame.centre - tx
+    direct = _norm(offset)
+    _flag(reason, mean < direct, TOO_SHORT)
+    # |offset + r n|^2 = (mean - r)^2 is linear in r.
+    denominator = 2.0 * (mean + _dot(offset, frame.n))
+    distance = (mean - direct) * (mean + direct) / denominator
+    _flag(reason, ~(denominator > 0), DEGENERATE)
+    point = frame.centre + distance[..., None] * frame.n
+    valid, (point,) = _finish(reason, (point, 1))
+    return PointEstimate(point, valid, reason, "on_axis")
+
+
+MODELS = {"plane": plane, "corner": corner, "edge": edge}
+"""Reflector model name -> localisation function (all share one signature)."""
+
+
+@_quiet
+def horizontal_path(d, dz) -> ScalarEstimate:
+    """Exact horizontal path length ``sqrt(d^2 - dz^2)`` for vertically extruded reflectors.
+
+    For walls, vertical corners and poles the path from a transmitter to a
+    receiver ``dz`` lower or higher unfolds into a right triangle (image
+    argument), so the horizontal path is exactly ``sqrt(d^2 - dz^2)``.  Browne's
+    eq 26 forms the same root but turns it into a range assuming a plane facing
+    the pair head-on.  Computed as ``sqrt((d - dz)(d + dz))``, free of
+    cancellation when ``d ~ |dz|``.
+
+    Parameters
+    ----------
+    d : array_like, shape (...)
+        Measured 3-D path length, m.
+    dz : array_like, shape (...)
+        Transmitter minus receiver height, m (either sign;
+        :meth:`sonar_ring.geometry.Layout.height_offset`).
+
+    Returns
+    -------
+    ScalarEstimate
+        ``value`` = horizontal path, m; reasons NOT_FINITE, NEGATIVE (d <= 0),
+        BELOW_HEIGHT (d < |dz|).
+    """
+    d = _real_array("d", d, "horizontal_path")
+    dz = _real_array("dz", dz, "horizontal_path")
+    reason = np.zeros(_shape("horizontal_path", d=d, dz=dz), dtype=np.int8)
+    _flag(reason, ~(np.isfinite(d) & np.isfinite(dz)), NOT_FINITE)
+    _flag(reason, ~(d > 0), NEGATIVE)
+    height = np.abs(dz)
+    _flag(reason, d < height, BELOW_HEIGHT)
+    value = np.sqrt((d - height) * (d + height))
+    valid, (value,) = _finish(reason, (value, 0))
+    return ScalarEstimate(value, valid, reason)
+
+
+@_quiet
+def bearing(d1, d2, separation, exact=True) -> ScalarEstimate:
+    """Bearing of the virtual image from the pair (Browne eq 4, or eq 8).
+
+    ``exact=True``: the angle ``phi_1`` at receiver R1 between its normal and
+    the virtual image, Browne eq 4 ``asin((d2^2 - d1^2 - D^2) / (2 d1 D))``,
+    evaluated as ``atan2(-a, h)`` from the along-baseline offset ``a`` and the
+    Heron height ``h`` so that it stays accurate for ``d1 ~ d2`` and near
+    +-90 degrees.  ``exact=False``: the far-field approximation, eq 8,
+    ``asin((d2 - d1) / D)`` -- the bearing from the pair's mid-point as the
+    range goes to infinity.  Counter-clockwise positive when R1 is the
+    counter-clockwise receiver: eq 3 gives ``sin(phi_1)`` the sign of
+    ``d2^2 - d1^2 - D^2`` (far away: positive when the echo is nearer R1).
+
+    Parameters
+    ----------
+    d1, d2 : array_like, shape (...)
+        Path lengths to R1 / R2, m.
+    separation : array_like, shape (...)
+        Receiver separation D, m.
+    exact : bool
+        Eq 4 (True) or eq 8 (False).
+
+    Returns
+    -------
+    ScalarEstimate
+        ``value`` in rad, in [-pi/2, pi/2]; reasons NOT_FINITE, DEGENERATE
+        (D <= 0), NEGATIVE, NO_INTERSECTION.
+    """
+    d1 = _real_array("d1", d1, "bearing")
+    d2 = _real_array("d2", d2, "bearing")
+    separation = _real_array("separation", separation, "bearing")
+    reason = np.zeros(_shape("bearing", d1=d1, d2=d2, separation=separation), dtype=np.int8)
+    _flag(reason, ~(np.isfinite(d1) & np.isfinite(d2) & np.isfinite(separation)), NOT_FINITE)
+    _flag(reason, ~(separation > 0), DEGENERATE)
+    _flag(reason, ~((d1 > 0) & (d2 > 0)), NEGATIVE)
+    difference = d2 - d1
+    total = d1 + d2
+    _flag(reason, (separation + difference < 0) | (separation - difference < 0), NO_INTERSECTION)
+    if exact:
+        _flag(reason, total < separation, NO_INTERSECTION)
+        # Along-baseline offset of T' from R1 towards R2, and its height over the baseline.
+        from_r1 = ((d1 - d2) * total + separation * separation) / (2.0 * separation)
+        heron = (separation + difference) * (separation - difference) * (total - separation) * (
+            total + separation)
+        value = np.arctan2(-from_r1, np.sqrt(heron) / (2.0 * separation))
+    else:
+        value = np.arcsin(difference / separation)
+    valid, (value,) = _finish(reason, (value, 0))
+    return ScalarEstimate(value, valid, reason)
+
+
+# --------------------------------------------------------------------------- uncertainty
+
+def cramer_rao_bound(separation, sigma_tof, speed_of_sound, phi=0.0):
+    """Cramer-Rao bounds on bearing and range for one pair (DESIGN.md section 5).
+
+    ``sigma_phi >= sqrt(2) c sigma_t / (D cos phi)`` and
+    ``sigma_r >= c sigma_t / (2 sqrt(2))``, for independent TOF noise of standard
+    deviation ``sigma_t`` on both receivers and a transmitter at the pair's
+    mid-point (range = half the mean path).  Far-field bounds: the exact ones
+    differ by O(D / range).
+
+    Parameters
+    ----------
+    separation : array_like
+        Receiver separation D, m.
+    sigma_tof : array_like
+        Standard deviation of each time of flight, s.
+    speed_of_sound : array_like
+        c, m/s.
+    phi : array_like
+        Bearing, rad.
+
+    Returns
+    -------
+    sigma_bearing, sigma_range : ndarray
+        Lower bounds on the standard deviations, rad and m.
+    """
+    sigma_path = np.asarray(speed_of_sound, dtype=float) * np.asarray(sigma_tof, dtype=float)
+    sigma_bearing = np.sqrt(2.0) * sigma_path / (np.asarray(separation, dtype=float) * np.cos(phi))
+    return sigma_bearing, sigma_path / (2.0 * np.sqrt(2.0))
+
+
+def path_covariance(d1, d2, sigma_tof, speed_of_sound, sigma_speed=0.0) -> np.ndarray:
+    """Covariance of the path lengths ``(d1, d2)`` from TOF and speed-of-sound noise.
+
+    ``d_n = c tof_n``: independent TOF errors of standard deviation ``sigma_tof``
+    give ``(c sigma_tof)^2`` on the diagonal; an error ``dc`` of the speed of
+    sound, common to both receivers, moves both paths by ``d_n dc / c``.
+
+    Parameters
+    ----------
+    d1, d2 : array_like, shape (...)
+        Path lengths, m.
+    sigma_tof : array_like, shape (...)
+        Standard deviation of each TOF, s (>= 0).
+    speed_of_sound : array_like, shape (...)
+        c, m/s (> 0).
+    sigma_speed : array_like, shape (...)
+        Standard deviation of c, m/s (>= 0).
+
+    Returns
+    -------
+    ndarray, shape (..., 2, 2)
+        Covariance, m^2.
+
+    Raises
+    ------
+    ValueError
+        If a noise parameter is negative or not finite, or c <= 0 (these are
+        configuration, not data).
+    """
+    d1 = _real_array("d1", d1, "path_covariance")
+    d2 = _real_array("d2", d2, "path_covariance")
+    sigma_tof = _real_array("sigma_tof", sigma_tof, "path_covariance")
+    speed = _real_array("speed_of_sound", speed_of_sound, "path_covariance")
+    sigma_speed = _real_array("sigma_speed", sigma_speed, "path_covariance")
+    if not (np.all(np.isfinite(sigma_tof) & (sigma_tof >= 0)) and np.all(np.isfinite(sigma_speed) & (sigma_speed >= 0))
+            and np.all(np.isfinite(speed) & (speed > 0))):
+        raise ValueError("path_covariance: need sigma_tof >= 0, sigma_speed >= 0 and speed_of_sound > 0, all finite")
+    shape = _shape("path_covariance", d1=d1, d2=d2, sigma_tof=sigma_tof, speed=speed, sigma_speed=sigma_speed)
+    paths = np.stack(np.broadcast_arrays(d1, d2), axis=-1)
+    relative = (sigma_speed / speed)[..., None, None]
+    independent = np.square(speed * sigma_tof)[..., None, None] * np.eye(2)
+    return np.broadcast_to(independent + np.square(relative) * paths[..., :, None] * paths[..., None, :],
+                           shape + (2, 2)).copy()
+
+
+def _inverse_2x2(rows: np.ndarray) -> np.ndarray:
+    """Inverse of (..., 2, 2) matrices; +inf where singular."""
+    a, b = rows[..., 0, 0], rows[..., 0, 1]
+    c, d = rows[..., 1, 0], rows[..., 1, 1]
+    det = a * d - b * c
+    adjugate = np.stack([np.stack([d, -b], -1), np.stack([-c, a], -1)], -2)
+    inverse = adjugate / det[..., None, None]
+    return np.where((det == 0)[..., None, None], np.inf, inverse)
+
+
+def _unit(vector: np.ndarray) -> np.ndarray:
+    return vector / _norm(vector)[..., None]
+
+
+@_quiet
+def position_jacobian(estimate: PointEstimate, tx, rx1, rx2) -> np.ndarray:
+    """Derivative of an estimate's position with respect to the paths ``(d1, d2)``.
+
+    From the implicit equations of each model: the virtual image satisfies
+    ``|T' - R_n| = d_n``, so ``dT'/dd = U^-1`` with rows ``(T' - R_n) / d_n``, and
+    the plane foot point and the corner ``G = (T + T') / 2`` take half of it; an
+    edge satisfies ``|P - T| + |P - R_n| = d_n``.
+
+    Parameters
+    ----------
+    estimate : PointEstimate
+        Result of :func:`virtual_image`, :func:`plane` (foot point),
+        :func:`corner`, :func:`edge` or :func:`on_axis`.
+    tx, rx1, rx2 : array_like, shape (..., 2)
+        The positions the estimate was computed with, m.
+
+    Returns
+    -------
+    ndarray, shape (..., 2, 2)
+        ``J[..., i, n] = d position_i / d d_n`` (dimensionless); +inf where the
+        geometry is singular (an echo on the receivers' line), NaN where the
+        estimate is not valid.
+    """
+    tx = _points("tx", tx, "position_jacobian")
+    rx1 = _points("rx1", rx1, "position_jacobian")
+    rx2 = _points("rx2", rx2, "position_jacobian")
+    position = estimate.position
+    if estimate.model in ("virtual_image", "plane", "corner"):
+        image = position if estimate.model == "virtual_image" else 2.0 * position - tx
+        rows = np.stack([_unit(image - rx1), _unit(image - rx2)], axis=-2)
+        jacobian = _inverse_2x2(rows) * (1.0 if estimate.model == "virtual_image" else 0.5)
+    elif estimate.model == "edge":
+        towards_tx = _unit(position - tx)
+        rows = np.stack([towards_tx + _unit(position - rx1), towards_tx + _unit(position - rx2)], axis=-2)
+        jacobian = _inverse_2x2(rows)
+    elif estimate.model == "on_axis":
+        frame = _receivers(rx1, rx2)
+        # P = M + r n with |P - T| + r = (d1 + d2) / 2, so dr/dd_n = 1 / (2 (1 + cos(P - T, n))).
+        rate = 0.5 / (1.0 + _dot(_unit(position - tx), frame.n))
+        jacobian = (rate[..., None] * frame.n)[..., :, None] * np.ones(2)
+    else:
+        raise ValueError(f"position_jacobian: unknown model {estimate.model!r}")
+    return np.where(estimate.valid[..., None, None], jacobian, np.nan)
+
+
+@_quiet
+def position_covariance(estimate: PointEstimate, tx, rx1, rx2, paths_covariance) -> np.ndarray:
+    """First-order 2x2 covariance of an estimate's position: ``J S J^T``.
+
+    Parameters
+    ----------
+    estimate : PointEstimate
+        As for :func:`position_jacobian` (for a plane, the foot point).
+    tx, rx1, rx2 : array_like, shape (..., 2)
+        The positions the estimate was computed with, m.
+    paths_covariance : array_like, shape (..., 2, 2)
+        Covariance ``S`` of ``(d1, d2)``, m^2, e.g. from :func:`path_covariance`.
+
+    Returns
+    -------
+    ndarray, shape (..., 2, 2)
+        Covariance of the position, m^2; +inf where the geometry is singular,
+        NaN where the estimate is not valid.
+    """
+    jacobian = position_jacobian(estimate, tx, rx1, rx2)
+    paths_covariance = _real_array("paths_covariance", paths_covariance, "position_covariance")
+    if paths_covariance.shape[-2:] != (2, 2):
+        raise ValueError(f"position_covariance: 'paths_covariance' must be (..., 2, 2), got {paths_covariance.shape}")
+    covariance = jacobian @ paths_covariance @ np.swapaxes(jacobian, -1, -2)
+    singular = np.isinf(jacobian).any(axis=(-1, -2))
+    return np.where(singular[..., None, None] & estimate.valid[..., None, None], np.inf, covariance)
+
+
+# --------------------------------------------------------------------------- fusion
+
+@_quiet
+def inverse_variance_weights(variances, valid=None) -> np.ndarray:
+    """Barshan & Kuc eq 41: ``w_i = (1 / s_i^2) / sum_k (1 / s_k^2)`` over the last axis.
+
+    Inputs that are not valid, or whose variance is not finite and positive,
+    get weight 0; a row without any usable input gets NaN weights.
+
+    Parameters
+    ----------
+    variances : array_like, shape (..., G)
+        Variance of each group's estimate.
+    valid : array_like of bool, shape (..., G), optional
+        Which inputs to use (default: all).
+
+    Returns
+    -------
+    ndarray, shape (..., G)
+    """
+    variances = _real_array("variances", variances, "inverse_variance_weights")
+    usable = np.isfinite(variances) & (variances > 0)
+    if valid is not None:
+        usable &= np.asarray(valid, dtype=bool)
+    information = np.where(usable, 1.0 / variances, 0.0)
+    return information / information.sum(axis=-1, keepdims=True)
+
+
+@_quiet
+def fuse_scalars(values, variances, valid=None) -> FusedScalar:
+    """Fuse several groups' estimates of one scalar (e.g. an inclination), eq 41.
+
+    Parameters
+    ----------
+    values, variances : array_like, shape (..., G)
+        Each group's estimate and its variance; groups along the last axis.
+    valid : array_like of bool, shape (..., G), optional
+
+    Returns
+    -------
+    FusedScalar
+        ``value`` and ``variance = 1 / sum(1 / s_i^2)`` (the minimum of eq 36),
+        shape (...); reason NONE_VALID where no input is usable.
+    """
+    values = _real_array("values", values, "fuse_scalars")
+    variances = _real_array("variances", variances, "fuse_scalars")
+    weights = inverse_variance_weights(variances, valid)
+    usable = weights > 0  # NaN weights (no usable input in the row) compare False
+    value = np.where(usable, weights * values, 0.0).sum(axis=-1)
+    variance = 1.0 / np.where(usable, 1.0 / variances, 0.0).sum(axis=-1)
+    reason = np.where(usable.any(axis=-1), OK, NONE_VALID).astype(np.int8)
+    ok, (value, variance) = _finish(reason, (value, 0), (variance, 0))
+    return FusedScalar(value, variance, np.nan_to_num(weights), ok, reason)
+
+
+@_quiet
+def fuse_points(positions, covariances, valid=None) -> FusedPoint:
+    """Fuse several groups' positions of one reflector with their covariances.
+
+    The matrix form of Barshan & Kuc eq 41, ``x = (sum C_i^-1)^-1 sum C_i^-1 x_i``,
+    which is the minimum-variance unbiased linear combination for uncorrelated
+    groups and reduces to eq 41 when every ``C_i`` is a multiple of one matrix.
+
+    Parameters
+    ----------
+    positions : array_like, shape (..., G, 2)
+        Each group's estimate of the position, m, one frame.
+    covariances : array_like, shape (..., G, 2, 2)
+        Their covariances, m^2 (e.g. :func:`position_covariance`).
+    valid : array_like of bool, shape (..., G), optional
+        Which inputs to use; inputs with a non-finite or singular covariance are
+        never used.
+
+    Returns
+    -------
+    FusedPoint
+        ``position`` (..., 2), ``covariance = (sum C_i^-1)^-1`` (..., 2, 2);
+        reason NONE_VALID where no input is usable.
+    """
+    positions = _points("positions", positions, "fuse_points")
+    covariances = _real_array("covariances", covariances, "fuse_points")
+    if covariances.shape[-2:] != (2, 2) or covariances.ndim < 3:
+        raise ValueError(f"fuse_points: 'covariances' must be (..., G, 2, 2), got {covariances.shape}")
+    information = _inverse_2x2(covariances)
+    usable = np.isfinite(information).all(axis=(-1, -2)) & np.isfinite(positions).all(axis=-1)
+    usable &= np.isfinite(covariances).all(axis=(-1, -2))
+    if valid is not None:
+        usable = usable & np.asarray(valid, dtype=bool)
+    information = np.where(usable[..., None, None], information, 0.0)
+    weighted = (information @ np.where(usable[..., None], positions, 0.0)[..., None])[..., 0]
+    covariance = _inverse_2x2(information.sum(axis=-3))
+    position = (covariance @ weighted.sum(axis=-2)[..., None])[..., 0]
+    reason = np.where(usable.any(axis=-1), OK, NONE_VALID).astype(np.int8)
+    ok, (position, covariance) = _finish(reason, (position, 1), (covariance, 2))
+    return FusedPoint(position, covariance, ok, reason)

@@ -1,0 +1,392 @@
+"""Localisation core (sonar_ring.localise): round trips, API, uncertainty and fusion."""
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose, assert_array_equal
+from scipy.optimize import minimize_scalar
+
+from sonar_ring import localise as loc
+from sonar_ring.geometry import load_layout
+from sonar_ring.reference import barshan_kuc
+
+LD = np.longdouble  # ground truth is formed in extended precision, then rounded to the float64 inputs
+C = 343.2
+SIGMA_TOF = 1e-6
+
+
+def norm(v):
+    return np.sqrt(np.sum(np.square(v), axis=-1))
+
+
+def browne_pair(group=0):
+    ring = load_layout("browne_ring")
+    rx = ring.group_receivers()[group, :, :2]
+    return ring.transmitters[0, :2], rx[0], rx[1]
+
+
+def browne_grid(stride_x, stride_y):
+    """Browne's test grid (section 5) in the sensor frame of pair 0, subsampled.
+
+    1 mm steps from 0.01 to 5.7 m in front of the pair and +-1 m to its sides;
+    the strides keep the first and last rows and columns.
+    """
+    ahead = np.unique(np.r_[np.arange(10, 5701, stride_x), 5700]) / 1000.0
+    side = np.unique(np.r_[np.arange(-1000, 1001, stride_y), 1000]) / 1000.0
+    x, y = np.meshgrid(0.31 + ahead, side, indexing="ij")
+    return np.stack([x, y], axis=-1).reshape(-1, 2)
+
+
+def corner_paths(tx, rx1, rx2, point):
+    image = 2 * point.astype(LD) - tx.astype(LD)
+    return (norm(image - rx1.astype(LD)).astype(float), norm(image - rx2.astype(LD)).astype(float))
+
+
+def edge_paths(tx, rx1, rx2, point):
+    p = point.astype(LD)
+    k = norm(p - tx.astype(LD))
+    return (k + norm(p - rx1.astype(LD))).astype(float), (k + norm(p - rx2.astype(LD))).astype(float)
+
+
+def true_reflection_point(tx, receiver, foot):
+    """Specular point on the plane with foot point ``foot`` seen by ``receiver``, extended precision."""
+    t, r, g = tx.astype(LD), receiver.astype(LD), foot.astype(LD)
+    normal = (g - t) / norm(g - t)[..., None]
+    image = 2 * g - t
+    depth = np.sum((g - r) * normal, axis=-1)
+    return (r + (depth / np.sum((image - r) * normal, axis=-1))[..., None] * (image - r)).astype(float)
+
+
+# --------------------------------------------------------------------------- round trips on Browne's grid
+
+GRID = browne_grid(37, 23)
+
+
+def test_corner_round_trip_on_browne_grid():
+    tx, rx1, rx2 = browne_pair()
+    d1, d2 = corner_paths(tx, rx1, rx2, GRID)
+    result = loc.corner(tx, rx1, rx2, d1, d2)
+    assert result.valid.all()
+    assert np.max(norm(result.position - GRID)) < 1e-11
+
+
+def test_plane_round_trip_on_browne_grid():
+    tx, rx1, rx2 = browne_pair()
+    d1, d2 = corner_paths(tx, rx1, rx2, GRID)  # a plane with foot point G has the same virtual image
+    result = loc.plane(tx, rx1, rx2, d1, d2)
+    assert result.valid.all()
+    assert np.max(norm(result.position - GRID)) < 1e-11
+    normal = (GRID - tx) / norm(GRID - tx)[:, None]
+    assert np.max(norm(result.normal - normal)) < 1e-13
+    for n, receiver in enumerate((rx1, rx2)):
+        truth = true_reflection_point(tx, receiver, GRID)
+        assert np.max(norm(result.reflection_points[:, n] - truth)) < 1e-11
+        # the reflection point lies on the plane
+        assert np.max(np.abs(np.sum((result.reflection_points[:, n] - GRID) * normal, axis=-1))) < 1e-11
+
+
+def test_edge_round_trip_on_browne_grid():
+    tx, rx1, rx2 = browne_pair()
+    d1, d2 = edge_paths(tx, rx1, rx2, GRID)
+    result = loc.edge(tx, rx1, rx2, d1, d2)
+    assert result.valid.all()
+    assert np.max(norm(result.position - GRID)) < 1e-11
+
+
+@pytest.mark.parametrize("group", [5, 17, 30])
+def test_every_ring_pair_in_the_sensor_frame(group):
+    tx, rx1, rx2 = browne_pair(group)
+    yaw = np.radians(7.5 * group)
+    rotation = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+    points = GRID[::40] @ rotation.T
+    for model, paths in (("corner", corner_paths), ("plane", corner_paths), ("edge", edge_paths)):
+        result = loc.MODELS[model](tx, rx1, rx2, *paths(tx, rx1, rx2, points))
+        assert result.valid.all(), model
+        assert np.max(norm(result.position - points)) < 1e-11, model
+
+
+def test_barshan_kuc_pair_both_transmitters():
+    """Transducers a and b both fire: T = R1 for a, T = R2 for b (paths d = 2 R_xy)."""
+    pair = load_layout("barshan_kuc_pair")
+    a, b = pair.group_receivers()[0, :, :2]
+    sep = pair.group_separation()[0]
+    R, theta = np.meshgrid(np.linspace(0.2, 1.6, 15), np.radians(np.linspace(-10, 10, 21)), indexing="ij")
+    direction = np.stack([np.cos(theta), np.sin(theta)], axis=-1)
+    # plane at perpendicular distance R with inward normal at angle theta (Barshan & Kuc Fig. 7)
+    r_aa, r_bb = R - sep / 2 * np.sin(theta), R + sep / 2 * np.sin(theta)
+    r_ab = np.sqrt(R**2 + sep**2 * np.cos(theta) ** 2 / 4)
+    for tx, d1, d2 in ((a, 2 * r_aa, 2 * r_ab), (b, 2 * r_ab, 2 * r_bb)):
+        result = loc.plane(tx, a, b, d1, d2)
+        assert result.valid.all()
+        assert_allclose(np.arctan2(result.normal[..., 1], result.normal[..., 0]), theta, atol=1e-13)
+        assert_allclose(np.sum(result.position * direction, axis=-1), R, atol=1e-14)
+    # corner at range R and inclination theta: exact eqs 18-20
+    r_aa, r_bb, r_ab = barshan_kuc.corner_ranges(R, theta, sep)
+    apex = R[..., None] * direction
+    for tx, d1, d2 in ((a, 2 * r_aa, 2 * r_ab), (b, 2 * r_ab, 2 * r_bb)):
+        result = loc.corner(tx, a, b, d1, d2)
+        assert result.valid.all()
+        assert np.max(norm(result.position - apex)) < 1e-14
+
+
+def test_kreczmer_triad_transmitter_between_receivers():
+    """The triad's emitter lies on the receivers' line, between them (collinear in 2-D)."""
+    triad = load_layout("kreczmer_triad")
+    tx = triad.transmitters[0, :2]
+    rx1, rx2 = triad.group_receivers()[0, [0, 2], :2]
+    rng = np.random.default_rng(7)
+    points = np.column_stack([rng.uniform(0.05, 3.0, 2000), rng.uniform(-1.5, 1.5, 2000)])
+    for model, paths in (("corner", corner_paths), ("plane", corner_paths), ("edge", edge_paths)):
+        result = loc.MODELS[model](tx, rx1, rx2, *paths(tx, rx1, rx2, points))
+        assert result.valid.all(), model
+        assert np.max(norm(result.position - points)) < 1e-11, model
+
+
+def test_leading_shapes_broadcast():
+    tx, rx1, rx2 = browne_pair()
+    points = GRID[:24].reshape(2, 3, 4, 2)
+    d1, d2 = corner_paths(tx, rx1, rx2, points)
+    result = loc.plane(tx, rx1, rx2, d1, d2)
+    assert result.position.shape == (2, 3, 4, 2)
+    assert result.reflection_points.shape == (2, 3, 4, 2, 2)
+    assert result.valid.shape == result.reason.shape == (2, 3, 4)
+    assert result.reason.dtype == np.int8
+    # per-entry geometry broadcasts too: two pairs, one echo each
+    txs = np.stack([tx, tx])
+    both = loc.corner(txs, np.stack([rx1, rx1]), np.stack([rx2, rx2]), d1[0, 0, :2], d2[0, 0, :2])
+    assert_allclose(both.position, points[0, 0, :2], atol=1e-12)
+    scalar = loc.edge(tx, rx1, rx2, *edge_paths(tx, rx1, rx2, GRID[5]))
+    assert scalar.position.shape == (2,) and scalar.valid.shape == ()
+    assert_allclose(scalar.position, GRID[5], atol=1e-12)
+
+
+def test_invalid_entries_are_nan_and_valid_entries_are_not():
+    tx, rx1, rx2 = browne_pair()
+    d1, d2 = corner_paths(tx, rx1, rx2, GRID[:4])
+    d1 = d1.copy()
+    d1[1] = np.nan
+    d1[2] = d2[2] + 0.05  # |d2 - d1| > D
+    result = loc.plane(tx, rx1, rx2, d1, d2)
+    assert_array_equal(result.valid, [True, False, False, True])
+    assert_array_equal(result.reason, [loc.OK, loc.NOT_FINITE, loc.NO_INTERSECTION, loc.OK])
+    assert np.isnan(result.position[~result.valid]).all() and np.isnan(result.normal[~result.valid]).all()
+    assert np.isfinite(result.position[result.valid]).all()
+    assert set(loc.REASONS) == set(range(10))
+
+
+# --------------------------------------------------------------------------- bearing, vertical, on-axis
+
+def test_bearing_exact_matches_the_geometry():
+    rx1, rx2 = np.array([0.0, 0.02]), np.array([0.0, -0.02])
+    phi = np.radians(np.linspace(-89, 89, 179))
+    distance = np.array([0.05, 0.5, 1.0, 5.7, 10.0])[:, None]
+    image = rx1 + distance[..., None] * np.stack([np.cos(phi), np.sin(phi)], axis=-1)
+    d1, d2 = norm(image - rx1), norm(image - rx2)
+    result = loc.bearing(d1, d2, 0.04)
+    assert result.valid.all()
+    assert_allclose(result.value, np.broadcast_to(phi, d1.shape), atol=1e-13)
+    # CCW positive: eq 3 says sin(phi_1) has the sign of d2^2 - d1^2 - D^2 (far away: the echo is nearer R1)
+    assert_array_equal(np.sign(result.value), np.sign(d2**2 - d1**2 - 0.04**2))
+
+
+def test_far_field_bearing_error_quoted_by_browne():
+    """Eq 8 vs eq 4 with D = 40 mm: about 2.3, 1.2 and 0.39 deg at 0.5, 1 and 3 m."""
+    d1 = np.array([0.5, 1.0, 3.0])
+    d2 = np.sqrt(d1**2 + 0.04**2)  # echo straight ahead of R1
+    exact = loc.bearing(d1, d2, 0.04)
+    approximate = loc.bearing(d1, d2, 0.04, exact=False)
+    assert_allclose(exact.value, 0.0, atol=1e-13)
+    # the dropped term of eq 5 is D / (2 d1); Browne quotes it rounded
+    assert_allclose(approximate.value - exact.value, np.arcsin(0.04 / (2 * d1)), rtol=2e-3)
+    assert_allclose(np.degrees(approximate.value - exact.value), [2.3, 1.2, 0.39], rtol=0.05)
+
+
+def test_horizontal_path_unfolds_vertical_planes_and_poles():
+    """Transmitter and receiver at different heights: the 3-D path's horizontal part is sqrt(d^2 - dz^2)."""
+    tx = np.array([0.0, 0.0, 0.08])
+    rx = np.array([0.31, 0.02, -0.045])
+    dz = tx[2] - rx[2]
+    # a vertical wall x = 1.5: mirror the transmitter in it
+    mirrored = tx * [-1, 1, 1] + [3.0, 0, 0]
+    path_3d = norm(mirrored - rx)
+    path_2d = norm(mirrored[:2] - rx[:2])
+    assert_allclose(loc.horizontal_path(path_3d, dz).value, path_2d, rtol=1e-15)
+    # a vertical pole at (1.2, 0.4): Fermat's shortest path over the reflection height z
+    pole = np.array([1.2, 0.4])
+    a, b = norm(pole - tx[:2]), norm(pole - rx[:2])
+    shortest = minimize_scalar(lambda z: np.hypot(a, z - tx[2]) + np.hypot(b, z - rx[2]),
+                               bounds=(-1, 1), method="bounded", options={"xatol": 1e-12}).fun
+    assert_allclose(loc.horizontal_path(shortest, dz).value, a + b, rtol=1e-12)
+    assert_allclose(loc.horizontal_path(shortest, -dz).value, a + b, rtol=1e-12)
+
+
+def test_on_axis_conventional_ranger():
+    # a transducer that transmits and receives at the pair's mid-point: r = d / 2
+    result = loc.on_axis([0.0, 0.0], [0.0, 0.02], [0.0, -0.02], [2.0, 3.0], [2.0, 3.2])
+    assert_allclose(result.position, [[1.0, 0.0], [1.55, 0.0]], atol=1e-15)
+    # Browne's emitter behind the pair: the on-axis echo round-trips exactly
+    tx, rx1, rx2 = browne_pair()
+    target = np.array([[0.31 + 1.7, 0.0]])
+    mid = 0.5 * (rx1 + rx2)
+    d = norm(target - tx) + norm(target - mid)
+    assert_allclose(loc.on_axis(tx, rx1, rx2, d, d).position, target, atol=1e-14)
+    # bearing is ignored: an off-axis corner is put on the axis at about its range
+    corner = np.array([[1.5, 0.4]])
+    off = loc.on_axis(tx, rx1, rx2, *corner_paths(tx, rx1, rx2, corner))
+    assert off.valid.all() and off.position[0, 1] == 0.0
+    assert_allclose(norm(off.position - mid), norm(corner - mid), rtol=0.05)
+
+
+# --------------------------------------------------------------------------- uncertainty
+
+@pytest.mark.parametrize("model,paths", [("corner", corner_paths), ("plane", corner_paths), ("edge", edge_paths)])
+def test_position_jacobian_matches_finite_differences(model, paths):
+    tx, rx1, rx2 = browne_pair()
+    points = np.array([[0.5, 0.1], [2.3, -0.6], [5.0, 0.9]])
+    d1, d2 = paths(tx, rx1, rx2, points)
+    estimate = loc.MODELS[model](tx, rx1, rx2, d1, d2)
+    jacobian = loc.position_jacobian(estimate, tx, rx1, rx2)
+    step = 1e-6
+    for n in range(2):
+        plus = [d1, d2]
+        minus = [d1, d2]
+        plus[n], minus[n] = plus[n] + step, minus[n] - step
+        numeric = (loc.MODELS[model](tx, rx1, rx2, *plus).position - loc.MODELS[model](tx, rx1, rx2, *minus).position)
+        assert_allclose(jacobian[..., n], numeric / (2 * step), rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("model,paths", [("corner", corner_paths), ("edge", edge_paths)])
+def test_covariance_matches_monte_carlo(model, paths):
+    tx, rx1, rx2 = browne_pair()
+    point = np.array([2.31, 0.5])
+    d1, d2 = paths(tx, rx1, rx2, point)
+    estimate = loc.MODELS[model](tx, rx1, rx2, d1, d2)
+    sigma_speed = 0.5
+    predicted = loc.position_covariance(estimate, tx, rx1, rx2,
+                                        loc.path_covariance(d1, d2, SIGMA_TOF, C, sigma_speed))
+    rng = np.random.default_rng(11)
+    n = 20000
+    speed_error = rng.normal(0, sigma_speed, n) / C
+    noisy1 = d1 * (1 + speed_error) + C * SIGMA_TOF * rng.normal(size=n)
+    noisy2 = d2 * (1 + speed_error) + C * SIGMA_TOF * rng.normal(size=n)
+    sample = loc.MODELS[model](tx, rx1, rx2, noisy1, noisy2)
+    assert sample.valid.all()
+    observed = np.cov(sample.position.T)
+    assert_allclose(np.sqrt(np.diag(observed)), np.sqrt(np.diag(predicted)), rtol=0.05)
+    correlation = observed[0, 1] / np.sqrt(observed[0, 0] * observed[1, 1])
+    assert_allclose(correlation, predicted[0, 1] / np.sqrt(predicted[0, 0] * predicted[1, 1]), atol=0.03)
+
+
+def test_speed_of_sound_term_of_the_path_covariance():
+    cov = loc.path_covariance(2.0, 3.0, SIGMA_TOF, C, 1.0)
+    independent = (C * SIGMA_TOF) ** 2
+    assert_allclose(cov, independent * np.eye(2) + (1.0 / C) ** 2 * np.outer([2.0, 3.0], [2.0, 3.0]), rtol=1e-15)
+    assert loc.path_covariance(np.ones((4, 3)), 2.0, SIGMA_TOF, C).shape == (4, 3, 2, 2)
+
+
+@pytest.mark.parametrize("phi_deg", [-45, -30, -15, 0, 15, 30, 45])
+def test_monte_carlo_meets_the_cramer_rao_bound(phi_deg):
+    """sigma_t = 1 us, D = 40 mm, transmitter at the pair's mid-point, corner at 2 m (DESIGN.md section 5)."""
+    tx, rx1, rx2 = np.zeros(2), np.array([0.0, 0.02]), np.array([0.0, -0.02])
+    phi = np.radians(phi_deg)
+    apex = 2.0 * np.array([np.cos(phi), np.sin(phi)])
+    d1, d2 = corner_paths(tx, rx1, rx2, apex)
+    true_bearing = np.arctan2(*(2 * apex - rx1)[::-1])  # eq 4 is the bearing of T' at R1
+    rng = np.random.default_rng(phi_deg + 100)
+    n = 20000
+    noisy1 = d1 + C * SIGMA_TOF * rng.normal(size=n)
+    noisy2 = d2 + C * SIGMA_TOF * rng.normal(size=n)
+    sigma_bearing, sigma_range = loc.cramer_rao_bound(0.04, SIGMA_TOF, C, true_bearing)
+    bearings = loc.bearing(noisy1, noisy2, 0.04).value
+    ranges = norm(loc.corner(tx, rx1, rx2, noisy1, noisy2).position - tx)
+    assert abs(np.std(bearings) / sigma_bearing - 1) < 0.10
+    assert abs(np.mean(bearings) - true_bearing) < 0.1 * sigma_bearing
+    assert abs(np.std(ranges) / sigma_range - 1) < 0.10
+    assert abs(np.mean(ranges) - 2.0) < 0.1 * sigma_range
+
+
+# --------------------------------------------------------------------------- fusion
+
+def test_inverse_variance_weights_are_eq_41():
+    variances = np.array([[1.0, 2.0, 4.0], [0.5, 0.5, 3.0]])
+    assert_allclose(loc.inverse_variance_weights(variances), barshan_kuc.optimal_weights(variances), rtol=1e-15)
+    assert_allclose(loc.inverse_variance_weights(variances).sum(axis=-1), 1.0, rtol=1e-15)
+    masked = loc.inverse_variance_weights(variances, valid=[True, False, True])
+    assert_allclose(masked[0], [0.8, 0.0, 0.2], rtol=1e-15)
+
+
+def test_fuse_scalars():
+    fused = loc.fuse_scalars([[1.0, 2.0, 4.0], [3.0, np.nan, 5.0]], [[1.0, 1.0, 2.0], [1.0, 1.0, 1.0]],
+                             valid=[[True, True, True], [True, False, True]])
+    assert_allclose(fused.value, [(1.0 + 2.0 + 2.0) / 2.5, 4.0], rtol=1e-15)
+    assert_allclose(fused.variance, [1 / 2.5, 0.5], rtol=1e-15)
+    assert_allclose(fused.weights[1], [0.5, 0.0, 0.5], rtol=1e-15)
+    none = loc.fuse_scalars([1.0, 2.0], [1.0, 1.0], valid=[False, False])
+    assert not none.valid and none.reason == loc.NONE_VALID and np.isnan(none.value)
+
+
+def test_fuse_points_over_the_barshan_kuc_array():
+    """Three pairs of the linear array see one corner; fusion beats each and matches Monte Carlo."""
+    array = load_layout("barshan_kuc_array")
+    receivers = array.group_receivers()[:, :, :2]  # (3, 2, 2)
+    tx = receivers[:, 0]  # each pair's left transducer fires
+    apex = 0.8 * np.array([np.cos(0.08), np.sin(0.08)])
+    d1, d2 = corner_paths(tx, receivers[:, 0], receivers[:, 1], apex)
+    rng = np.random.default_rng(5)
+    n = 20000
+    noisy1 = d1 + C * SIGMA_TOF * rng.normal(size=(n, 3))
+    noisy2 = d2 + C * SIGMA_TOF * rng.normal(size=(n, 3))
+    estimates = loc.corner(tx, receivers[:, 0], receivers[:, 1], noisy1, noisy2)
+    covariances = loc.position_covariance(estimates, tx, receivers[:, 0], receivers[:, 1],
+                                          loc.path_covariance(noisy1, noisy2, SIGMA_TOF, C))
+    fused = loc.fuse_points(estimates.position, covariances, estimates.valid)
+    assert fused.valid.all()
+    assert np.all(np.trace(fused.covariance, axis1=-2, axis2=-1)[:, None]
+                  < np.trace(covariances, axis1=-2, axis2=-1))
+    # the spread of the fused estimates is the fused covariance at the true geometry
+    truth = loc.corner(tx, receivers[:, 0], receivers[:, 1], d1, d2)
+    expected = loc.fuse_points(truth.position, loc.position_covariance(
+        truth, tx, receivers[:, 0], receivers[:, 1], loc.path_covariance(d1, d2, SIGMA_TOF, C))).covariance
+    observed = np.cov(fused.position.T)
+    assert_allclose(np.sqrt(np.diag(observed)), np.sqrt(np.diag(expected)), rtol=0.05)
+    # with scalar covariances the matrix form reduces to eq 41
+    scalar = loc.fuse_points([[0.0, 0.0], [1.0, 2.0]], np.eye(2) * np.array([1.0, 3.0])[:, None, None])
+    assert_allclose(scalar.position, [0.25, 0.5], rtol=1e-15)
+    assert_allclose(scalar.covariance, 0.75 * np.eye(2), rtol=1e-15)
+    nothing = loc.fuse_points([[0.0, 0.0]], [np.eye(2)], valid=[False])
+    assert not nothing.valid and nothing.reason == loc.NONE_VALID
+
+
+# --------------------------------------------------------------------------- errors
+
+def test_error_handling():
+    tx, rx1, rx2 = browne_pair()
+    for function in (loc.virtual_image, loc.plane, loc.corner, loc.edge, loc.on_axis):
+        with pytest.raises(ValueError, match=r"'tx' must be \(\.\.\., 2\)"):
+            function([0.0, 0.0, 0.0], rx1, rx2, 1.0, 1.0)
+        with pytest.raises(ValueError, match="'d1' must be real numbers"):
+            function(tx, rx1, rx2, "1.0", 1.0)
+        with pytest.raises(ValueError, match="do not broadcast"):
+            function(tx, rx1, rx2, np.ones(3), np.ones(4))
+        # bad data values never raise: they are flagged
+        result = function(tx, rx1, rx2, [np.nan, -1.0, 0.0, np.inf, 0.2], [1.0, 1.0, 1.0, 1.0, 0.2])
+        assert_array_equal(result.reason, [loc.NOT_FINITE, loc.NEGATIVE, loc.NEGATIVE, loc.NOT_FINITE, loc.TOO_SHORT])
+        assert not result.valid.any()
+    with pytest.raises(ValueError, match="'rx2' must be real numbers"):
+        loc.plane(tx, rx1, np.array([1j, 0]), 1.0, 1.0)
+    with pytest.raises(ValueError, match="'separation' must be real"):
+        loc.bearing(1.0, 1.0, None)
+    with pytest.raises(ValueError, match="'dz' must be real"):
+        loc.horizontal_path(1.0, "up")
+    with pytest.raises(ValueError, match="sigma_tof >= 0"):
+        loc.path_covariance(1.0, 1.0, -1e-6, C)
+    with pytest.raises(ValueError, match="speed_of_sound > 0"):
+        loc.path_covariance(1.0, 1.0, 1e-6, 0.0)
+    with pytest.raises(ValueError, match=r"\(\.\.\., 2, 2\)"):
+        loc.position_covariance(loc.corner(tx, rx1, rx2, 1.0, 1.0), tx, rx1, rx2, np.eye(3))
+    with pytest.raises(ValueError, match="unknown model"):
+        loc.position_jacobian(loc.PointEstimate(np.zeros(2), np.True_, np.int8(0), "blob"), tx, rx1, rx2)
+    with pytest.raises(ValueError, match="'covariances' must be"):
+        loc.fuse_points([[0.0, 0.0]], np.eye(2))
+    # coincident receivers are data-dependent geometry: flagged, not raised
+    assert loc.corner(tx, rx1, rx1, 1.0, 1.0).reason == loc.DEGENERATE
+    assert loc.bearing(1.0, 1.0, 0.0).reason == loc.DEGENERATE
