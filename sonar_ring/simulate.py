@@ -415,8 +415,10 @@ class Noise:
         Standard deviation of each receiver's rising zero-crossing time, s;
         the phase delays of a triad take it twice (receiver k and receiver 0).
     timer : float
-        Timer tick, s (Kreczmer: 0.33e-6).  Times of flight and phase delays
-        are truncated to whole ticks, as a counter reports them; 0 disables.
+        Timer tick, s (Kreczmer: 0.33e-6); 0 disables.  Times are counted in
+        whole ticks of a free-running clock whose phase at the ping is uniform
+        (drawn per ping), so a reading is unbiased with an error under one tick;
+        truncating the true time instead would bias every reading by -tick/2.
     """
 
     tof: float = 0.0
@@ -433,7 +435,7 @@ class Noise:
     @property
     def random(self) -> bool:
         """True when any random noise is switched on (a generator is needed)."""
-        return self.tof > 0 or self.amplitude > 0 or self.phase > 0
+        return self.tof > 0 or self.amplitude > 0 or self.phase > 0 or self.timer > 0
 
 
 NOISE_FREE = Noise()
@@ -855,11 +857,14 @@ class Simulator:
         transmitter = self.layout.group_transmitters[group, c["slot"][first]]
 
         if noise.timer:
-            tof_table = np.floor(tof_table / noise.timer) * noise.timer
+            clock = rng.uniform(0.0, noise.timer)  # the counter clock's phase at this ping
+            tof_table = np.floor((tof_table + clock) / noise.timer) * noise.timer
         if self._triad:
             phase = np.mod(crossing_table[:, 1:] - crossing_table[:, :1], self.period)
             if noise.timer:
-                phase = np.floor(phase / noise.timer) * noise.timer
+                # Counted from R0's crossing to R_k's on the same clock.
+                start = (crossing_table[:, :1] + clock) / noise.timer
+                phase = (np.floor(start + phase / noise.timer) - np.floor(start)) * noise.timer
         else:
             phase = np.empty((N, 0))
 

@@ -480,18 +480,23 @@ def test_noisy_ping_needs_a_generator():
         ping(wall_scene(1.0), BK, noise=Noise(amplitude=0.02))
 
 
-def test_timer_truncates_times_to_whole_ticks():
+def test_timer_counts_whole_ticks_without_bias():
     tick = 0.33e-6
     layout = load_layout("kreczmer_triad")
     scene = load_scene("room")
     exact = ping(scene, layout, [2.0, 1.0, 0.3])
-    counted = Simulator(scene, layout).ping([2.0, 1.0, 0.3], noise=Noise(timer=tick))
+    simulator = Simulator(scene, layout)
+    rng = np.random.default_rng(5)
+    counted = [simulator.ping([2.0, 1.0, 0.3], noise=Noise(timer=tick), rng=rng) for _ in range(400)]
     for field in ("tof", "phase_delay"):
-        t, t0 = getattr(counted, field), getattr(exact, field)
-        heard = np.isfinite(t)
+        t0 = getattr(exact, field)
+        t = np.stack([getattr(c, field) for c in counted])
+        heard = np.isfinite(t0)
         assert heard.any()
-        assert_allclose(t[heard] / tick, np.round(t[heard] / tick), atol=1e-6)
-        assert np.all((t[heard] <= t0[heard] + 1e-18) & (t[heard] > t0[heard] - tick))
+        assert_allclose(t[:, heard] / tick, np.round(t[:, heard] / tick), atol=1e-6)  # whole ticks
+        assert np.all(np.abs(t[:, heard] - t0[heard]) < tick)
+        # A uniform clock phase makes the mean reading the true time (truncation would be -tick/2).
+        assert_allclose(t[:, heard].mean(axis=0), t0[heard], atol=0.1 * tick)
 
 
 def test_kreczmer_phase_delays_are_arrival_differences_modulo_one_period():
