@@ -63,7 +63,7 @@ class Settings:
     sigma_tof: float = 1e-6
     sigma_speed: float = 0.0
     sigma_amplitude: float = 0.02
-    consistency_z: float = 3.0
+    consistency_z: float = classify.CONSISTENCY_Z
     triad_eps: float = 0.0
     triad_max_angle: float = np.radians(50.0)
 

@@ -15,7 +15,7 @@ from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from visualization_msgs.msg import MarkerArray
 
-from sonar_ring import pipeline
+from sonar_ring import classify, pipeline
 from sonar_ring.geometry import load_layout
 from sonar_ring.msg import Echoes, LandmarkArray
 from sonar_ring.ros.convert import MessageError, landmarks_from_msg, landmarks_to_msg
@@ -33,8 +33,8 @@ PARAMS = [
     Param("sigma_tof", 1e-6, "time-of-flight noise for the consistency test, s", low=1e-9, high=1e-3),
     Param("sigma_amplitude", 0.02, "amplitude noise relative to A_max (Barshan & Kuc rules)", low=1e-4,
           high=0.16),
-    Param("consistency_z", 3.0, "significance of the edge/specular consistency test, standard deviations",
-          low=1.0, high=10.0),
+    Param("consistency_z", classify.CONSISTENCY_Z, "significance of the edge/specular consistency test, "
+          "standard deviations", low=1.0, high=10.0),
     Param("marker_lifetime", 0.5, "seconds before a ping's markers vanish", low=0.0, high=60.0),
 ]
 

@@ -1,0 +1,824 @@
+"""Evidence that tells planes, corners and edges apart.
+
+Two independent kinds of evidence are implemented.  Each returns a class code, the
+*margin* ``m`` by which the deciding test passed its threshold, in standard
+deviations of the tested statistic, and a *confidence* ``2 Phi(m) - 1`` in [0, 1)
+(``Phi`` the standard normal distribution): 0 at the threshold and whenever no
+decision is made, 0.68 one standard deviation beyond it, 0.95 two, 0.997 three.
+
+* **Amplitude rules** (Barshan & Kuc 1990, eqs 6-14), for sensors with two
+  transmitters: the four amplitudes ``A_aa', A_ab', A_ba', A_bb'`` of a transducer
+  pair decide PLANE or CORNER when the relevant differences exceed ``6 sigma``,
+  otherwise UNKNOWN.  The same paper gives the inclination (eqs 21-23), the
+  separation limits and working range of a pair (eqs 26-29), the pair choice on a
+  linear array (eq 30) and the optimal fusion weights over several pairs (eq 41).
+* **Geometric consistency**, for a single emitter (Browne's ring), where amplitudes
+  cannot separate the classes: planes and corners put one virtual image of the
+  emitter behind all receivers, an edge does not.  When three or more receivers see
+  one echo, the residuals of the two models are compared with a chi-square test at
+  the TOF noise level; EDGE versus "specular" (PLANE or CORNER) is decided only when
+  the difference is significant.
+
+Nothing here tells a plane from a corner on a single-emitter ring; that needs motion
+(the mapper) or two transmitters.  Without evidence a landmark stays UNKNOWN, and is
+localised with the corner model (Browne section 7).
+
+Frames and units (REP 103): metres, radians, the sensor frame with x forward, y left,
+angles counter-clockwise.  A Barshan & Kuc pair has transducer ``a`` on the left
+(+y) and ``b`` on the right, both facing +x; a positive inclination turns the plane's
+normal (or the direction to the corner) towards ``a``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from sonar_ring.localise import horizontal_path
+
+# The class codes (UNKNOWN 0, PLANE 1, CORNER 2, EDGE 3, as in Landmark.msg) are defined
+# once, for now beside the scene reflector types.
+from sonar_ring.simulate import CORNER, EDGE, PLANE, UNKNOWN
+
+DECISION_MARGIN = 6.0
+"""Barshan & Kuc eqs 13-14: one amplitude is *greater* than another only by more than 6 sigma."""
+
+MARGIN_RULES = ("paper", "amplitude_model")
+"""Ways to turn the 6-sigma margin into separation limits (see :func:`separation_limits`)."""
+
+
+@dataclass(frozen=True)
+class Classification:
+    """Class decisions for a batch of echoes.
+
+    Attributes
+    ----------
+    cls : ndarray of uint8, shape (N,)
+        Class code per echo: :data:`UNKNOWN`, :data:`PLANE`, :data:`CORNER` or :data:`EDGE`.
+    margin : ndarray of float, shape (N,)
+        By how many standard deviations of the tested difference the deciding test
+        passed its threshold, >= 0; 0 where ``cls`` is UNKNOWN.
+    confidence : ndarray of float, shape (N,)
+        ``2 Phi(margin) - 1``, in [0, 1); 0 where ``cls`` is UNKNOWN.
+    """
+
+    cls: np.ndarray
+    margin: np.ndarray
+    confidence: np.ndarray
+
+
+@dataclass(frozen=True)
+class ConsistencyResult:
+    """Outcome of :func:`geometric_consistency` for a batch of echoes.
+
+    Attributes
+    ----------
+    cls : ndarray of uint8, shape (N,)
+        :data:`EDGE` where the edge model is significantly better, else :data:`UNKNOWN`
+        (a significant specular echo is a PLANE or a CORNER, which one geometry
+        alone cannot tell; see ``specular``).
+    specular : ndarray of bool, shape (N,)
+        True where the single-virtual-image model (plane or corner) is significantly better.
+    margin : ndarray of float, shape (N,)
+        ``(|D| - z^2) / (2 sqrt(|D|))`` with ``D = chi2_specular - chi2_edge`` where a
+        decision was made, else 0: the excess of the statistic over its threshold in
+        its linearised standard deviation ``2 sqrt(|D|)``.
+    confidence : ndarray of float, shape (N,)
+        ``2 Phi(margin) - 1``, in [0, 1); 0 where nothing was decided.
+    chi2_specular, chi2_edge : ndarray of float, shape (N,)
+        Weighted residual sums of squares of the two fitted models (NaN where untested).
+    dof : ndarray of int, shape (N,)
+        Degrees of freedom of each fit, valid receivers minus 2 (< 1 means untested).
+    virtual_image : ndarray of float, shape (N, 2)
+        Fitted virtual image ``T'`` of the transmitter, m, sensor frame.
+    edge_position : ndarray of float, shape (N, 2)
+        Fitted edge position ``P``, m, sensor frame.
+    """
+
+    cls: np.ndarray
+    specular: np.ndarray
+    margin: np.ndarray
+    confidence: np.ndarray
+    chi2_specular: np.ndarray
+    chi2_edge: np.ndarray
+    dof: np.ndarray
+    virtual_image: np.ndarray
+    edge_position: np.ndarray
+
+
+# --------------------------------------------------------------------------- argument checks
+
+def _positive_finite(name, value):
+    array = np.asarray(value, dtype=float)
+    if not np.all(np.isfinite(array)) or np.any(array <= 0):
+        raise ValueError(f"{name} must be finite and > 0, got {value!r}")
+    return array
+
+
+def _beam_and_noise(theta0, sigma_rel, margin_rule):
+    """Validate the beam half-angle, relative noise and margin rule; return ``sqrt(-ln(1 - 6 sigma))``."""
+    if not (np.ndim(theta0) == 0 and np.isfinite(theta0) and 0 < theta0 < np.pi / 2):
+        raise ValueError(f"theta0 must be a beam half-angle in (0, pi/2) rad, got {theta0!r}")
+    if not (np.ndim(sigma_rel) == 0 and np.isfinite(sigma_rel) and 0 < sigma_rel < 1 / DECISION_MARGIN):
+        raise ValueError(f"sigma_rel = sigma / A_max must be in (0, 1/6) so that a 6-sigma margin "
+                         f"fits below A_max, got {sigma_rel!r}")
+    if margin_rule not in MARGIN_RULES:
+        raise ValueError(f"margin_rule must be one of {MARGIN_RULES}, got {margin_rule!r}")
+    return np.sqrt(-np.log1p(-DECISION_MARGIN * sigma_rel))
+
+
+def confidence_from_margin(margin):
+    """Confidence in [0, 1) from a test margin in standard deviations: ``2 Phi(m) - 1``.
+
+    ``erf(m / sqrt(2))``, the probability that a standard normal deviate lies within
+    ``+-m``; evaluated with Abramowitz & Stegun 7.1.26 (absolute error < 2e-7) so the
+    core needs numpy only.  Margins <= 0 or NaN give 0.
+
+    Parameters
+    ----------
+    margin : array_like
+        Margins, standard deviations.
+
+    Returns
+    -------
+    ndarray
+        Confidences, same shape.
+    """
+    x = np.asarray(margin, dtype=float) / np.sqrt(2.0)
+    positive = x > 0  # False for NaN
+    x = np.where(positive, x, 0.0)
+    t = 1.0 / (1.0 + 0.3275911 * x)
+    poly = t * (0.254829592 + t * (-0.284496736 + t * (1.421413741 + t * (-1.453152027 + t * 1.061405429))))
+    return np.where(positive, 1.0 - poly * np.exp(-x * x), 0.0)
+
+
+# --------------------------------------------------------------------------- amplitude rules
+
+def _amplitude_test(a_aa, a_ab, a_ba, a_bb, sigma):
+    """Eqs 13-14 on broadcast arrays; returns (codes uint8, margin in standard deviations)."""
+    sigma = _positive_finite("sigma", sigma)
+    a_aa, a_ab, a_ba, a_bb, sigma = np.broadcast_arrays(
+        *(np.asarray(a, dtype=float) for a in (a_aa, a_ab, a_ba, a_bb)), sigma)
+    threshold = DECISION_MARGIN * sigma
+    # A_ab' and A_ba' travel the same path in opposite directions, so they have the same
+    # mean (reciprocity); averaging halves their noise variance.  Cross amplitudes that
+    # disagree by more than the decision margin cannot come from one specular reflector.
+    cross = 0.5 * (a_ab + a_ba)
+    reciprocal = np.abs(a_ab - a_ba) <= threshold
+    direct = np.minimum(a_aa, a_bb)
+    # eq 13 (PLANE): both direct amplitudes exceed the cross amplitude by 6 sigma;
+    # eq 14 (CORNER): the cross amplitude exceeds either direct amplitude by 6 sigma.
+    plane_margin = direct - cross - threshold
+    corner_margin = cross - direct - threshold
+    usable = np.isfinite(a_aa) & np.isfinite(a_ab) & np.isfinite(a_ba) & np.isfinite(a_bb) & reciprocal
+    is_plane = usable & (plane_margin > 0)
+    is_corner = usable & (corner_margin > 0)
+    codes = np.full(a_aa.shape, UNKNOWN, dtype=np.uint8)
+    codes[is_plane] = PLANE
+    codes[is_corner] = CORNER
+    # The tested difference is one direct amplitude minus the mean of two cross ones.
+    difference_sigma = sigma * np.sqrt(1.5)
+    margin = np.zeros(a_aa.shape)
+    margin[is_plane] = plane_margin[is_plane] / difference_sigma[is_plane]
+    margin[is_corner] = corner_margin[is_corner] / difference_sigma[is_corner]
+    return codes, margin
+
+
+def amplitude_rule(a_aa, a_ab, a_ba, a_bb, sigma):
+    """Plane / corner decision from the four amplitudes of a transducer pair (eqs 13-14).
+
+    ``A_xy'`` is the amplitude received by transducer ``y`` when ``x`` transmits.
+    PLANE where ``min(A_aa', A_bb') - A_cross > 6 sigma``; CORNER where
+    ``A_cross - min(A_aa', A_bb') > 6 sigma`` (eq 14's OR); otherwise UNKNOWN.
+    ``A_cross`` is the mean of ``A_ab'`` and ``A_ba'``, equal in expectation by
+    reciprocity; where they differ by more than ``6 sigma`` the echo is UNKNOWN.
+    Non-finite amplitudes (missing echoes) give UNKNOWN.
+
+    Parameters
+    ----------
+    a_aa, a_ab, a_ba, a_bb : array_like, broadcastable to a common shape (...)
+        Amplitudes, any linear unit (typically normalised so that ``A_max = 1``).
+    sigma : array_like
+        Standard deviation of the additive amplitude noise (eq 12), same unit, > 0;
+        broadcastable to the amplitudes.
+
+    Returns
+    -------
+    ndarray of uint8, shape (...)
+        :data:`UNKNOWN`, :data:`PLANE` or :data:`CORNER` per echo.
+
+    Raises
+    ------
+    ValueError
+        If ``sigma`` is not finite and positive.
+    """
+    return _amplitude_test(a_aa, a_ab, a_ba, a_bb, sigma)[0]
+
+
+def classify_amplitudes(amplitude, sigma) -> Classification:
+    """Amplitude rule with its confidence for a batch of pair echoes.
+
+    Parameters
+    ----------
+    amplitude : array_like, shape (N, 2, 2)
+        ``amplitude[n, i, j]``: received by transducer ``j`` when transducer ``i``
+        transmitted, with index 0 = ``a`` (left, +y) and 1 = ``b``; so
+        ``[[A_aa', A_ab'], [A_ba', A_bb']]``.
+    sigma : array_like
+        Amplitude noise standard deviation, > 0, scalar or shape (N,).
+
+    Returns
+    -------
+    Classification
+        ``cls`` in {UNKNOWN, PLANE, CORNER}; ``margin`` = by how much the deciding
+        difference exceeds the 6-sigma threshold, in its standard deviation
+        ``sigma * sqrt(3/2)``; ``confidence`` from it.
+    """
+    amplitude = np.asarray(amplitude, dtype=float)
+    if amplitude.ndim != 3 or amplitude.shape[1:] != (2, 2):
+        raise ValueError(f"amplitude must have shape (N, 2, 2), got {amplitude.shape}")
+    codes, margin = _amplitude_test(amplitude[:, 0, 0], amplitude[:, 0, 1], amplitude[:, 1, 0],
+                                    amplitude[:, 1, 1], sigma)
+    return Classification(cls=codes, margin=margin, confidence=confidence_from_margin(margin))
+
+
+# --------------------------------------------------------------------------- inclination
+
+def plane_inclination(range_aa, range_bb, separation):
+    """Inclination of a plane from the two direct ranges (eq 21), rad.
+
+    ``theta_p = asin((R_bb' - R_aa') / d)``, exact for a plane: the one-way ranges
+    are the perpendicular distances of ``a`` and ``b`` from it.
+
+    Parameters
+    ----------
+    range_aa, range_bb : array_like, broadcastable
+        One-way ranges ``R = c * tof / 2`` of the echoes ``a -> a`` and ``b -> b``, m.
+    separation : array_like
+        Centre-to-centre distance ``d`` of ``a`` and ``b``, m, > 0.
+
+    Returns
+    -------
+    ndarray
+        Angle from the pair's facing (+x) to the plane's normal, counter-clockwise
+        positive (towards ``a``), rad; NaN where ``|R_bb' - R_aa'| > d`` or inputs are
+        not finite.
+    """
+    separation = _positive_finite("separation", separation)
+    ratio = (np.asarray(range_bb, dtype=float) - np.asarray(range_aa, dtype=float)) / separation
+    return _safe_arcsin(ratio)
+
+
+def corner_inclination(range_aa, range_ab, range_bb, separation):
+    """Inclination of a corner with the correction term ``s`` (eqs 22-23), rad.
+
+    ``s = sqrt(R_ab'^2 + d^2/4) - R_ab'`` (eq 23) makes ``theta_c = 0`` at zero
+    inclination.  Eq 22 as printed is corrected in two places, both checked against
+    the exact ranges of eqs 18-20 in the tests: the sine carries a factor 2
+    (``R_bb' - R_ab' - s ~= (d/2) sin theta``; without it eq 22 returns about half
+    the angle), and the second branch, which uses ``R_aa'`` for corners on the ``b``
+    side, has a minus sign.  The branch is chosen by the sign of ``R_bb' - R_aa'``,
+    which also covers noisy echoes near zero inclination that satisfy neither of the
+    paper's two conditions.
+
+    Parameters
+    ----------
+    range_aa, range_ab, range_bb : array_like, broadcastable
+        One-way ranges ``R = c * tof / 2`` of the echoes ``a -> a``, ``a -> b`` (or the
+        mean of ``a -> b`` and ``b -> a``) and ``b -> b``, m.
+    separation : array_like
+        Centre-to-centre distance ``d`` of ``a`` and ``b``, m, > 0.
+
+    Returns
+    -------
+    ndarray
+        Bearing of the corner's apex from the pair centre, counter-clockwise positive,
+        rad; NaN where the ratio leaves [-1, 1] or inputs are not finite.
+    """
+    separation = _positive_finite("separation", separation)
+    range_aa, range_ab, range_bb = (np.asarray(r, dtype=float) for r in (range_aa, range_ab, range_bb))
+    correction = np.sqrt(np.square(range_ab) + np.square(separation) / 4) - range_ab
+    towards_a = range_bb >= range_aa
+    ratio = np.where(towards_a, range_bb - correction - range_ab, -(range_aa - correction - range_ab))
+    return _safe_arcsin(2.0 * ratio / separation)
+
+
+def inclination_variance(separation, range_sigma, inclination, cls):
+    """First-order variance of :func:`plane_inclination` / :func:`corner_inclination`, rad^2.
+
+    With independent one-way range errors of standard deviation ``sigma_R``:
+    plane ``2 sigma_R^2 / (d cos theta)^2``; corner (one direct and one cross range,
+    factor 2 of eq 22) ``8 sigma_R^2 / (d cos theta)^2``.  These are the ``sigma_i^2``
+    of the fusion weights (eq 41).
+
+    Parameters
+    ----------
+    separation : array_like
+        Pair separation ``d``, m, > 0.
+    range_sigma : array_like
+        Standard deviation of one one-way range, m (``c * sigma_tof / 2``).
+    inclination : array_like
+        Inclination at which to evaluate, rad.
+    cls : array_like of int
+        :data:`PLANE` or :data:`CORNER`; other codes give NaN.
+
+    Returns
+    -------
+    ndarray
+        Variance, rad^2, broadcast shape of the arguments.
+    """
+    separation = _positive_finite("separation", separation)
+    cls = np.asarray(cls)
+    factor = np.where(cls == PLANE, 2.0, np.where(cls == CORNER, 8.0, np.nan))
+    return factor * np.square(range_sigma) / np.square(separation * np.cos(inclination))
+
+
+def _safe_arcsin(ratio):
+    ratio = np.asarray(ratio, dtype=float)
+    inside = np.abs(ratio) <= 1.0  # False for NaN too
+    return np.where(inside, np.arcsin(np.where(inside, ratio, 0.0)), np.nan)
+
+
+# --------------------------------------------------------------------------- separation and working range
+
+def separation_limits(range_m, theta0, sigma_rel, margin_rule="paper"):
+    """Smallest and largest useful pair separation at a range (eqs 26-27).
+
+    ``d_max = 2 R tan(theta0)`` (eq 27): beyond it the virtual receiver leaves the
+    other transducer's beam.  ``d_min`` is where the plane's direct and cross
+    amplitudes at normal incidence differ by 6 sigma (eqs 24-25).  Two versions:
+
+    * ``"paper"``: eq 26 as printed, ``d_min = R tan(theta0) / 2 * sqrt(-ln(1 - 6 sigma/A_max))``;
+    * ``"amplitude_model"``: the same condition solved exactly with eqs 6-8,
+      ``d_min = 2 R tan(theta0 / 2 * sqrt(-ln(1 - 6 sigma/A_max)))``, about twice the
+      printed value (eq 26 corresponds to ``theta_s = atan(d/R)`` instead of eq 8's
+      ``atan(d/2R)``).
+
+    Parameters
+    ----------
+    range_m : array_like
+        Range ``R`` of the reflector from the pair centre, m; non-finite or <= 0 gives NaN.
+    theta0 : float
+        Beam half-angle (eq 2), rad, in (0, pi/2).
+    sigma_rel : float
+        Amplitude noise as a fraction of ``A_max``, in (0, 1/6).
+    margin_rule : str
+        ``"paper"`` (default) or ``"amplitude_model"``.
+
+    Returns
+    -------
+    d_min, d_max : ndarray
+        Separation limits, m, shape of ``range_m``.
+    """
+    root = _beam_and_noise(theta0, sigma_rel, margin_rule)
+    range_m = np.asarray(range_m, dtype=float)
+    range_m = np.where(np.isfinite(range_m) & (range_m > 0), range_m, np.nan)
+    if margin_rule == "paper":
+        d_min = range_m * np.tan(theta0) / 2 * root
+    else:
+        d_min = 2 * range_m * np.tan(theta0 / 2 * root)
+    return d_min, 2 * range_m * np.tan(theta0)
+
+
+def working_range(separation, theta0, sigma_rel, margin_rule="paper"):
+    """Ranges over which a pair of separation ``d`` tells planes from corners (eqs 28-29).
+
+    ``R_min = d / (2 tan theta0)`` (eq 28) and, with ``margin_rule="paper"``,
+    ``R_max = 2 d / (tan(theta0) sqrt(-ln(1 - 6 sigma/A_max)))`` (eq 29): eqs 26-27
+    solved for ``R``.  ``"amplitude_model"`` inverts the exact ``d_min`` instead (see
+    :func:`separation_limits`), giving about half the printed ``R_max``.  For
+    ``d = 80 mm``, ``theta0 = 10 deg``, ``sigma = 2 %``: 227 mm to 2538 mm (paper),
+    1282 mm (amplitude model).
+
+    Parameters
+    ----------
+    separation : array_like
+        Pair separation ``d``, m; non-finite or <= 0 gives NaN.
+    theta0 : float
+        Beam half-angle, rad, in (0, pi/2).
+    sigma_rel : float
+        Amplitude noise as a fraction of ``A_max``, in (0, 1/6).
+    margin_rule : str
+        ``"paper"`` (default) or ``"amplitude_model"``.
+
+    Returns
+    -------
+    r_min, r_max : ndarray
+        Working range limits, m, shape of ``separation``.
+    """
+    root = _beam_and_noise(theta0, sigma_rel, margin_rule)
+    separation = np.asarray(separation, dtype=float)
+    separation = np.where(np.isfinite(separation) & (separation > 0), separation, np.nan)
+    r_min = separation / (2 * np.tan(theta0))
+    if margin_rule == "paper":
+        r_max = 2 * separation / (np.tan(theta0) * root)
+    else:
+        r_max = separation / (2 * np.tan(theta0 / 2 * root))
+    return r_min, r_max
+
+
+def choose_pair(separations, range_m, theta0, sigma_rel, margin_rule="paper"):
+    """Index of the array pair to use at a range (eq 30).
+
+    The pair whose separation is nearest ``(d_min + d_max) / 2`` at that range.
+
+    Parameters
+    ----------
+    separations : array_like, shape (P,)
+        Separations of the candidate pairs, m (e.g. ``Layout.group_separation()``).
+    range_m : array_like, shape (...)
+        Reflector ranges, m.
+    theta0, sigma_rel, margin_rule
+        As for :func:`separation_limits`.
+
+    Returns
+    -------
+    ndarray of int, shape (...)
+        Pair index per range; -1 where the range is not finite and positive.
+    """
+    separations = _positive_finite("separations", separations).reshape(-1)
+    d_min, d_max = separation_limits(range_m, theta0, sigma_rel, margin_rule)
+    target = 0.5 * (d_min + d_max)
+    distance = np.abs(separations - target[..., None])
+    best = np.argmin(np.where(np.isfinite(distance), distance, np.inf), axis=-1)
+    return np.where(np.isfinite(target), best, -1)
+
+
+# --------------------------------------------------------------------------- fusion
+
+def fusion_weights(variances):
+    """Optimal weights of a linear fusion of independent estimates (eq 41).
+
+    ``w_i = (1 / sigma_i^2) / sum_k (1 / sigma_k^2)``, which minimise the mean squared
+    error of ``sum_i w_i theta_i`` under ``sum_i w_i = 1`` (eqs 31-40).
+
+    Parameters
+    ----------
+    variances : array_like, shape (..., P)
+        Error variances of the P estimates (last axis).  Non-finite or <= 0 entries
+        are treated as missing estimates and get weight 0.
+
+    Returns
+    -------
+    ndarray, shape (..., P)
+        Weights summing to 1 along the last axis; all 0 in rows with no usable variance.
+    """
+    variances = np.asarray(variances, dtype=float)
+    usable = np.isfinite(variances) & (variances > 0)
+    information = np.where(usable, 1.0 / np.where(usable, variances, 1.0), 0.0)
+    total = information.sum(axis=-1, keepdims=True)
+    return np.divide(information, total, out=np.zeros_like(information), where=total > 0)
+
+
+def fuse(estimates, variances):
+    """Fuse independent estimates with the weights of eq 41.
+
+    Parameters
+    ----------
+    estimates : array_like, shape (..., P)
+        Estimates from P pairs (last axis); NaN where a pair has none.
+    variances : array_like, shape (..., P)
+        Their error variances.
+
+    Returns
+    -------
+    estimate, variance : ndarray, shape (...)
+        ``sum_i w_i theta_i`` and its variance ``1 / sum_i (1 / sigma_i^2)``; NaN where
+        no pair has both a finite estimate and a usable variance.
+    """
+    estimates, variances = np.broadcast_arrays(np.asarray(estimates, dtype=float),
+                                               np.asarray(variances, dtype=float))
+    variances = np.where(np.isfinite(estimates), variances, np.nan)
+    weights = fusion_weights(variances)
+    found = weights.sum(axis=-1) > 0
+    fused = np.where(found, np.sum(weights * np.where(weights > 0, estimates, 0.0), axis=-1), np.nan)
+    usable = np.isfinite(variances) & (variances > 0)
+    information = np.sum(np.where(usable, 1.0 / np.where(usable, variances, 1.0), 0.0), axis=-1)
+    variance = np.where(found, 1.0 / np.where(found, information, 1.0), np.nan)
+    return fused, variance
+
+
+# --------------------------------------------------------------------------- geometric consistency
+
+CONSISTENCY_Z = 3.5
+"""Default significance of the consistency test, standard normal deviates.
+
+Only about one ring echo in ten carries enough curvature to be decided, so the
+per-test error bound ``P(N(0,1) > z)`` is multiplied by ~10 when counted per
+decision: z = 3 (0.13 %) would allow ~1 % false decisions, z = 3.5 (0.023 %) ~0.2 %.
+"""
+
+_GAUSS_NEWTON_STEPS = 8
+"""Iterations of each fit.  The model that fits converges quadratically (1e-12 m in 5),
+the one that does not linearly; after 8 the last step is below 1e-10 m for echoes at
+0.4-5 m on the ring (checked over random bearings)."""
+
+
+def geometric_consistency(transmitter, receivers, paths, sigma_path, z=CONSISTENCY_Z,
+                          facing=None) -> ConsistencyResult:
+    """EDGE versus specular (PLANE/CORNER) from one echo seen by three or more receivers.
+
+    Two models are fitted by weighted least squares (vectorised Gauss-Newton) to the
+    horizontal path lengths ``d_n`` of every echo:
+
+    * specular (plane or corner): one virtual image ``T'`` for all receivers,
+      residuals ``|T' - R_n| - d_n``;
+    * edge: one reflecting point ``P``, residuals ``|P - T| + |P - R_n| - d_n``.
+
+    Both have two parameters, so with ``n`` receivers each chi-square has ``n - 2``
+    degrees of freedom and their difference ``D = chi2_specular - chi2_edge`` is a
+    log-likelihood ratio.  Linearised, when the specular model is true ``D`` is normal
+    with mean ``-s^2`` and standard deviation ``2 s`` (``s`` = separation of the two
+    models' predictions in noise units), so deciding EDGE only when ``D > z^2`` is
+    wrong with probability at most ``P(N(0,1) > z)`` whatever ``s`` is (0.023 % for the
+    default ``z = 3.5``), and symmetrically for a specular decision.  The chosen model must also
+    fit: its chi-square must lie below the upper ``z`` quantile of chi-square with
+    ``n - 2`` degrees of freedom (Wilson-Hilferty approximation), so echoes that fit
+    neither model (wrong association, multipath) stay UNKNOWN.
+
+    Parameters
+    ----------
+    transmitter : array_like, shape (2,) or (N, 2)
+        Horizontal position of the emitter ``T``, m, sensor frame.
+    receivers : array_like, shape (N, K, 2)
+        Horizontal positions of the receivers that saw each echo, m, sensor frame.
+    paths : array_like, shape (N, K)
+        Horizontal path lengths ``T -> reflector -> R_n``, m, already corrected for
+        the transmitter/receiver height difference (``sqrt(d^2 - dz^2)``); NaN where a
+        receiver did not see the echo.
+    sigma_path : array_like
+        Standard deviation of each path length, m (``c * sigma_tof``, times
+        ``d / sqrt(d^2 - dz^2)`` after the height correction), > 0; broadcastable to (N, K).
+    z : float
+        Significance of both tests in standard normal deviates, > 0.
+    facing : array_like, shape (2,) or (N, 2), optional
+        Direction the receivers face (echoes arrive from that side), sensor frame;
+        default the direction from the transmitter to the receivers' centroid, right
+        for a ring but not for an emitter beside its receivers (a triad).
+
+    Returns
+    -------
+    ConsistencyResult
+        Decisions, confidences, chi-squares and both fitted positions.  Echoes with
+        fewer than three usable receivers are UNKNOWN with zero confidence.
+    """
+    if not (np.ndim(z) == 0 and np.isfinite(z) and z > 0):
+        raise ValueError(f"z must be a finite number > 0, got {z!r}")
+    receivers = np.asarray(receivers, dtype=float)
+    if receivers.ndim != 3 or receivers.shape[-1] != 2:
+        raise ValueError(f"receivers must have shape (N, K, 2), got {receivers.shape}")
+    n_echoes, n_receivers = receivers.shape[:2]
+    paths = np.asarray(paths, dtype=float)
+    if paths.shape != (n_echoes, n_receivers):
+        raise ValueError(f"paths must have shape {(n_echoes, n_receivers)}, got {paths.shape}")
+    transmitter = np.asarray(transmitter, dtype=float)
+    if transmitter.shape not in ((2,), (n_echoes, 2)):
+        raise ValueError(f"transmitter must have shape (2,) or {(n_echoes, 2)}, got {transmitter.shape}")
+    transmitter = np.broadcast_to(transmitter, (n_echoes, 2))
+    sigma = np.broadcast_to(_positive_finite("sigma_path", sigma_path), (n_echoes, n_receivers))
+
+    usable = np.isfinite(paths) & (paths > 0) & np.all(np.isfinite(receivers), axis=-1)
+    usable &= np.all(np.isfinite(transmitter), axis=-1)[:, None]
+    weight = np.where(usable, 1.0 / np.square(sigma), 0.0)
+    # Unused entries get harmless finite values; their weight keeps them out of every sum.
+    safe_receivers = np.where(usable[..., None], receivers, 0.0)
+    safe_paths = np.where(usable, paths, 0.0)
+    safe_transmitter = np.where(np.isfinite(transmitter), transmitter, 0.0)
+    dof = usable.sum(axis=1) - 2
+    tested = dof >= 1
+
+    with np.errstate(invalid="ignore", divide="ignore"):
+        count = np.maximum(usable.sum(axis=1), 1)
+        centroid = (safe_receivers * usable[..., None]).sum(axis=1) / count[:, None]
+        outward = centroid - safe_transmitter if facing is None else np.broadcast_to(facing, (n_echoes, 2))
+        outward = outward / np.linalg.norm(outward, axis=-1, keepdims=True)
+        image = _far_field_image(centroid, outward, safe_receivers, safe_paths, usable)
+        image, chi2_specular = _gauss_newton(image, safe_receivers, safe_paths, weight, None)
+        # The corner point (T + T') / 2 is within millimetres of an edge (Browne section 7).
+        edge, chi2_edge = _gauss_newton(0.5 * (safe_transmitter + image), safe_receivers, safe_paths,
+                                        weight, safe_transmitter)
+
+    chi2_specular = np.where(tested, chi2_specular, np.nan)
+    chi2_edge = np.where(tested, chi2_edge, np.nan)
+    difference = chi2_specular - chi2_edge
+    fit_limit = _chi2_upper_quantile(np.maximum(dof, 1), z)
+    threshold = z * z
+    is_edge = tested & (difference > threshold) & (chi2_edge <= fit_limit)
+    is_specular = tested & (-difference > threshold) & (chi2_specular <= fit_limit)
+    decided = is_edge | is_specular
+    statistic = np.abs(np.where(decided, difference, 1.0))
+    margin = np.where(decided, (statistic - threshold) / (2.0 * np.sqrt(statistic)), 0.0)
+    return ConsistencyResult(
+        cls=np.where(is_edge, EDGE, UNKNOWN).astype(np.uint8),
+        specular=is_specular,
+        margin=margin,
+        confidence=confidence_from_margin(margin),
+        chi2_specular=chi2_specular,
+        chi2_edge=chi2_edge,
+        dof=dof,
+        virtual_image=np.where(tested[:, None], image, np.nan),
+        edge_position=np.where(tested[:, None], edge, np.nan),
+    )
+
+
+def _far_field_image(centroid, outward, receivers, paths, usable):
+    """Starting virtual image from a plane-wave fit: T' ~= centroid + mean(d) * arrival direction.
+
+    Starting on the far side of the receivers (``outward``, unit (N, 2)) matters: nearly
+    collinear receivers make the mirror image of ``T'`` across their line an almost
+    equally good local minimum.
+    """
+    count = np.maximum(usable.sum(axis=1), 1)
+    lateral = np.stack([-outward[:, 1], outward[:, 0]], axis=-1)
+    offset = np.einsum("nkc,nc->nk", receivers - centroid[:, None, :], lateral)
+    mean_path = (paths * usable).sum(axis=1) / count
+    offset_c = np.where(usable, offset - (offset * usable).sum(axis=1, keepdims=True) / count[:, None], 0.0)
+    path_c = np.where(usable, paths - mean_path[:, None], 0.0)
+    spread = np.sum(offset_c * offset_c, axis=1)
+    # A receiver further towards the source (larger lateral offset) has a shorter path.
+    sine = np.clip(-np.sum(offset_c * path_c, axis=1) / np.where(spread > 0, spread, 1.0), -1.0, 1.0)
+    direction = np.sqrt(1.0 - sine**2)[:, None] * outward + sine[:, None] * lateral
+    return centroid + mean_path[:, None] * direction
+
+
+def _gauss_newton(start, receivers, paths, weight, transmitter):
+    """Weighted least squares for a virtual image (``transmitter`` None) or an edge point.
+
+    Returns the fitted points (N, 2) and their weighted residual sums of squares (N,).
+    """
+    point = start
+    for _ in range(_GAUSS_NEWTON_STEPS):
+        residual, jacobian = _model(point, receivers, paths, transmitter)
+        normal = np.einsum("nk,nki,nkj->nij", weight, jacobian, jacobian)
+        gradient = np.einsum("nk,nki,nk->ni", weight, jacobian, residual)
+        det = normal[:, 0, 0] * normal[:, 1, 1] - normal[:, 0, 1] * normal[:, 1, 0]
+        solvable = np.isfinite(det) & (np.abs(det) > 0)
+        det = np.where(solvable, det, 1.0)
+        step_x = (normal[:, 1, 1] * gradient[:, 0] - normal[:, 0, 1] * gradient[:, 1]) / det
+        step_y = (normal[:, 0, 0] * gradient[:, 1] - normal[:, 1, 0] * gradient[:, 0]) / det
+        step = np.where(solvable[:, None], np.stack([step_x, step_y], axis=-1), 0.0)
+        point = point - np.where(np.isfinite(step), step, 0.0)
+    residual, _ = _model(point, receivers, paths, transmitter)
+    return point, np.sum(weight * np.square(residual), axis=1)
+
+
+def _model(point, receivers, paths, transmitter):
+    """Residuals (N, K) and Jacobian (N, K, 2) of the specular or edge path model."""
+    to_point = point[:, None, :] - receivers
+    distance = np.linalg.norm(to_point, axis=-1)
+    jacobian = to_point / distance[..., None]
+    predicted = distance
+    if transmitter is not None:
+        from_transmitter = point - transmitter
+        emitter_distance = np.linalg.norm(from_transmitter, axis=-1)
+        predicted = predicted + emitter_distance[:, None]
+        jacobian = jacobian + (from_transmitter / emitter_distance[:, None])[:, None, :]
+    return predicted - paths, jacobian
+
+
+def _chi2_upper_quantile(dof, z):
+    """Upper quantile of chi-square at the standard normal deviate ``z`` (Wilson-Hilferty).
+
+    For z = 3 to 3.5 it is at most 6 % above the exact quantile (slightly lenient, worst
+    for one degree of freedom).
+    """
+    dof = np.asarray(dof, dtype=float)
+    scale = 2.0 / (9.0 * dof)
+    return dof * (1.0 - scale + z * np.sqrt(scale)) ** 3
+
+
+# --------------------------------------------------------------------------- the single-emitter ring
+
+def overlapping_groups(layout):
+    """Groups whose fields of view overlap each group's, shape (G, J), -1 padded.
+
+    Two groups overlap when their facings differ by less than twice the receivers'
+    acceptance half-angle, so one reflector can be heard by both.  On Browne's ring
+    (pairs every 7.5 deg, +-10 deg acceptance) these are the two neighbours on
+    either side.
+
+    Parameters
+    ----------
+    layout : sonar_ring.geometry.Layout
+        The sensor.
+
+    Returns
+    -------
+    ndarray of int, shape (G, J)
+        Overlapping groups of each group, nearest facing first; J is the largest count.
+    """
+    yaw = layout.group_yaw()
+    gap = np.abs(np.angle(np.exp(1j * (yaw[:, None] - yaw[None, :]))))
+    overlap = (gap < 2.0 * layout.beam_half_angle) & ~np.eye(layout.n_groups, dtype=bool)
+    order = np.argsort(np.where(overlap, gap, np.inf), axis=1, kind="stable")
+    width = int(overlap.sum(axis=1).max(initial=0))
+    chosen = order[:, :width]
+    return np.where(np.take_along_axis(overlap, chosen, axis=1), chosen, -1)
+
+
+def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_Z) -> ConsistencyResult:
+    """Geometric consistency of every echo of a single-emitter sensor, with its overlapping groups.
+
+    Each echo row (one group, its K receivers) is joined by the echo of each
+    overlapping group (:func:`overlapping_groups`) of the same ping that passes the
+    triangle-inequality gate ``|h_i - h_k| <= |R_i - R_k| + z sqrt(sigma_i^2 + sigma_k^2)``
+    for every receiver pair -- which any single reflector satisfies -- provided it is
+    the only one there that does; where two pass, which one belongs is unknown and
+    that group is left out.  An echo whose own group holds another echo passing the
+    gate (two reflectors at indistinguishable ranges, e.g. a wall and the edge at its
+    end) is not tested at all.  A wrong join that still slips through fits neither
+    model and stays UNKNOWN by the goodness-of-fit check of :func:`geometric_consistency`.
+
+    Path lengths are first made horizontal, ``sqrt(d^2 - dz^2)``, exact for vertically
+    extruded reflectors, with their standard deviation scaled by ``d / sqrt(d^2 - dz^2)``.
+
+    Parameters
+    ----------
+    layout : sonar_ring.geometry.Layout
+        A layout whose groups each have one transmitter (Browne ring, Kreczmer triad).
+    group : array_like of int, shape (N,)
+        Receiver group of each echo.
+    paths : array_like, shape (N, K)
+        Measured path lengths ``c * tof``, m; NaN where a receiver missed the echo.
+    sigma_path : float
+        Standard deviation of one measured path length, m (``c * sigma_tof``), > 0.
+    ping : array_like of int, shape (N,), optional
+        Ping of each echo when several pings are stacked; echoes join only within a ping.
+    z : float
+        Significance in standard normal deviates, > 0 (see :func:`geometric_consistency`).
+
+    Returns
+    -------
+    ConsistencyResult
+        One entry per echo row; positions in the sensor frame.
+    """
+    if layout.group_transmitters.shape[1] != 1:
+        raise ValueError(f"ring_consistency: layout {layout.name!r} has "
+                         f"{layout.group_transmitters.shape[1]} transmitters per group; geometric "
+                         "consistency needs one emitter (use the amplitude rule for transducer pairs)")
+    sigma_path = float(_positive_finite("sigma_path", sigma_path))
+    group = np.asarray(group, dtype=int).reshape(-1)
+    n_echoes, k = group.size, layout.receivers_per_group
+    paths = np.asarray(paths, dtype=float)
+    if paths.shape != (n_echoes, k):
+        raise ValueError(f"paths must have shape {(n_echoes, k)}, got {paths.shape}")
+    if np.any((group < 0) | (group >= layout.n_groups)):
+        raise ValueError(f"group indices must be in [0, {layout.n_groups}), got {group!r}")
+    ping = np.zeros(n_echoes, dtype=int) if ping is None else np.asarray(ping, dtype=int).reshape(-1)
+    if ping.shape != (n_echoes,):
+        raise ValueError(f"ping must have shape {(n_echoes,)}, got {ping.shape}")
+
+    dz = layout.height_offset()[group, 0, :]  # (N, K)
+    horizontal = horizontal_path(paths, dz).value  # NaN where invalid
+    with np.errstate(invalid="ignore", divide="ignore"):
+        sigma = sigma_path * paths / horizontal
+    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, sigma_path)
+    receivers = layout.receivers[layout.groups[group], :2]  # (N, K, 2)
+    own = np.arange(layout.n_groups)[:, None]
+    slots = np.concatenate([own, overlapping_groups(layout)], axis=1)  # slot 0: the echo's own group
+    candidate, matches = _gated_matches(ping, group, horizontal, sigma, receivers, slots, z)  # (N, 1 + J, C)
+    unique = matches.sum(axis=-1) == 1
+    match = np.take_along_axis(candidate, np.argmax(matches, axis=-1)[..., None], axis=-1)[..., 0]
+    joined = np.where(unique, match, -1)
+    crowded = matches[:, 0].any(axis=-1)
+    rows = np.concatenate([np.arange(n_echoes)[:, None], joined[:, 1:]], axis=1)  # (N, 1 + J)
+    present = (rows >= 0) & ~crowded[:, None]
+    take = np.where(present, rows, 0)
+    width = rows.shape[1] * k
+    all_paths = np.where(present[..., None], horizontal[take], np.nan).reshape(n_echoes, width)
+    all_sigma = sigma[take].reshape(n_echoes, width)
+    all_receivers = receivers[take].reshape(n_echoes, width, 2)
+    transmitter = layout.transmitters[layout.group_transmitters[group, 0], :2]
+    yaw = layout.group_yaw()[group]
+    facing = np.stack([np.cos(yaw), np.sin(yaw)], axis=-1)
+    return geometric_consistency(transmitter, all_receivers, all_paths, all_sigma, z=z, facing=facing)
+
+
+def _gated_matches(ping, group, horizontal, sigma, receivers, slots, z):
+    """Echoes of each slot group (same ping) and whether they pass the gate with each echo.
+
+    Returns ``candidate`` (N, S, C) int, the rows of group ``slots[group[n], s]`` in
+    echo ``n``'s ping (C = the most echoes any such group has), and ``matches``
+    (N, S, C) bool, True where that candidate exists, is not ``n`` itself, and every
+    pair of receivers heard by both satisfies the triangle-inequality gate.
+    """
+    n_echoes = group.size
+    key = ping * slots.shape[0] + group
+    order = np.argsort(key, kind="stable")
+    sorted_key = key[order]
+    target = slots[group]  # (N, S)
+    wanted = ping[:, None] * slots.shape[0] + target
+    first = np.searchsorted(sorted_key, wanted, side="left")
+    count = np.where(target >= 0, np.searchsorted(sorted_key, wanted, side="right") - first, 0)
+    width = max(int(count.max(initial=0)), 1)  # one column even when empty, so argmax works
+    candidate = order[np.minimum(first[..., None] + np.arange(width), max(n_echoes - 1, 0))]
+    exists = (np.arange(width) < count[..., None]) & (candidate != np.arange(n_echoes)[:, None, None])
+    own_h, other_h = horizontal[:, None, None, :, None], horizontal[candidate][..., None, :]
+    own_s, other_s = sigma[:, None, None, :, None], sigma[candidate][..., None, :]
+    spacing = np.linalg.norm(receivers[:, None, None, :, None, :] - receivers[candidate][..., None, :, :], axis=-1)
+    with np.errstate(invalid="ignore"):
+        slack = spacing + z * np.sqrt(own_s**2 + other_s**2) - np.abs(own_h - other_h)
+    heard = np.isfinite(own_h) & np.isfinite(other_h)
+    passes = np.all(np.where(heard, slack >= 0, True), axis=(-1, -2)) & np.any(heard, axis=(-1, -2))
+    return candidate, exists & passes
