@@ -1,0 +1,1266 @@
+"""Landmark map in ``odom``: association, fusion, wall segments, PLANE vs CORNER over motion.
+
+The mapper core behind the ``mapper`` node (numpy only).  Per ping the node turns the
+classifier's landmarks from the sensor frame into ``odom`` with
+:func:`transform_landmarks` and hands them to :meth:`LandmarkMap.update` with the
+sensor pose; :meth:`LandmarkMap.snapshot` (landmarks) and :meth:`LandmarkMap.points`
+(costmap points) give the map to publish.
+
+Map entries
+-----------
+* **Points** (CORNER, EDGE and still-UNKNOWN reflectors): the fused position in
+  information form (``Lambda = sum C_i^-1``, mean by inverse-covariance weights: the
+  multivariate form of Barshan & Kuc eq 41).  An UNKNOWN point also carries the
+  *plane hypothesis* for the same sightings (below) until its class is known.
+* **Walls** (PLANE): a line ``n . (x - a) = delta`` with unit normal
+  ``n = (cos theta, sin theta)`` pointing from the wall towards the side it was seen
+  from, kept as ``(theta, delta)`` with a 2x2 information matrix about an anchor ``a``
+  that is moved to the middle of the segment after every change (so ``theta`` and
+  ``delta`` stay nearly uncorrelated), and the extent seen along the wall.
+
+Sightings as line observations
+------------------------------
+A plane's landmark is the foot point ``G`` of the perpendicular from the transmitter,
+and the corner model puts an UNKNOWN reflector at the same point ``G`` (Browne s7),
+so every sighting with its sensor position ``S`` defines a line: the one through
+``G`` with normal ``n`` along ``S - G`` (a plane sighting's own normal, oriented
+towards the sensor; the transmitter is taken to be at the sensor origin, as on
+Browne's ring).  In line coordinates about an anchor ``a``,
+``z = (theta, n . (G - a))`` with covariance ``J C J^T``, where
+``J = [-t^T / r ; n^T - (t . (G - a)) t^T / r]``, ``t`` the unit tangent and
+``r = |S - G|``.  A wall is a constant ``z``; a corner is a constant ``G``: both are
+two-parameter linear-Gaussian estimates from the same sightings, fused the same way,
+with comparable residual sums.
+
+Uncertainty floors
+------------------
+Every sighting's covariance gets ``sighting_sigma^2 I`` added (what a first-order
+covariance misses: a range-and-bearing fix lies on an arc, and with sub-millimetre
+range and centimetre bearing errors the arc's sag is comparable with the range
+error).  Entries carry a floor ``map_sigma`` that more sightings do not average away
+(odometry, speed of sound, calibration, errors shared by consecutive pings), used
+when gating and reported by :meth:`LandmarkMap.snapshot`.  Both may be set to 0.
+
+Association (one array operation per ping)
+------------------------------------------
+Candidates are entries within ``search_radius`` of the sighting (a point's latest
+sighting, a wall's segment).  ``d^2``, the Mahalanobis distance of the innovation
+with covariance ``C_sighting + C_entry``, must pass ``gate`` (chi-square, 2 dof):
+
+* CORNER / EDGE sighting -- points of its class, UNKNOWN points, and points
+  named CORNER by motion alone; point model;
+* PLANE sighting -- walls, and UNKNOWN points under their plane hypothesis;
+* UNKNOWN sighting -- any point (UNKNOWN points: the better of the two
+  hypotheses) and walls.
+
+Among the candidates within the gate a sighting joins the one with the smallest
+``d^2 + ln det C - 2 ln n`` (minus twice the log of its likelihood times a prior
+proportional to the entry's sightings ``n``, so a well-known entry beats a vague or
+young one); several sightings of a ping may join one entry (overlapping receiver
+groups).  A sighting outside every gate but within ``new_entry_gate`` of some entry
+is dropped as ambiguous, so the tails of a known landmark's sightings do not start
+duplicates.  The other unmatched sightings are clustered within the ping
+(classified ones lead, UNKNOWN ones may join a leader of any class) and each
+cluster starts one entry.  A classified sighting that joins an UNKNOWN point, or a
+point named by motion alone, gives the point its class (PLANE turns it into a
+wall).  A wall whose line and extent match another wall's (gate, gap at most
+``search_radius``) absorbs it.
+
+PLANE vs CORNER over motion
+---------------------------
+A corner stays put in ``odom``; the foot point of a plane slides along the wall as
+the sensor moves along it, while the line it implies stays put.  For every UNKNOWN
+point the map keeps both fits over its ``n`` sightings and their residual sums
+``chi2_corner`` and ``chi2_plane`` (each chi-square with ``2 (n - 1)`` degrees of
+freedom under its own model).  With ``Delta = chi2_corner - chi2_plane`` (twice the
+log ratio of the maximised likelihoods) the point becomes
+
+* a **PLANE** (a wall) when ``Delta >= decision_threshold``,
+* a **CORNER** when ``Delta <= -decision_threshold``,
+
+provided that
+
+1. the motion separates the hypotheses: ``lambda = sum w_i (s_i - s_mean)^2 >=
+   min_separation``, with ``s_i`` the sensor position across the first line of
+   sight, ``w_i`` the inverse variance of sighting i in that direction and
+   ``s_mean`` their ``w``-weighted mean -- the value ``|Delta|`` has on average when
+   either hypothesis is true.  A robot driving straight at a reflector or turning on
+   the spot has ``lambda = 0`` and tells nothing;
+2. the sensor moved at least ``min_baseline`` (m) across that line of sight, a guard
+   against odometry and model errors at small scale; and
+3. the winning model fits by itself: its ``chi2`` is below the 99.9 % point of
+   chi-square with ``2 (n - 1)`` dof (Wilson-Hilferty), so a track that mixed two
+   reflectors stays UNKNOWN.
+
+Otherwise the point stays UNKNOWN, placed with the corner model.  The confidence of
+a decision is ``1 - exp(-|Delta| / 2)``, one minus the inverse likelihood ratio
+(0.99 at the default threshold 9.21, a ratio of 100).  An edge placed with the
+corner model also stays put, so motion calls it a CORNER; an EDGE sighting from the
+classifier renames such a point.
+
+Memory
+------
+At most ``max_points`` points and ``max_walls`` walls.  When a new entry needs a
+slot in a full table, the entry seen least recently (ties: fewest observations)
+is evicted; entries seen in the current ping are never evicted, and new landmarks
+that find no slot are dropped and counted.
+
+Bad data never raises in :meth:`LandmarkMap.update`: sightings with ``valid``
+False, non-finite fields, a covariance that is not positive definite, an unknown
+class code, a zero plane normal or a position at the sensor are skipped and
+counted (:class:`MapCounts`); a non-finite pose skips the ping.  Only arguments of
+the wrong type or shape raise :class:`ValueError`.
+
+Frames and units: ``odom`` (REP 105), metres, radians counter-clockwise (REP 103).
+The pose is taken as exact: the map is consistent in ``odom`` as far as odometry is
+(``map_sigma`` absorbs small drift).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, Landmarks
+
+CHI2_2DOF_99 = 9.2103
+"""99 % point of chi-square with 2 degrees of freedom; also ``2 ln 100``."""
+
+CHI2_2DOF_9999 = 18.421
+"""99.99 % point of chi-square with 2 degrees of freedom."""
+
+_AMBIGUOUS = -2
+"""Association result of a sighting that is neither fused nor allowed to start an entry."""
+
+_CONSISTENCY_Z = 3.0902
+"""Standard normal 99.9 % point, for the Wilson-Hilferty chi-square quantile."""
+
+_MIN_RANGE = 1e-3
+"""Sightings closer than this to the sensor (m) define no line of sight."""
+
+_MIN_EXTENT = 0.01
+"""Shortest extent (m) over which :func:`_line_floor` spreads the end-point error."""
+
+
+# --------------------------------------------------------------------------- 2-D helpers
+
+def _rotation(yaw: float) -> np.ndarray:
+    cos_yaw, sin_yaw = np.cos(yaw), np.sin(yaw)
+    return np.array([[cos_yaw, -sin_yaw], [sin_yaw, cos_yaw]])
+
+
+def _wrap(angle):
+    """Angle in [-pi, pi)."""
+    return (angle + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def _dot(a, b):
+    return a[..., 0] * b[..., 0] + a[..., 1] * b[..., 1]
+
+
+def _left(vector):
+    """The vector turned 90 degrees counter-clockwise."""
+    out = np.empty(vector.shape)
+    out[..., 0] = -vector[..., 1]
+    out[..., 1] = vector[..., 0]
+    return out
+
+
+def _determinant(matrix):
+    return matrix[..., 0, 0] * matrix[..., 1, 1] - matrix[..., 0, 1] * matrix[..., 1, 0]
+
+
+def _inverse(matrix):
+    """Inverse of (..., 2, 2) matrices in closed form."""
+    det = _determinant(matrix)
+    out = np.empty_like(matrix)
+    out[..., 0, 0] = matrix[..., 1, 1] / det
+    out[..., 1, 1] = matrix[..., 0, 0] / det
+    out[..., 0, 1] = -matrix[..., 0, 1] / det
+    out[..., 1, 0] = -matrix[..., 1, 0] / det
+    return out
+
+
+def _apply(matrix, vector):
+    """``matrix @ vector`` for (..., 2, 2) and (..., 2) of the same leading shape."""
+    out = np.empty(vector.shape)
+    out[..., 0] = matrix[..., 0, 0] * vector[..., 0] + matrix[..., 0, 1] * vector[..., 1]
+    out[..., 1] = matrix[..., 1, 0] * vector[..., 0] + matrix[..., 1, 1] * vector[..., 1]
+    return out
+
+
+def _mahalanobis2(vector, covariance, determinant=None):
+    """``vector^T covariance^-1 vector`` for (..., 2) and (..., 2, 2), without forming the inverse."""
+    if determinant is None:
+        determinant = _determinant(covariance)
+    x, y = vector[..., 0], vector[..., 1]
+    return (covariance[..., 1, 1] * x * x - 2.0 * covariance[..., 0, 1] * x * y
+            + covariance[..., 0, 0] * y * y) / determinant
+
+
+def _quadratic(vector, matrix):
+    """``vector^T matrix vector`` for (..., 2) and (..., 2, 2)."""
+    return _dot(vector, _apply(matrix, vector))
+
+
+def _sandwich(jacobian, matrix):
+    """``J M J^T`` for (..., 2, 2) arrays of one shape, ``M`` symmetric.
+
+    Element-wise, because numpy's stacked matmul is slow for 2 x 2 matrices.
+    """
+    a, b, c, d = jacobian[..., 0, 0], jacobian[..., 0, 1], jacobian[..., 1, 0], jacobian[..., 1, 1]
+    xx, xy, yy = matrix[..., 0, 0], matrix[..., 0, 1], matrix[..., 1, 1]
+    out = np.empty(matrix.shape)
+    out[..., 0, 0] = a * a * xx + 2.0 * a * b * xy + b * b * yy
+    out[..., 0, 1] = out[..., 1, 0] = a * c * xx + (a * d + b * c) * xy + b * d * yy
+    out[..., 1, 1] = c * c * xx + 2.0 * c * d * xy + d * d * yy
+    return out
+
+
+def _pairs_within(query, points, radius: float):
+    """Index pairs ``(i, j)`` with ``|query[i] - points[j]| <= radius``, by a sweep along x.
+
+    Sorting ``points`` (M, 2) by x limits the distance tests to the strip
+    ``|dx| <= radius`` of each query point (N, 2), which for a map spread over a
+    room is a small fraction of all N x M pairs.
+    """
+    order = np.argsort(points[:, 0], kind="stable")
+    low = np.searchsorted(points[order, 0], query[:, 0] - radius, side="left")
+    span = np.searchsorted(points[order, 0], query[:, 0] + radius, side="right") - low
+    row = np.repeat(np.arange(query.shape[0]), span)
+    start = np.repeat(low - (np.cumsum(span) - span), span)
+    column = order[start + np.arange(row.size)]
+    gap = query[row] - points[column]
+    near = gap[:, 0] ** 2 + gap[:, 1] ** 2 <= radius * radius
+    return row[near], column[near]
+
+
+def _chi2_quantile(dof, z: float):
+    """Wilson-Hilferty approximation of the chi-square quantile at normal point ``z``."""
+    dof = np.maximum(dof, 1.0)
+    k = 2.0 / (9.0 * dof)
+    return dof * (1.0 - k + z * np.sqrt(k)) ** 3
+
+
+def _line_floor(extent, sigma: float):
+    """Covariance (K, 2, 2) of ``(theta, delta)`` from an error ``sigma`` at each end of a segment.
+
+    The segment runs from ``s1`` to ``s2`` (``extent`` (K, 2), m along the line from
+    its anchor); independent offsets ``u1``, ``u2`` across it at the ends move the
+    line by ``theta = -(u2 - u1) / L`` and ``delta = (u1 s2 - u2 s1) / L``.
+    """
+    first, second = extent[:, 0], extent[:, 1]
+    length2 = np.maximum(second - first, _MIN_EXTENT) ** 2
+    out = np.empty((extent.shape[0], 2, 2))
+    out[:, 0, 0] = 2.0 / length2
+    out[:, 0, 1] = out[:, 1, 0] = (first + second) / length2
+    out[:, 1, 1] = (first ** 2 + second ** 2) / length2
+    return sigma ** 2 * out
+
+
+def _pose(pose, caller: str) -> np.ndarray:
+    try:
+        pose = np.asarray(pose, dtype=float)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"{caller}: pose must be numeric (x, y, yaw), got {pose!r}") from error
+    if pose.shape != (3,):
+        raise ValueError(f"{caller}: pose must have shape (3,) as (x, y, yaw), got shape {pose.shape}")
+    return pose
+
+
+def _check_landmarks(landmarks, caller: str) -> None:
+    if not isinstance(landmarks, Landmarks):
+        raise ValueError(f"{caller}: expected sonar_ring.landmarks.Landmarks, got {type(landmarks).__name__}")
+    count = len(landmarks)
+    expected = {"position": (count, 2), "normal": (count, 2), "covariance": (count, 2, 2),
+                "segment": (count, 2, 2)}
+    for name, shape in expected.items():
+        actual = np.shape(getattr(landmarks, name))
+        if actual != shape:
+            raise ValueError(f"{caller}: Landmarks.{name} must have shape {shape} for {count} landmarks, "
+                             f"got {actual}")
+    for name in ("confidence", "observations", "group", "valid"):
+        actual = np.shape(getattr(landmarks, name))
+        if actual != (count,):
+            raise ValueError(f"{caller}: Landmarks.{name} must have shape ({count},), got {actual}")
+
+
+def transform_landmarks(landmarks: Landmarks, pose) -> Landmarks:
+    """Landmarks from the sensor frame into ``odom``, given the sensor pose.
+
+    Parameters
+    ----------
+    landmarks : Landmarks
+        L landmarks in the sensor frame.
+    pose : array_like, shape (3,)
+        Sensor pose ``(x, y, yaw)`` in ``odom``, m and rad.  A non-finite pose gives
+        non-finite landmarks (which :meth:`LandmarkMap.update` counts and skips).
+
+    Returns
+    -------
+    Landmarks
+        The same landmarks in ``odom``: positions and segment end points
+        ``R p + (x, y)``, normals ``R n``, covariances ``R C R^T`` with ``R`` the
+        rotation by ``yaw``; every other field unchanged.
+
+    Raises
+    ------
+    ValueError
+        If ``landmarks`` is not a :class:`Landmarks` with consistent shapes or
+        ``pose`` is not three numbers.
+    """
+    _check_landmarks(landmarks, "transform_landmarks")
+    pose = _pose(pose, "transform_landmarks")
+    rotation = _rotation(pose[2])
+    return replace(
+        landmarks,
+        position=landmarks.position @ rotation.T + pose[:2],
+        normal=landmarks.normal @ rotation.T,
+        segment=landmarks.segment @ rotation.T + pose[:2],
+        covariance=rotation @ landmarks.covariance @ rotation.T,
+    )
+
+
+# --------------------------------------------------------------------------- counters
+
+@dataclass
+class MapCounts:
+    """What :meth:`LandmarkMap.update` did with its input, summed since construction.
+
+    For the sightings of accepted pings,
+    ``sightings == invalid + not_finite + degenerate + ambiguous + fused + created + dropped``.
+
+    Attributes
+    ----------
+    pings : int
+        Updates with a finite pose.
+    rejected_pings : int
+        Updates skipped because the pose was not finite (their sightings are not
+        counted below).
+    sightings : int
+        Landmarks passed to accepted updates.
+    invalid : int
+        Landmarks flagged ``valid = False`` upstream.
+    not_finite : int
+        Landmarks flagged valid whose position, covariance, segment or (planes)
+        normal holds NaN or infinity.
+    degenerate : int
+        Landmarks with a covariance that is not positive definite, an unknown
+        class code, a zero plane normal or a position at the sensor.
+    ambiguous : int
+        Sightings outside every entry's gate but inside some entry's
+        ``new_entry_gate``: neither fused nor allowed to start an entry.
+    fused : int
+        Sightings merged into an entry (including into one started in the same ping).
+    created : int
+        Entries started.
+    dropped : int
+        Sightings not stored because the map was full of entries seen in the same ping.
+    evicted : int
+        Entries removed to make room.
+    resolved_plane, resolved_corner : int
+        UNKNOWN points turned into walls / corners by the motion test.
+    merged_walls : int
+        Walls absorbed into another wall.
+    """
+
+    pings: int = 0
+    rejected_pings: int = 0
+    sightings: int = 0
+    invalid: int = 0
+    not_finite: int = 0
+    degenerate: int = 0
+    ambiguous: int = 0
+    fused: int = 0
+    created: int = 0
+    dropped: int = 0
+    evicted: int = 0
+    resolved_plane: int = 0
+    resolved_corner: int = 0
+    merged_walls: int = 0
+
+
+# --------------------------------------------------------------------------- state
+
+@dataclass(frozen=True, eq=False)
+class _Sightings:
+    """The usable landmarks of one ping in ``odom``, with their lines of sight.
+
+    Attributes
+    ----------
+    landmark_class : ndarray of uint8, shape (N,)
+    position : ndarray, shape (N, 2)
+        ``G``, m.
+    covariance, information : ndarray, shape (N, 2, 2)
+        Covariance of ``G`` with the ``sighting_sigma`` floor (m^2) and its inverse.
+    normal : ndarray, shape (N, 2)
+        Unit normal of the sighting's line, towards the sensor.
+    distance : ndarray, shape (N,)
+        ``r = |S - G|``, m.
+    segment : ndarray, shape (N, 2, 2)
+        Observed end points, m.
+    confidence : ndarray, shape (N,)
+    group : ndarray of uint16, shape (N,)
+    sensor : ndarray, shape (2,)
+        Sensor position ``S``, m.
+    """
+
+    landmark_class: np.ndarray
+    position: np.ndarray
+    covariance: np.ndarray
+    information: np.ndarray
+    normal: np.ndarray
+    distance: np.ndarray
+    segment: np.ndarray
+    confidence: np.ndarray
+    group: np.ndarray
+    sensor: np.ndarray
+
+    def line(self, rows, anchor):
+        """Line observations ``(theta, delta)`` of sightings ``rows`` about ``anchor`` (K, 2).
+
+        Returns the values (K, 2) and their covariances ``J C J^T`` (K, 2, 2).
+        """
+        normal = self.normal[rows]
+        tangent = _left(normal)
+        offset = self.position[rows] - anchor
+        distance = self.distance[rows]
+        jacobian = np.empty((rows.size, 2, 2))
+        jacobian[:, 0, :] = -tangent / distance[:, None]
+        jacobian[:, 1, :] = normal - (_dot(tangent, offset) / distance)[:, None] * tangent
+        value = np.empty((rows.size, 2))
+        value[:, 0] = np.arctan2(normal[:, 1], normal[:, 0])
+        value[:, 1] = _dot(normal, offset)
+        return value, _sandwich(jacobian, self.covariance[rows])
+
+    def line_innovation(self, rows, anchor, line):
+        """Line innovations of sightings ``rows`` against lines ``(theta, delta)`` (K, 2).
+
+        The lines are about ``anchor`` (K, 2).  Returns the innovations (K, 2) and the
+        sightings' line covariances (K, 2, 2).
+        """
+        value, covariance = self.line(rows, anchor)
+        innovation = value - line
+        innovation[:, 0] = _wrap(innovation[:, 0])
+        return innovation, covariance
+
+
+class _Points:
+    """Fixed-capacity table of point entries; row r is in use where ``active[r]``."""
+
+    def __init__(self, capacity: int):
+        self.active = np.zeros(capacity, bool)
+        self.landmark_class = np.zeros(capacity, np.uint8)
+        self.by_motion = np.zeros(capacity, bool)  # class CORNER from the motion test alone
+        # Point (corner) model: fused position, information matrix, residual chi-square.
+        self.mean = np.zeros((capacity, 2))
+        self.information = np.zeros((capacity, 2, 2))
+        self.chi2 = np.zeros(capacity)
+        # Plane hypothesis while UNKNOWN: (theta, delta) about the first sighting, as for walls.
+        self.anchor = np.zeros((capacity, 2))
+        self.line = np.zeros((capacity, 2))
+        self.line_information = np.zeros((capacity, 2, 2))
+        self.line_chi2 = np.zeros(capacity)
+        # Along the tangent of the first line of sight, from the anchor: the extent of the
+        # sightings and of the sensor positions (the motion baseline), m.
+        self.across = np.zeros((capacity, 2))
+        self.extent = np.zeros((capacity, 2))
+        self.baseline = np.zeros((capacity, 2))
+        # Sums over sightings of w, w s and w s^2, with s the sensor position along that
+        # tangent and w the inverse variance of the sighting along it: the separation.
+        self.motion = np.zeros((capacity, 3))
+        self.latest = np.zeros((capacity, 2))  # latest sighting, for the candidate search
+        self.observations = np.zeros(capacity, np.int64)
+        self.last_seen = np.zeros(capacity, np.int64)
+        self.group = np.zeros(capacity, np.uint16)
+        self.confidence_sum = np.zeros(capacity)
+        self.confidence_count = np.zeros(capacity)
+
+
+class _Walls:
+    """Fixed-capacity table of walls; row r is in use where ``active[r]``.
+
+    Between updates every wall's anchor is the middle of its segment on its line
+    (``delta = 0``, extent symmetric) and ``normal``/``tangent`` match ``theta``.
+    """
+
+    def __init__(self, capacity: int):
+        self.active = np.zeros(capacity, bool)
+        self.anchor = np.zeros((capacity, 2))
+        self.line = np.zeros((capacity, 2))
+        self.information = np.zeros((capacity, 2, 2))
+        self.normal = np.zeros((capacity, 2))
+        self.tangent = np.zeros((capacity, 2))
+        self.extent = np.zeros((capacity, 2))
+        self.observations = np.zeros(capacity, np.int64)
+        self.last_seen = np.zeros(capacity, np.int64)
+        self.group = np.zeros(capacity, np.uint16)
+        self.confidence_sum = np.zeros(capacity)
+        self.confidence_count = np.zeros(capacity)
+
+    def end_points(self, rows):
+        """Segment end points, shape (K, 2, 2), m."""
+        return self.anchor[rows][:, None, :] + self.extent[rows][:, :, None] * self.tangent[rows][:, None, :]
+
+    def recentre(self, rows) -> None:
+        """Move the anchors of walls ``rows`` to the middle of their segments, on the line.
+
+        About a new anchor ``a'``, ``delta' = delta + n(theta) . (a - a')``, linear in
+        ``theta`` with slope ``t . (a - a') = -s_mid``; the information transforms
+        with that Jacobian.
+        """
+        theta = self.line[rows, 0]
+        normal = np.empty((rows.size, 2))
+        normal[:, 0], normal[:, 1] = np.cos(theta), np.sin(theta)
+        tangent = _left(normal)
+        middle = 0.5 * (self.extent[rows, 0] + self.extent[rows, 1])
+        inverse_jacobian = np.zeros((rows.size, 2, 2))
+        inverse_jacobian[:, 0, 0] = inverse_jacobian[:, 1, 1] = 1.0
+        inverse_jacobian[:, 1, 0] = middle
+        self.information[rows] = _sandwich(np.swapaxes(inverse_jacobian, 1, 2), self.information[rows])
+        self.anchor[rows] += self.line[rows, 1:2] * normal + middle[:, None] * tangent
+        self.line[rows, 1] = 0.0
+        self.extent[rows] -= middle[:, None]
+        self.normal[rows] = normal
+        self.tangent[rows] = tangent
+
+
+class _Groups:
+    """K observations grouped by the table slot (< ``capacity``) each goes to.
+
+    Attributes
+    ----------
+    slots : ndarray of int, shape (K,)
+        Slot of each observation.
+    rows : ndarray of int, shape (U,)
+        The distinct slots, ascending.
+    """
+
+    def __init__(self, slots, capacity: int):
+        self.slots = slots
+        self.capacity = capacity
+        self.counts = np.bincount(slots, minlength=capacity)
+        self.rows = np.flatnonzero(self.counts)
+
+    def total(self, values):
+        """Per-slot sums of ``values`` (K,), shape (U,)."""
+        return np.bincount(self.slots, weights=values, minlength=self.capacity)[self.rows]
+
+    def last(self, among=None):
+        """The last observation of each slot, among ``among`` (index array, default all).
+
+        Returns the distinct slots (ascending) and the index of that observation.
+        """
+        among = np.arange(self.slots.size) if among is None else among
+        last = np.full(self.capacity, -1)
+        np.maximum.at(last, self.slots[among], among)
+        rows = np.flatnonzero(last >= 0)
+        return rows, last[rows]
+
+
+def _information_update(mean, information, chi2, groups: _Groups, innovation, weight):
+    """Fuse observations into entries in information form, all at once.
+
+    For each entry, minimises ``(x - x0)^T Lambda0 (x - x0) + sum (z_i - x)^T W_i (z_i - x)``
+    (Barshan & Kuc eq 41 for vectors): ``Lambda = Lambda0 + sum W_i``,
+    ``x = x0 + Lambda^-1 sum W_i nu_i`` with ``nu_i = z_i - x0``; the minimum is added
+    to ``chi2`` (when given), which makes it the batch residual sum of all sightings.
+    Arrays ``mean`` (M, 2), ``information`` (M, 2, 2), ``chi2`` (M,) are updated in
+    place at the slots of ``groups`` with innovations (K, 2) and weights (K, 2, 2).
+    """
+    rows, total = groups.rows, groups.total
+    weighted = _apply(weight, innovation)
+    updated = information[rows]
+    updated[:, 0, 0] += total(weight[:, 0, 0])
+    off_diagonal = total(0.5 * (weight[:, 0, 1] + weight[:, 1, 0]))
+    updated[:, 0, 1] += off_diagonal
+    updated[:, 1, 0] += off_diagonal
+    updated[:, 1, 1] += total(weight[:, 1, 1])
+    pull = np.empty((rows.size, 2))
+    pull[:, 0] = total(weighted[:, 0])
+    pull[:, 1] = total(weighted[:, 1])
+    step = _apply(_inverse(updated), pull)
+    mean[rows] += step
+    information[rows] = updated
+    if chi2 is not None:
+        chi2[rows] += total(_dot(innovation, weighted)) - _dot(pull, step)
+
+
+# --------------------------------------------------------------------------- the map
+
+class LandmarkMap:
+    """Labelled landmarks accumulated in ``odom`` (see the module docstring).
+
+    Parameters
+    ----------
+    max_points : int
+        Capacity for point entries (corners, edges, unresolved reflectors).
+    max_walls : int
+        Capacity for walls.
+    sighting_sigma : float
+        Unmodelled error of one sighting, m: ``sighting_sigma^2 I`` is added to every
+        sighting's covariance.  It covers the arc a range-and-bearing fix traces,
+        which a first-order covariance with sub-millimetre range and centimetre
+        bearing errors misses, and timing quantisation.
+    map_sigma : float
+        Error of a map entry that more sightings do not average away, m (odometry,
+        speed of sound, calibration, errors shared by consecutive pings from nearly
+        the same place): ``map_sigma^2 I`` is added to a point's covariance, and an
+        independent ``map_sigma`` across each end of a wall, for gating and in
+        :meth:`snapshot`.
+    gate : float
+        Mahalanobis gate ``d^2`` for association and wall merging; default the
+        99 % point of chi-square with 2 dof.
+    new_entry_gate : float
+        A sighting starts a new entry only if its ``d^2`` from every candidate
+        exceeds this (default the 99.99 % point); between ``gate`` and it the
+        sighting is dropped as ambiguous, so gate misses of a known landmark do not
+        start duplicates.  At least ``gate``.
+    decision_threshold : float
+        ``|chi2_corner - chi2_plane|`` needed to resolve an UNKNOWN point by motion
+        (twice the log likelihood ratio; 9.21 is 100:1).
+    min_separation : float
+        How far apart the two hypotheses' predictions must be before motion may
+        decide: ``lambda = sum w_i (s_i - s_mean)^2`` (weighted by ``w_i``) over the
+        sightings, with ``s_i`` the sensor position across the first line of sight
+        and ``w_i`` the sighting's inverse variance along it -- the value ``Delta``
+        takes on average when either hypothesis is true.  25 is a 5-sigma difference.
+    min_baseline : float
+        Spread of the sensor positions across the first line of sight needed before
+        motion may decide, m.
+    search_radius : float
+        Only entries this close are association candidates (a point's latest
+        sighting, a wall's segment), and walls merge only across gaps below it, m.
+    wall_point_spacing : float
+        Largest spacing of the points :meth:`points` puts along a wall, m.
+
+    Raises
+    ------
+    ValueError
+        If a capacity is not an integer >= 1, a sigma is negative or not finite,
+        another parameter is not positive and finite, or ``new_entry_gate < gate``.
+    """
+
+    def __init__(self, *, max_points: int = 1000, max_walls: int = 200, sighting_sigma: float = 0.002,
+                 map_sigma: float = 0.001, gate: float = CHI2_2DOF_99, new_entry_gate: float = CHI2_2DOF_9999,
+                 decision_threshold: float = CHI2_2DOF_99, min_separation: float = 25.0, min_baseline: float = 0.1,
+                 search_radius: float = 0.5,
+                 wall_point_spacing: float = 0.05):
+        for name, value in (("max_points", max_points), ("max_walls", max_walls)):
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+                raise ValueError(f"LandmarkMap: {name} must be an integer >= 1, got {value!r}")
+        numbers = {"sighting_sigma": sighting_sigma, "map_sigma": map_sigma, "gate": gate,
+                   "new_entry_gate": new_entry_gate, "decision_threshold": decision_threshold,
+                   "min_separation": min_separation, "min_baseline": min_baseline, "search_radius": search_radius,
+                   "wall_point_spacing": wall_point_spacing}
+        for name, value in numbers.items():
+            if isinstance(value, bool) or not isinstance(value, int | float | np.number) or not np.isfinite(value):
+                raise ValueError(f"LandmarkMap: {name} must be a finite number, got {value!r}")
+            if value < 0 or (value == 0 and not name.endswith("sigma")):
+                raise ValueError(f"LandmarkMap: {name} must be {'>= 0' if name.endswith('sigma') else '> 0'}, "
+                                 f"got {value!r}")
+        if new_entry_gate < gate:
+            raise ValueError(f"LandmarkMap: new_entry_gate ({new_entry_gate}) must be at least gate ({gate})")
+        self.max_points = int(max_points)
+        self.max_walls = int(max_walls)
+        self.sighting_sigma = float(sighting_sigma)
+        self.map_sigma = float(map_sigma)
+        self.gate = float(gate)
+        self.new_entry_gate = float(new_entry_gate)
+        self.decision_threshold = float(decision_threshold)
+        self.min_separation = float(min_separation)
+        self.min_baseline = float(min_baseline)
+        self.search_radius = float(search_radius)
+        self.wall_point_spacing = float(wall_point_spacing)
+        self._points = _Points(self.max_points)
+        self._walls = _Walls(self.max_walls)
+        self._counts = MapCounts()
+        self._ping = 0
+
+    def __len__(self) -> int:
+        """Number of map entries (points and walls)."""
+        return int(np.count_nonzero(self._points.active) + np.count_nonzero(self._walls.active))
+
+    @property
+    def counts(self) -> MapCounts:
+        """A copy of the counters (see :class:`MapCounts`)."""
+        return replace(self._counts)
+
+    # ------------------------------------------------------------------ update
+
+    def update(self, landmarks: Landmarks, sensor_pose) -> None:
+        """Add one ping's landmarks, already in ``odom``.
+
+        Parameters
+        ----------
+        landmarks : Landmarks
+            The ping's landmarks in ``odom`` (see :func:`transform_landmarks`), with
+            covariances; planes with normals and segments, UNKNOWN ones localised
+            with the corner model.
+        sensor_pose : array_like, shape (3,)
+            Sensor pose ``(x, y, yaw)`` in ``odom`` at the ping, m and rad; its
+            position is the origin of every line of sight.
+
+        Raises
+        ------
+        ValueError
+            If ``landmarks`` is not a :class:`Landmarks` with consistent shapes or
+            ``sensor_pose`` is not three numbers.  Bad data is counted, never raised.
+        """
+        _check_landmarks(landmarks, "LandmarkMap.update")
+        pose = _pose(sensor_pose, "LandmarkMap.update")
+        if not np.all(np.isfinite(pose)):
+            self._counts.rejected_pings += 1
+            return
+        self._ping += 1
+        self._counts.pings += 1
+        self._counts.sightings += len(landmarks)
+        sightings = self._screen(landmarks, pose[:2])
+        if sightings.landmark_class.size == 0:
+            return
+        target = self._associate(sightings)
+        self._mark_seen(target)
+        self._counts.ambiguous += int(np.count_nonzero(target == _AMBIGUOUS))
+        target, leader, new_walls = self._start_entries(sightings, target)
+        self._counts.dropped += int(np.count_nonzero(target == -1))
+        fusing = (target >= 0) & ~leader
+        self._counts.fused += int(np.count_nonzero(fusing))
+        is_wall = target >= self.max_points
+        touched_points = self._fuse_points(sightings, np.flatnonzero(fusing & ~is_wall), target)
+        grown_walls = self._fuse_walls(sightings, np.flatnonzero(fusing & is_wall), target)
+        made_walls = self._resolve(touched_points)
+        self._merge_walls(np.unique(np.concatenate([new_walls, grown_walls, made_walls])))
+
+    def _screen(self, landmarks: Landmarks, sensor: np.ndarray) -> _Sightings:
+        """The usable landmarks, with the unusable ones counted by kind."""
+        landmark_class = np.asarray(landmarks.landmark_class).astype(np.int64)
+        valid = np.asarray(landmarks.valid, bool)
+        position = np.asarray(landmarks.position, float)
+        covariance = np.asarray(landmarks.covariance, float)
+        covariance = 0.5 * (covariance + np.swapaxes(covariance, 1, 2))
+        segment = np.asarray(landmarks.segment, float)
+        normal = np.asarray(landmarks.normal, float)
+        plane = landmark_class == PLANE
+        # One test for all fields: a sum holding NaN or inf is not finite.
+        total = position.sum(axis=1) + covariance.sum(axis=(1, 2)) + segment.sum(axis=(1, 2))
+        finite = np.isfinite(total + np.where(plane, normal.sum(axis=1), 0.0))
+        normal_length = np.hypot(normal[:, 0], normal[:, 1])
+        distance = np.hypot(sensor[0] - position[:, 0], sensor[1] - position[:, 1])
+        with np.errstate(invalid="ignore"):  # inf - inf in the determinant of a non-finite row
+            sound = ((landmark_class <= EDGE) & (covariance[:, 0, 0] > 0) & (_determinant(covariance) > 0)
+                     & (distance > _MIN_RANGE) & ((normal_length > 0.5) | ~plane))
+        self._counts.invalid += int(np.count_nonzero(~valid))
+        self._counts.not_finite += int(np.count_nonzero(valid & ~finite))
+        self._counts.degenerate += int(np.count_nonzero(valid & finite & ~sound))
+        keep = np.flatnonzero(valid & finite & sound)
+        position, distance, plane = position[keep], distance[keep], plane[keep]
+        covariance = covariance[keep] + self.sighting_sigma ** 2 * np.eye(2)
+        line_of_sight = (sensor - position) / distance[:, None]
+        given = normal[keep] / np.where(plane, normal_length[keep], 1.0)[:, None]
+        # Upstream conventions differ on the sign of a plane's normal; the wall faces the sensor.
+        given *= np.where(_dot(given, line_of_sight) < 0, -1.0, 1.0)[:, None]
+        return _Sightings(
+            landmark_class=landmark_class[keep].astype(np.uint8),
+            position=position,
+            covariance=covariance,
+            information=_inverse(covariance),
+            normal=np.where(plane[:, None], given, line_of_sight),
+            distance=distance,
+            segment=segment[keep],
+            confidence=np.asarray(landmarks.confidence, float)[keep],
+            group=np.asarray(landmarks.group)[keep].astype(np.uint16),
+            sensor=sensor,
+        )
+
+    # ------------------------------------------------------------------ association
+
+    def _point_covariance(self, slots):
+        """Covariance of points ``slots`` against the truth, with the ``map_sigma`` floor, (K, 2, 2)."""
+        return _inverse(self._points.information[slots]) + self.map_sigma ** 2 * np.eye(2)
+
+    def _track_line_covariance(self, slots):
+        """Covariance of the plane hypotheses of points ``slots``, with the floor, (K, 2, 2)."""
+        p = self._points
+        return _inverse(p.line_information[slots]) + _line_floor(p.extent[slots], self.map_sigma)
+
+    def _wall_covariance(self, slots):
+        """Covariance of the lines of walls ``slots``, with the floor, (K, 2, 2)."""
+        w = self._walls
+        return _inverse(w.information[slots]) + _line_floor(w.extent[slots], self.map_sigma)
+
+    def _score(self, innovation, covariance, observations, distance=None):
+        """Mahalanobis ``d^2`` and the association score ``d^2 + ln det C - 2 ln n``.
+
+        The score is minus twice the log of the sighting's likelihood times a prior
+        proportional to the entry's sightings so far ``n``: among the candidates that
+        pass the gate a well-known entry beats a vague or young one (a sighting from the
+        tail of a landmark's distribution that started an entry of its own does not
+        draw the landmark's later sightings away).  Line innovations pass ``distance``
+        (``r``): the map from a sighting's point to its line coordinates has determinant
+        ``1 / r``, so ``+ 2 ln r`` puts their scores on the point scale.  The score is
+        inf where the gate is not passed.
+        """
+        determinant = _determinant(covariance)
+        d2 = _mahalanobis2(innovation, covariance, determinant)
+        score = d2 + np.log(determinant) - 2.0 * np.log(observations)
+        if distance is not None:
+            score += 2.0 * np.log(distance)
+        return d2, np.where(d2 <= self.gate, score, np.inf)
+
+    def _point_distances(self, s: _Sightings, rows, slots):
+        """Gate distances and scores (K,) of sightings ``rows`` against points ``slots``.
+
+        ``d^2`` is the smaller over the models the classes allow (inf if none), the
+        score that of the best model within the gate (see :meth:`_score`).
+        """
+        p = self._points
+        seen = s.landmark_class[rows]
+        entry = p.landmark_class[slots]
+        as_point = (seen != PLANE) & ((entry == UNKNOWN) | (seen == UNKNOWN) | (seen == entry) | p.by_motion[slots])
+        d2, score = self._score(s.position[rows] - p.mean[slots], s.covariance[rows] + self._point_covariance(slots),
+                                p.observations[slots])
+        d2 = np.where(as_point, d2, np.inf)
+        score = np.where(as_point, score, np.inf)
+        as_line = np.flatnonzero((entry == UNKNOWN) & ((seen == UNKNOWN) | (seen == PLANE)))
+        if as_line.size:
+            open_slots = slots[as_line]
+            innovation, covariance = s.line_innovation(rows[as_line], p.anchor[open_slots], p.line[open_slots])
+            line_d2, line_score = self._score(innovation, covariance + self._track_line_covariance(open_slots),
+                                              p.observations[open_slots], s.distance[rows[as_line]])
+            d2[as_line] = np.minimum(d2[as_line], line_d2)
+            score[as_line] = np.minimum(score[as_line], line_score)
+        return d2, score
+
+    def _associate(self, s: _Sightings) -> np.ndarray:
+        """Best entry for each sighting, all sightings against the whole map at once.
+
+        Returns, per sighting, a point slot, ``max_points +`` a wall slot, -1 (start a
+        new entry) or ``_AMBIGUOUS``.
+        """
+        count = s.landmark_class.size
+        rows, targets, distances, scores = [], [], [], []
+        slots = np.flatnonzero(self._points.active)
+        if slots.size:
+            row, column = _pairs_within(s.position, self._points.latest[slots], self.search_radius)
+            d2, score = self._point_distances(s, row, slots[column])
+            rows.append(row)
+            targets.append(slots[column])
+            distances.append(d2)
+            scores.append(score)
+        slots = np.flatnonzero(self._walls.active)
+        line_like = np.flatnonzero((s.landmark_class == UNKNOWN) | (s.landmark_class == PLANE))
+        if slots.size and line_like.size:
+            ends = self._walls.end_points(slots)
+            along = ends[:, 1] - ends[:, 0]
+            length2 = np.maximum(_dot(along, along), 1e-18)
+            offset = s.position[line_like, None, :] - ends[None, :, 0]
+            fraction = np.clip(_dot(offset, along[None]) / length2, 0.0, 1.0)
+            gap = offset - fraction[..., None] * along[None]
+            row, column = np.nonzero(gap[..., 0] ** 2 + gap[..., 1] ** 2 <= self.search_radius ** 2)
+            row, walls = line_like[row], slots[column]
+            innovation, covariance = s.line_innovation(row, self._walls.anchor[walls], self._walls.line[walls])
+            d2, score = self._score(innovation, covariance + self._wall_covariance(walls),
+                                    self._walls.observations[walls], s.distance[row])
+            rows.append(row)
+            targets.append(self.max_points + walls)
+            distances.append(d2)
+            scores.append(score)
+        target = np.full(count, -1)
+        if rows:
+            row, candidate, d2, score = (np.concatenate(a) for a in (rows, targets, distances, scores))
+            nearest = np.full(count, np.inf)
+            np.minimum.at(nearest, row, d2)
+            target[nearest <= self.new_entry_gate] = _AMBIGUOUS
+            inside = np.isfinite(score)
+            row, candidate, score = row[inside], candidate[inside], score[inside]
+            order = np.lexsort((candidate, score, row))
+            row, candidate = row[order], candidate[order]
+            first = np.flatnonzero(np.diff(row, prepend=-1))
+            target[row[first]] = candidate[first]
+        return target
+
+    def _mark_seen(self, target) -> None:
+        self._points.last_seen[target[(target >= 0) & (target < self.max_points)]] = self._ping
+        self._walls.last_seen[target[target >= self.max_points] - self.max_points] = self._ping
+
+    # ------------------------------------------------------------------ new entries
+
+    def _start_entries(self, s: _Sightings, target):
+        """Cluster the unmatched sightings of the ping and start one entry per cluster.
+
+        Returns the completed targets (-1 where dropped for want of room), a mask of
+        the sightings that started an entry (leaders, already stored) and the slots
+        of the new walls.
+        """
+        leader = np.zeros(target.size, bool)
+        unmatched = np.flatnonzero(target == -1)
+        if unmatched.size == 0:
+            return target, leader, np.empty(0, np.int64)
+        # Classified sightings lead; an UNKNOWN one may join a leader of any class.
+        order = unmatched[np.argsort(s.landmark_class[unmatched] == UNKNOWN, kind="stable")]
+        position, covariance, seen = s.position[order], s.covariance[order], s.landmark_class[order]
+        lead, member = _pairs_within(position, position, self.search_radius)  # by leader, each with itself
+        joins = ((_mahalanobis2(position[lead] - position[member], covariance[lead] + covariance[member])
+                  <= self.gate) & ((seen[member] == seen[lead]) | (seen[member] == UNKNOWN)))
+        lead, member = lead[joins], member[joins]
+        first = np.searchsorted(lead, np.arange(order.size + 1))
+        cluster = np.full(order.size, -1)
+        for k in range(order.size):
+            if cluster[k] < 0:
+                mine = member[first[k]:first[k + 1]]
+                cluster[mine[cluster[mine] < 0]] = k
+        heads = np.unique(cluster)
+        is_wall = seen[heads] == PLANE
+        slot_of_head = np.full(order.size, -1)
+        slot_of_head[heads[~is_wall]] = self._start_points(s, order[heads[~is_wall]])
+        wall_slots = self._start_walls(s, order[heads[is_wall]])
+        slot_of_head[heads[is_wall]] = np.where(wall_slots >= 0, self.max_points + wall_slots, -1)
+        target = target.copy()
+        target[order] = slot_of_head[cluster]
+        leader[order[heads]] = slot_of_head[heads] >= 0
+        self._counts.created += int(np.count_nonzero(leader))
+        return target, leader, wall_slots[wall_slots >= 0]
+
+    def _allocate(self, table, count: int) -> np.ndarray:
+        """Up to ``count`` free rows of ``table``, evicting the least recently seen entries."""
+        free = np.flatnonzero(~table.active)
+        if free.size < count:
+            old = np.flatnonzero(table.active & (table.last_seen < self._ping))
+            victims = old[np.lexsort((table.observations[old], table.last_seen[old]))][:count - free.size]
+            table.active[victims] = False
+            self._counts.evicted += victims.size
+            free = np.sort(np.concatenate([free, victims]))
+        return free[:count]
+
+    def _start_points(self, s: _Sightings, rows) -> np.ndarray:
+        """New points from sightings ``rows``; their slots, -1 where the table is full."""
+        slots = self._allocate(self._points, rows.size)
+        out = np.full(rows.size, -1)
+        out[:slots.size] = slots
+        rows = rows[:slots.size]
+        p = self._points
+        position = s.position[rows]
+        tangent = _left(s.normal[rows])
+        classified = s.landmark_class[rows] != UNKNOWN
+        p.active[slots] = True
+        p.landmark_class[slots] = s.landmark_class[rows]
+        p.by_motion[slots] = False
+        p.mean[slots] = position
+        p.information[slots] = s.information[rows]
+        p.chi2[slots] = 0.0
+        p.anchor[slots] = position
+        value, covariance = s.line(rows, position)
+        p.line[slots] = value
+        p.line_information[slots] = _inverse(covariance)
+        p.line_chi2[slots] = 0.0
+        p.across[slots] = tangent
+        along = _dot(s.segment[rows] - position[:, None, :], tangent[:, None, :])
+        p.extent[slots, 0], p.extent[slots, 1] = along.min(axis=1), along.max(axis=1)
+        sensor_along = _dot(s.sensor - position, tangent)
+        p.baseline[slots] = sensor_along[:, None]
+        weight = 1.0 / _quadratic(tangent, s.covariance[rows])
+        p.motion[slots] = np.stack([weight, weight * sensor_along, weight * sensor_along ** 2], axis=-1)
+        p.latest[slots] = position
+        p.observations[slots] = 1
+        p.last_seen[slots] = self._ping
+        p.group[slots] = s.group[rows]
+        p.confidence_sum[slots] = np.where(classified, s.confidence[rows], 0.0)
+        p.confidence_count[slots] = classified
+        return out
+
+    def _start_walls(self, s: _Sightings, rows) -> np.ndarray:
+        """New walls from plane sightings ``rows``; their slots, -1 where the table is full."""
+        slots = self._allocate(self._walls, rows.size)
+        out = np.full(rows.size, -1)
+        out[:slots.size] = slots
+        rows = rows[:slots.size]
+        w = self._walls
+        position = s.position[rows]
+        value, covariance = s.line(rows, position)
+        along = _dot(s.segment[rows] - position[:, None, :], _left(s.normal[rows])[:, None, :])
+        w.active[slots] = True
+        w.anchor[slots] = position
+        w.line[slots] = value
+        w.information[slots] = _inverse(covariance)
+        w.extent[slots, 0], w.extent[slots, 1] = along.min(axis=1), along.max(axis=1)
+        w.observations[slots] = 1
+        w.last_seen[slots] = self._ping
+        w.group[slots] = s.group[rows]
+        w.confidence_sum[slots] = s.confidence[rows]
+        w.confidence_count[slots] = 1.0
+        w.recentre(slots)
+        return out
+
+    # ------------------------------------------------------------------ fusion
+
+    def _fuse_points(self, s: _Sightings, rows, target):
+        """Merge sightings ``rows`` into their points; the slots of all points stored to this ping."""
+        stored = target[(target >= 0) & (target < self.max_points)]
+        if rows.size == 0:
+            return np.unique(stored)
+        p = self._points
+        slots = target[rows]
+        groups = _Groups(slots, self.max_points)
+        _information_update(p.mean, p.information, p.chi2, groups, s.position[rows] - p.mean[slots],
+                            s.information[rows])
+        latest_slots, latest = groups.last()
+        p.latest[latest_slots] = s.position[rows[latest]]
+        p.observations[groups.rows] += groups.counts[groups.rows]
+        # The plane hypothesis and the baseline matter only while the point is UNKNOWN.
+        still_open = np.flatnonzero(p.landmark_class[slots] == UNKNOWN)
+        if still_open.size:
+            self._fuse_plane_hypotheses(s, rows[still_open], slots[still_open])
+        seen = s.landmark_class[rows]
+        classified = seen != UNKNOWN
+        # A classified sighting names the class of a point that is UNKNOWN or was named by
+        # motion alone (which cannot tell an edge from a corner): the most confident one wins.
+        naming = np.flatnonzero(classified & ((p.landmark_class[slots] == UNKNOWN) | p.by_motion[slots]))
+        if naming.size:
+            by_confidence = naming[np.argsort(s.confidence[rows][naming], kind="stable")]
+            named_slots, namer = groups.last(by_confidence)
+            p.landmark_class[named_slots] = seen[namer]
+            p.confidence_sum[named_slots] = p.confidence_count[named_slots] = 0.0
+            p.by_motion[named_slots] = False
+        if np.any(classified):
+            p.confidence_sum[groups.rows] += groups.total(np.where(classified, s.confidence[rows], 0.0))
+            p.confidence_count[groups.rows] += groups.total(classified.astype(float))
+        return np.unique(stored)
+
+    def _fuse_plane_hypotheses(self, s: _Sightings, rows, slots) -> None:
+        """Fuse sightings ``rows`` into the plane hypotheses, extents and baselines of ``slots``."""
+        p = self._points
+        innovation, covariance = s.line_innovation(rows, p.anchor[slots], p.line[slots])
+        _information_update(p.line, p.line_information, p.line_chi2, _Groups(slots, self.max_points), innovation,
+                            _inverse(covariance))
+        p.line[:, 0] = _wrap(p.line[:, 0])
+        across = p.across[slots]
+        along = _dot(s.segment[rows] - p.anchor[slots][:, None, :], across[:, None, :])
+        np.minimum.at(p.extent[:, 0], slots, along.min(axis=1))
+        np.maximum.at(p.extent[:, 1], slots, along.max(axis=1))
+        sensor_along = _dot(s.sensor - p.anchor[slots], across)
+        np.minimum.at(p.baseline[:, 0], slots, sensor_along)
+        np.maximum.at(p.baseline[:, 1], slots, sensor_along)
+        weight = 1.0 / _quadratic(across, s.covariance[rows])
+        for column, values in enumerate((weight, weight * sensor_along, weight * sensor_along ** 2)):
+            np.add.at(p.motion[:, column], slots, values)
+
+    def _fuse_walls(self, s: _Sightings, rows, target):
+        """Merge sightings ``rows`` into their walls; the walls whose segment grew."""
+        if rows.size == 0:
+            return np.empty(0, np.int64)
+        w = self._walls
+        slots = target[rows] - self.max_points
+        groups = _Groups(slots, self.max_walls)
+        innovation, covariance = s.line_innovation(rows, w.anchor[slots], w.line[slots])
+        along = _dot(s.segment[rows] - w.anchor[slots][:, None, :], w.tangent[slots][:, None, :])
+        _information_update(w.line, w.information, None, groups, innovation, _inverse(covariance))
+        w.line[:, 0] = _wrap(w.line[:, 0])
+        before = w.extent[groups.rows]
+        np.minimum.at(w.extent[:, 0], slots, along.min(axis=1))
+        np.maximum.at(w.extent[:, 1], slots, along.max(axis=1))
+        grown = groups.rows[np.any(w.extent[groups.rows] != before, axis=1)]
+        w.observations[groups.rows] += groups.counts[groups.rows]
+        classified = s.landmark_class[rows] != UNKNOWN
+        w.confidence_sum[groups.rows] += groups.total(np.where(classified, s.confidence[rows], 0.0))
+        w.confidence_count[groups.rows] += groups.total(classified.astype(float))
+        w.recentre(groups.rows)
+        return grown
+
+    # ------------------------------------------------------------------ classes over motion
+
+    def _resolve(self, slots) -> np.ndarray:
+        """Decide the UNKNOWN points among ``slots`` by motion; the slots of walls made from points."""
+        p = self._points
+        open_slots = slots[p.landmark_class[slots] == UNKNOWN]
+        named_plane = slots[p.landmark_class[slots] == PLANE]
+        if open_slots.size == 0 and named_plane.size == 0:
+            return np.empty(0, np.int64)
+        difference = p.chi2[open_slots] - p.line_chi2[open_slots]
+        winner = np.where(difference > 0, p.line_chi2[open_slots], p.chi2[open_slots])
+        dof = 2.0 * (p.observations[open_slots] - 1)
+        total, first, second = p.motion[open_slots].T
+        separation = second - first ** 2 / total
+        decided = ((p.baseline[open_slots, 1] - p.baseline[open_slots, 0] >= self.min_baseline)
+                   & (separation >= self.min_separation)
+                   & (np.abs(difference) >= self.decision_threshold)
+                   & (winner <= _chi2_quantile(dof, _CONSISTENCY_Z)))
+        confidence = 1.0 - np.exp(-0.5 * np.abs(difference))
+        corner = decided & (difference < 0)
+        plane = decided & (difference > 0)
+        p.landmark_class[open_slots[corner]] = CORNER
+        p.by_motion[open_slots[corner]] = True
+        p.confidence_sum[open_slots[decided]] = confidence[decided]
+        p.confidence_count[open_slots[decided]] = 1.0
+        self._counts.resolved_corner += int(np.count_nonzero(corner))
+        self._counts.resolved_plane += int(np.count_nonzero(plane))
+        return self._points_to_walls(np.concatenate([named_plane, open_slots[plane]]))
+
+    def _points_to_walls(self, slots) -> np.ndarray:
+        """Turn points ``slots`` into walls from their plane hypotheses; the new wall slots.
+
+        A point that finds no room among the walls stays an UNKNOWN point.
+        """
+        p, w = self._points, self._walls
+        walls = self._allocate(w, slots.size)
+        p.landmark_class[slots[walls.size:]] = UNKNOWN
+        slots = slots[:walls.size]
+        w.active[walls] = True
+        w.anchor[walls] = p.anchor[slots]
+        w.line[walls] = p.line[slots]
+        w.information[walls] = p.line_information[slots]
+        # The extent was measured along the first line of sight's tangent, within a
+        # degree or so of the wall's.
+        theta = p.line[slots, 0]
+        tangent = np.stack([-np.sin(theta), np.cos(theta)], axis=-1)
+        w.extent[walls] = np.sort(p.extent[slots] * _dot(tangent, p.across[slots])[:, None], axis=1)
+        w.observations[walls] = p.observations[slots]
+        w.last_seen[walls] = p.last_seen[slots]
+        w.group[walls] = p.group[slots]
+        w.confidence_sum[walls] = p.confidence_sum[slots]
+        w.confidence_count[walls] = p.confidence_count[slots]
+        p.active[slots] = False
+        w.recentre(walls)
+        return walls
+
+    # ------------------------------------------------------------------ wall merging
+
+    def _wall_matches(self, keep, other):
+        """Compare walls ``other`` with walls ``keep`` (K,), about ``keep``'s anchors.
+
+        Returns the gate ``d^2`` (with both floors), the gap between the segments (m,
+        negative where they overlap), ``other``'s line innovation and its covariance
+        without floor (for fusion), and ``other``'s end points along ``keep`` (K, 2).
+        """
+        w = self._walls
+        lever = w.anchor[other] - w.anchor[keep]
+        innovation = np.empty((keep.size, 2))
+        innovation[:, 0] = _wrap(w.line[other, 0] - w.line[keep, 0])
+        innovation[:, 1] = w.line[other, 1] + _dot(w.normal[other], lever) - w.line[keep, 1]
+        jacobian = np.zeros((keep.size, 2, 2))
+        jacobian[:, 0, 0] = jacobian[:, 1, 1] = 1.0
+        jacobian[:, 1, 0] = _dot(w.tangent[other], lever)
+        covariance = _sandwich(jacobian, _inverse(w.information[other]))
+        floors = self._wall_covariance(keep) + _sandwich(jacobian, _line_floor(w.extent[other], self.map_sigma))
+        d2 = _mahalanobis2(innovation, floors + covariance)
+        along = _dot(w.end_points(other) - w.anchor[keep][:, None, :], w.tangent[keep][:, None, :])
+        gap = np.maximum(along.min(axis=1) - w.extent[keep, 1], w.extent[keep, 0] - along.max(axis=1))
+        return d2, gap, innovation, covariance, along
+
+    def _merge_walls(self, slots) -> None:
+        """Let walls ``slots`` absorb every wall that matches them (gate, gap), until none does."""
+        w = self._walls
+        pending = slots
+        while pending.size:
+            others = np.flatnonzero(w.active)
+            keep = np.repeat(pending, others.size)
+            other = np.tile(others, pending.size)
+            distinct = keep != other
+            keep, other = keep[distinct], other[distinct]
+            if keep.size == 0:
+                return
+            d2, gap, *_ = self._wall_matches(keep, other)
+            hits = np.flatnonzero((d2 <= self.gate) & (gap <= self.search_radius))
+            survivors = []
+            for k in hits[np.argsort(d2[hits], kind="stable")]:
+                a, b = keep[k], other[k]
+                if w.active[a] and w.active[b]:
+                    # The wall seen more often absorbs the other.
+                    survivor, absorbed = (a, b) if w.observations[a] >= w.observations[b] else (b, a)
+                    self._absorb_wall(survivor, absorbed)
+                    survivors.append(survivor)
+            pending = np.unique(np.asarray(survivors, dtype=np.int64))
+
+    def _absorb_wall(self, keep: int, other: int) -> None:
+        w = self._walls
+        keep_row, other_row = np.array([keep]), np.array([other])
+        _, _, innovation, covariance, along = self._wall_matches(keep_row, other_row)
+        _information_update(w.line, w.information, None, _Groups(keep_row, self.max_walls), innovation,
+                            _inverse(covariance))
+        w.line[keep, 0] = _wrap(w.line[keep, 0])
+        w.extent[keep] = min(w.extent[keep, 0], along.min()), max(w.extent[keep, 1], along.max())
+        w.observations[keep] += w.observations[other]
+        w.last_seen[keep] = max(w.last_seen[keep], w.last_seen[other])
+        w.confidence_sum[keep] += w.confidence_sum[other]
+        w.confidence_count[keep] += w.confidence_count[other]
+        w.active[other] = False
+        self._counts.merged_walls += 1
+        w.recentre(keep_row)
+
+    # ------------------------------------------------------------------ output
+
+    def snapshot(self, min_observations: int = 1) -> Landmarks:
+        """The map as landmarks in ``odom``: walls first, then points, each in table order.
+
+        Parameters
+        ----------
+        min_observations : int
+            Leave out entries with fewer sightings (1 keeps everything).
+
+        Returns
+        -------
+        Landmarks
+            Walls: PLANE, ``position`` the middle of the segment, ``normal`` towards
+            the side the wall was seen from, ``segment`` the seen extent's end points;
+            the covariance has the line's offset variance at the middle (with the
+            ``map_sigma`` floor) across the wall and, along it, that of a point spread
+            evenly over the segment (``L^2 / 12``) plus the same.  Points: their class
+            (UNKNOWN while undecided, placed with the corner model), fused position,
+            covariance with the ``map_sigma`` floor, the point twice as ``segment``.
+            ``observations`` counts the sightings; ``confidence`` is the motion test's
+            ``1 - exp(-|Delta| / 2)`` for a class decided by motion, else the mean
+            confidence of the classified sightings (0 if none); ``group`` is the first
+            sighting's; ``echo`` 0; all valid.
+        """
+        w, p = self._walls, self._points
+        walls = np.flatnonzero(w.active & (w.observations >= min_observations))
+        points = np.flatnonzero(p.active & (p.observations >= min_observations))
+        normal, tangent = w.normal[walls], w.tangent[walls]
+        offset_variance = self._wall_covariance(walls)[:, 1, 1]
+        along_variance = (w.extent[walls, 1] - w.extent[walls, 0]) ** 2 / 12.0 + offset_variance
+        wall_covariance = (offset_variance[:, None, None] * normal[:, :, None] * normal[:, None, :]
+                           + along_variance[:, None, None] * tangent[:, :, None] * tangent[:, None, :])
+        count = walls.size + points.size
+
+        def mean_confidence(table, rows):
+            return table.confidence_sum[rows] / np.maximum(table.confidence_count[rows], 1.0)
+
+        return Landmarks(
+            landmark_class=np.concatenate([np.full(walls.size, PLANE), p.landmark_class[points]]).astype(np.uint8),
+            position=np.concatenate([w.anchor[walls], p.mean[points]]),
+            normal=np.concatenate([normal, np.zeros((points.size, 2))]),
+            covariance=np.concatenate([wall_covariance, self._point_covariance(points)]),
+            confidence=np.concatenate([mean_confidence(w, walls), mean_confidence(p, points)]).astype(np.float32),
+            segment=np.concatenate([w.end_points(walls), np.repeat(p.mean[points][:, None, :], 2, axis=1)]),
+            observations=np.concatenate([w.observations[walls], p.observations[points]]).astype(np.uint32),
+            group=np.concatenate([w.group[walls], p.group[points]]).astype(np.uint16),
+            echo=np.zeros(count, np.uint32),
+            valid=np.ones(count, bool),
+            reason=np.zeros(count, np.uint8),
+        )
+
+    def points(self, min_observations: int = 1) -> np.ndarray:
+        """Landmark points for a costmap, shape (P, 2), ``odom``, m.
+
+        Every wall is sampled from end to end at equal steps no longer than
+        ``wall_point_spacing`` (at least its two end points), followed by the fused
+        position of every point entry (corners, edges and UNKNOWN reflectors), in the
+        order of :meth:`snapshot`.
+
+        Parameters
+        ----------
+        min_observations : int
+            Leave out entries with fewer sightings.
+        """
+        w, p = self._walls, self._points
+        walls = np.flatnonzero(w.active & (w.observations >= min_observations))
+        ends = w.end_points(walls)
+        length = w.extent[walls, 1] - w.extent[walls, 0]
+        samples = np.ceil(length / self.wall_point_spacing).astype(np.int64) + 1
+        samples = np.maximum(samples, 2)
+        wall = np.repeat(np.arange(walls.size), samples)
+        index = np.arange(wall.size) - np.repeat(np.cumsum(samples) - samples, samples)
+        fraction = (index / (samples[wall] - 1))[:, None]
+        along_walls = ends[wall, 0] + fraction * (ends[wall, 1] - ends[wall, 0])
+        points = np.flatnonzero(p.active & (p.observations >= min_observations))
+        return np.concatenate([along_walls.reshape(-1, 2), p.mean[points]])
