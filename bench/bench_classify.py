@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import platform
 import sys
 import time
 from pathlib import Path
@@ -22,6 +21,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from common import machine  # noqa: E402
 
 from sonar_ring import classify, simulate  # noqa: E402
 from sonar_ring.classify import CORNER, EDGE, PLANE, UNKNOWN  # noqa: E402
@@ -45,19 +46,6 @@ ARRAY_RANGE = 0.300
 # Browne ring
 RING_SIGMA_TOF = 1 * US
 RING_RANGES = np.arange(0.5, 4.01, 0.5)
-
-
-def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return (f"{cpu}, {platform.system()} {platform.release()}, Python {platform.python_version()}, "
-            f"numpy {np.__version__}; single process")
 
 
 def percent(count, total) -> str:

@@ -10,8 +10,6 @@ Constants are the paper's: 40 kHz, lambda = 8.7 mm (c = 348 m/s), timer tick 0.3
 from __future__ import annotations
 
 import math
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -20,6 +18,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from common import machine  # noqa: E402
 
 from sonar_ring import doa  # noqa: E402
 from sonar_ring.geometry import load_layout  # noqa: E402
@@ -41,21 +41,6 @@ PAPER_TABLE_1 = [  # b1, b2 (mm), range (deg), eps, dt (us), min delta phi (deg)
     (4, 11, 60, 0.4, 1.5, 4.7),
     (4, 11, 50, 0.3, 2.5, 7.8),
 ]
-
-
-def machine() -> str:
-    cpu = "unknown CPU"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    load = ", ".join(f"{x:.1f}" for x in os.getloadavg())
-    return (f"{cpu} ({os.cpu_count()} cores), {platform.system()} {platform.release()}, Python "
-            f"{platform.python_version()}, numpy {np.__version__}; single process; load average at start {load} "
-            "(a shared machine: timings vary by up to 2x between runs)")
 
 
 def best_time(function, repeats=3) -> float:

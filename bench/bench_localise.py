@@ -18,8 +18,6 @@ section 5.  Results go to ``bench/results/localise.md``.
 
 from __future__ import annotations
 
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -28,6 +26,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from common import machine  # noqa: E402
 
 from sonar_ring import localise as loc  # noqa: E402
 from sonar_ring.geometry import load_layout  # noqa: E402
@@ -177,19 +177,6 @@ def monte_carlo(samples=100_000):
                      np.std(ranges) / sigma_range, (np.mean(ranges) - 2.0) / sigma_range,
                      np.degrees(sigma_bearing), sigma_range * 1e3))
     return rows
-
-
-def machine():
-    cpu = platform.processor() or "unknown"
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return (f"{cpu}, {os.cpu_count()} logical CPUs; {platform.system()} {platform.release()}; "
-            f"Python {platform.python_version()}, numpy {np.__version__}")
 
 
 def main():
