@@ -533,6 +533,8 @@ class _Groups:
     ----------
     slots : ndarray of int, shape (K,)
         Slot of each observation.
+    counts : ndarray of int, shape (capacity,)
+        Observations per slot.
     rows : ndarray of int, shape (U,)
         The distinct slots, ascending.
     """

@@ -1,6 +1,7 @@
 """Tests of the mapper core: frames, fusion, wall segments, PLANE vs CORNER over motion, limits."""
 
 import warnings
+from dataclasses import fields, replace
 
 import numpy as np
 import pytest
@@ -204,7 +205,7 @@ def test_plane_normal_sign_convention_does_not_matter():
         landmark_map = LandmarkMap()
         for x in np.arange(0.0, 1.5, STEP):
             landmarks = sightings(rng, np.array([x, 0.0]), [[x, WALL_Y]], [PLANE])
-            landmark_map.update(Landmarks(**{**landmarks.__dict__, "normal": flip * landmarks.normal}), [x, 0, 0])
+            landmark_map.update(replace(landmarks, normal=flip * landmarks.normal), [x, 0, 0])
         maps.append(landmark_map.snapshot())
     assert_array_equal(maps[0].normal, maps[1].normal)
     assert_array_equal(maps[0].segment, maps[1].segment)
@@ -386,7 +387,7 @@ def test_update_is_deterministic():
         landmark_map = LandmarkMap()
         drive(landmark_map, np.random.default_rng(11), np.arange(0.0, 2.0, STEP), UNKNOWN, UNKNOWN)
         snapshots.append(landmark_map.snapshot())
-    for name in Landmarks.__dataclass_fields__:
+    for name in (field.name for field in fields(Landmarks)):
         assert_array_equal(getattr(snapshots[0], name), getattr(snapshots[1], name))
 
 
@@ -402,7 +403,7 @@ def test_error_handling():
             transform_landmarks(good, pose)
     with pytest.raises(ValueError, match="Landmarks"):
         landmark_map.update({"position": [[1.0, 1.0]]}, [0, 0, 0])
-    broken = Landmarks(**{**good.__dict__, "covariance": np.eye(2)})
+    broken = replace(good, covariance=np.eye(2))
     with pytest.raises(ValueError, match="covariance"):
         landmark_map.update(broken, [0, 0, 0])
     with pytest.raises(ValueError, match="max_points"):
