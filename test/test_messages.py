@@ -32,6 +32,17 @@ def test_generated_interfaces_have_documented_fields():
     assert (Landmark.UNKNOWN, Landmark.PLANE, Landmark.CORNER, Landmark.EDGE) == (0, 1, 2, 3)
 
 
+def test_message_constants_are_the_core_codes():
+    from sonar_ring import landmarks, localise
+
+    for name in ("UNKNOWN", "PLANE", "CORNER", "EDGE"):
+        assert getattr(Landmark, name) == getattr(landmarks, name)
+    names = ("OK", "NOT_FINITE", "DEGENERATE", "NEGATIVE", "NO_INTERSECTION", "TOO_SHORT", "BELOW_HEIGHT", "BEHIND",
+             "AMBIGUOUS", "NONE_VALID")
+    assert [getattr(Landmark, name) for name in names] == [getattr(localise, name) for name in names]
+    assert sorted(localise.REASONS) == [getattr(localise, name) for name in names]
+
+
 @pytest.mark.parametrize("name", SAMPLE_NAMES)
 def test_arrays_round_trip_through_a_message(name):
     expected = sample_arrays(name)
