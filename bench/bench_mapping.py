@@ -24,7 +24,6 @@ sys.path.insert(0, str(ROOT))
 from common import machine  # noqa: E402
 
 from sonar_ring import pipeline, simulate  # noqa: E402
-from sonar_ring.echoes import EchoArrays  # noqa: E402
 from sonar_ring.geometry import load_layout  # noqa: E402
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, make_landmarks  # noqa: E402
 from sonar_ring.mapping import LandmarkMap, transform_landmarks  # noqa: E402
@@ -263,9 +262,7 @@ def room(args) -> list[str]:
     pings = []
     for pose in poses:
         ping = simulator.ping(pose, noise=simulate.Noise(tof=SIGMA_TOF), rng=rng)
-        echoes = EchoArrays(layout=layout.name, speed_of_sound=ping.speed_of_sound, group=ping.group,
-                            transmitter=ping.transmitter, tof=ping.tof, amplitude=ping.amplitude,
-                            phase_delay=ping.phase_delay)
+        echoes = ping.echoes
         hypotheses = pipeline.localise_ping(layout, echoes, settings)
         labelled = pipeline.classify_ping(layout, echoes, hypotheses, settings)
         pings.append((pose, ping, hypotheses, labelled))

@@ -74,25 +74,27 @@ class Settings:
 
 
 def _row_geometry(layout: Layout, echoes: EchoArrays):
-    """Transmitter and receivers of every echo row, horizontal, (N, 2) and (N, K, 2), m."""
-    group = echoes.group.astype(np.int64)
-    tx = layout.transmitters[echoes.transmitter.astype(np.int64), :2]
-    receivers = layout.receivers[layout.groups[group]]
-    return tx, receivers[..., :2], receivers[..., 2]
+    """Transmitter and receivers of every echo row, horizontal, and their height differences.
+
+    Returns ``tx`` (N, 2), ``receivers`` (N, K, 2) in m, and ``dz`` (N, K), the
+    transmitter minus each receiver's height, m.
+    """
+    tx = layout.transmitters[echoes.transmitter.astype(np.int64)]
+    receivers = layout.receivers[layout.groups[echoes.group.astype(np.int64)]]
+    return tx[:, :2], receivers[..., :2], tx[:, None, 2] - receivers[..., 2]
 
 
-def horizontal_paths(layout: Layout, echoes: EchoArrays, settings: Settings):
+def horizontal_paths(echoes: EchoArrays, dz: np.ndarray, settings: Settings):
     """Path lengths of every row and receiver, shape (N, K), m, and their scale d/h.
 
     With ``settings.vertical_correction`` the exact horizontal part
-    ``sqrt(d^2 - dz^2)``; NaN where a receiver missed the echo or ``d < |dz|``.
-    The scale ``d / h`` turns a path's standard deviation into the horizontal one.
+    ``sqrt(d^2 - dz^2)`` (``dz`` (N, K), m); NaN where a receiver missed the
+    echo or ``d < |dz|``.  The scale ``d / h`` turns a path's standard deviation
+    into the horizontal one.
     """
-    paths = echoes.speed_of_sound * np.asarray(echoes.tof, dtype=float)
+    paths = echoes.path_lengths()
     if not settings.vertical_correction:
         return paths, np.ones_like(paths)
-    tx_height = layout.transmitters[echoes.transmitter.astype(np.int64), 2]
-    dz = tx_height[:, None] - _row_geometry(layout, echoes)[2]
     horizontal = localise.horizontal_path(paths, dz).value
     with np.errstate(invalid="ignore", divide="ignore"):
         return horizontal, paths / horizontal
@@ -164,8 +166,8 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
     """
     if layout.kind == "triad":
         return _localise_triads(layout, echoes, settings)
-    tx, receivers, _ = _row_geometry(layout, echoes)
-    paths, scale = horizontal_paths(layout, echoes, settings)
+    tx, receivers, dz = _row_geometry(layout, echoes)
+    paths, scale = horizontal_paths(echoes, dz, settings)
     rx1, rx2 = receivers[:, 0], receivers[:, 1]
     d1, d2 = paths[:, 0], paths[:, 1]
     covariance_paths = localise.path_covariance(d1, d2, settings.sigma_tof, echoes.speed_of_sound,
@@ -284,8 +286,7 @@ def _evidence(layout: Layout, echoes: EchoArrays, settings: Settings):
             decided[rows] = result.cls
             confidence[rows] = result.confidence
     elif layout.kind == "ring":
-        paths = echoes.speed_of_sound * np.asarray(echoes.tof, dtype=float)
-        result = classify.ring_consistency(layout, echoes.group, paths,
+        result = classify.ring_consistency(layout, echoes.group, echoes.path_lengths(),
                                            echoes.speed_of_sound * settings.sigma_tof, z=settings.consistency_z)
         decided[:] = result.cls
         confidence[:] = np.where(result.cls == EDGE, result.confidence, 0.0)

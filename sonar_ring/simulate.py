@@ -59,6 +59,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import CONFIG_DIR, Layout, speed_of_sound
 
 # The class codes of Landmark.msg, defined once in sonar_ring.landmarks; re-exported
@@ -514,6 +515,13 @@ class Ping:
     def path_length(self) -> np.ndarray:
         """Path lengths ``d = c * tof``, shape (N, K), m (NaN where not heard)."""
         return self.speed_of_sound * self.tof
+
+    @property
+    def echoes(self) -> EchoArrays:
+        """What the hardware would report of this ping (no ground truth)."""
+        return EchoArrays(layout=self.layout, speed_of_sound=self.speed_of_sound, group=self.group,
+                          transmitter=self.transmitter, tof=self.tof, amplitude=self.amplitude,
+                          phase_delay=self.phase_delay)
 
 
 PING_ROW_FIELDS = ("group", "transmitter", "tof", "amplitude", "phase_delay", "truth_reflector",

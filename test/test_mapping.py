@@ -457,7 +457,6 @@ E2E_PINGS = 150  # 1.5 m of the room's first leg, along the south wall
 def room_run():
     """The room scene along its trajectory: Browne ring pings, localised with every model."""
     from sonar_ring import pipeline, simulate
-    from sonar_ring.echoes import EchoArrays
     from sonar_ring.geometry import load_layout
 
     scene = simulate.load_scene("room")
@@ -469,9 +468,7 @@ def room_run():
     pings = []
     for pose in poses[:E2E_PINGS]:
         ping = simulator.ping(pose, noise=simulate.Noise(tof=1e-6), rng=rng)
-        echoes = EchoArrays(layout=layout.name, speed_of_sound=ping.speed_of_sound, group=ping.group,
-                            transmitter=ping.transmitter, tof=ping.tof, amplitude=ping.amplitude,
-                            phase_delay=ping.phase_delay)
+        echoes = ping.echoes
         pings.append((pose, ping, pipeline.localise_ping(layout, echoes, settings)))
     return scene, pings
 

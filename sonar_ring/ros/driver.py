@@ -16,6 +16,7 @@ from __future__ import annotations
 import threading
 import time
 from collections import deque
+from dataclasses import replace
 
 import numpy as np
 from nav_msgs.msg import Odometry
@@ -25,7 +26,7 @@ from sensor_msgs.msg import Range
 from std_msgs.msg import Header
 
 from sonar_ring.echoes import EchoArrays, sanitize
-from sonar_ring.geometry import load_layout
+from sonar_ring.geometry import load_layout, speed_of_sound
 from sonar_ring.landmarks import make_landmarks
 from sonar_ring.msg import Echoes
 from sonar_ring.msg import LandmarkArray as LandmarkArrayMsg
@@ -36,6 +37,8 @@ from sonar_ring.ros.run import spin
 from sonar_ring.simulate import Noise, Simulator, load_scene
 
 SOURCES = ("hardware", "topic", "simulator")
+DEFAULT_SPEED_OF_SOUND = float(speed_of_sound(20.0))
+"""m/s in dry air at 20 degC, for sources that report none."""
 HARDWARE_QUEUE = 64
 """Decoded frames waiting to be published; older ones are dropped (and counted) beyond this."""
 
@@ -68,6 +71,7 @@ class Driver(Node):
         self.params = declare(self, PARAMS, self._on_change)
         self.layout = load_layout(self.params["layout"])
         self.health = NodeHealth(self, hardware_id=f"{self.params['source']}:{self.layout.name}")
+        # Round trip to the maximum range at the slowest plausible sound speed, with margin.
         self._max_tof = 2.5 * self.layout.max_range / 300.0
         self._echo_publisher = self.create_publisher(Echoes, "echoes", qos_profile_sensor_data)
         self._range_publisher = self.create_publisher(Range, "range", qos_profile_sensor_data)
@@ -111,10 +115,7 @@ class Driver(Node):
         ping = self._simulator.ping(pose, noise=noise, rng=self._rng)
         header = self._header()
         self.health.received()
-        echoes = EchoArrays(layout=self.layout.name, speed_of_sound=ping.speed_of_sound, group=ping.group,
-                            transmitter=ping.transmitter, tof=ping.tof, amplitude=ping.amplitude,
-                            phase_delay=ping.phase_delay)
-        self._publish(echoes, header)
+        self._publish(ping.echoes, header)
         self._odom_publisher.publish(_odometry(pose, header))
         truth = make_landmarks(ping.truth_class, ping.truth_position,
                                normal=np.nan_to_num(ping.truth_normal), echo=np.arange(ping.n_echoes),
@@ -179,13 +180,11 @@ class Driver(Node):
     # ------------------------------------------------------------------ output
 
     def _publish(self, echoes: EchoArrays, header: Header) -> None:
-        speed = echoes.speed_of_sound or self.params["speed_of_sound"] or 343.3
+        speed = echoes.speed_of_sound or self.params["speed_of_sound"] or DEFAULT_SPEED_OF_SOUND
         kept, problems = sanitize(echoes, self.layout.n_groups, self.layout.group_transmitters, self._max_tof)
         for reason, count in problems.items():
             self.health.problem(reason, f"ping at {header.stamp.sec}.{header.stamp.nanosec:09d}", count)
-        kept = EchoArrays(layout=self.layout.name, speed_of_sound=speed, group=kept.group,
-                          transmitter=kept.transmitter, tof=kept.tof, amplitude=kept.amplitude,
-                          phase_delay=kept.phase_delay)
+        kept = replace(kept, layout=self.layout.name, speed_of_sound=speed)
         self._echo_publisher.publish(echoes_to_msg(kept, header))
         self.pings_published += 1
         if self.params["publish_range"]:
