@@ -216,9 +216,14 @@ def beam_gain(angle, half_angle):
 
 # --------------------------------------------------------------------------- loading
 
+def config_path(folder: str, name: str) -> Path:
+    """Path of a shipped config file by name, e.g. ``config_path("layouts", "browne_ring")``."""
+    return CONFIG_DIR / folder / f"{name}.yaml"
+
+
 def layout_path(name: str) -> Path:
     """Path of a shipped layout by name, e.g. ``layout_path("browne_ring")``."""
-    return CONFIG_DIR / "layouts" / f"{name}.yaml"
+    return config_path("layouts", name)
 
 
 def load_layout(source) -> Layout:
@@ -226,20 +231,33 @@ def load_layout(source) -> Layout:
 
     Raises :class:`LayoutError` naming the file and the field on any problem.
     """
+    mapping, where = read_config(source, "layouts", LayoutError)
+    return _layout_from_mapping(mapping, where)
+
+
+def read_config(source, folder: str, error: type[ValueError]) -> tuple[dict, str]:
+    """The mapping of a config file, and where it came from (for error messages).
+
+    ``source`` is a mapping (returned as is, from ``"<mapping>"``), a path to a
+    YAML file, or a bare name of a shipped file in ``config/<folder>/``.  A file
+    that cannot be read, is not YAML or is not a mapping raises ``error`` with
+    the path and the reason.
+    """
     if isinstance(source, dict):
-        return _layout_from_mapping(source, "<mapping>")
+        return source, "<mapping>"
     path = Path(source)
     if not path.suffix:
-        path = layout_path(str(source))
+        path = config_path(folder, str(source))
+    what = folder.rstrip("s")
     try:
         mapping = yaml.safe_load(path.read_text())
     except OSError as exc:
-        raise LayoutError(f"{path}: cannot read layout ({exc.strerror})") from exc
+        raise error(f"{path}: cannot read {what} ({exc.strerror})") from exc
     except yaml.YAMLError as exc:
-        raise LayoutError(f"{path}: not valid YAML ({exc})") from exc
+        raise error(f"{path}: not valid YAML ({exc})") from exc
     if not isinstance(mapping, dict):
-        raise LayoutError(f"{path}: expected a mapping at the top level")
-    return _layout_from_mapping(mapping, str(path))
+        raise error(f"{path}: expected a mapping at the top level")
+    return mapping, str(path)
 
 
 def _field(mapping, key, where, kind=float, positive=True):

@@ -57,10 +57,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 from sonar_ring.echoes import EchoArrays
-from sonar_ring.geometry import CONFIG_DIR, Layout, speed_of_sound
+from sonar_ring.geometry import Layout, config_path, read_config, speed_of_sound
 
 # The class codes of Landmark.msg, defined once in sonar_ring.landmarks; re-exported
 # because ground truth is labelled with them.
@@ -220,7 +219,7 @@ class Scene:
 
 def scene_path(name: str) -> Path:
     """Path of a shipped scene by name, e.g. ``scene_path("room")``."""
-    return CONFIG_DIR / "scenes" / f"{name}.yaml"
+    return config_path("scenes", name)
 
 
 def load_scene(source) -> Scene:
@@ -231,21 +230,10 @@ def load_scene(source) -> Scene:
     SceneError
         Naming the file, the field and the expected value on any problem.
     """
-    if isinstance(source, dict):
-        return _scene_from_mapping(source, "<mapping>")
-    path = Path(source)
-    if not path.suffix:
-        path = scene_path(str(source))
-    try:
-        mapping = yaml.safe_load(path.read_text())
-    except OSError as exc:
-        raise SceneError(f"{path}: cannot read scene ({exc.strerror})") from exc
-    except yaml.YAMLError as exc:
-        raise SceneError(f"{path}: not valid YAML ({exc})") from exc
-    if not isinstance(mapping, dict):
-        raise SceneError(f"{path}: expected a mapping at the top level")
-    mapping.setdefault("name", path.stem)
-    return _scene_from_mapping(mapping, str(path))
+    mapping, where = read_config(source, "scenes", SceneError)
+    if where != "<mapping>":
+        mapping.setdefault("name", Path(where).stem)
+    return _scene_from_mapping(mapping, where)
 
 
 _SCENE_KEYS = {"name", "description", "temperature_c", "relative_humidity", "reflectivity",
