@@ -515,6 +515,11 @@ the one that does not linearly; after 8 the last step is below 1e-10 m for echoe
 0.4-5 m on the ring (checked over random bearings)."""
 
 
+_CONVERGED = 1e-13
+"""Steps below this (m) for every echo end the fit early: far below the TOF noise, near the rounding of
+positions at sensor ranges."""
+
+
 def geometric_consistency(transmitter, receivers, paths, sigma_path, z=CONSISTENCY_Z,
                           facing=None) -> ConsistencyResult:
     """EDGE versus specular (PLANE/CORNER) from one echo seen by three or more receivers.
@@ -646,35 +651,49 @@ def _gauss_newton(start, receivers, paths, weight, transmitter):
     """Weighted least squares for a virtual image (``transmitter`` None) or an edge point.
 
     Returns the fitted points (N, 2) and their weighted residual sums of squares (N,).
+    The 2x2 normal equations are solved component-wise: with a handful of receivers
+    per echo, per-call overhead, not arithmetic, is the cost.
     """
-    point = start
+    x, y = start[:, 0], start[:, 1]
+    receiver_x, receiver_y = receivers[..., 0], receivers[..., 1]
     for _ in range(_GAUSS_NEWTON_STEPS):
-        residual, jacobian = _model(point, receivers, paths, transmitter)
-        normal = np.einsum("nk,nki,nkj->nij", weight, jacobian, jacobian)
-        gradient = np.einsum("nk,nki,nk->ni", weight, jacobian, residual)
-        det = normal[:, 0, 0] * normal[:, 1, 1] - normal[:, 0, 1] * normal[:, 1, 0]
-        solvable = np.isfinite(det) & (np.abs(det) > 0)
+        residual, jacobian_x, jacobian_y = _model(x, y, receiver_x, receiver_y, paths, transmitter)
+        weighted_x, weighted_y = weight * jacobian_x, weight * jacobian_y
+        xx = (weighted_x * jacobian_x).sum(axis=1)
+        xy = (weighted_x * jacobian_y).sum(axis=1)
+        yy = (weighted_y * jacobian_y).sum(axis=1)
+        gradient_x = (weighted_x * residual).sum(axis=1)
+        gradient_y = (weighted_y * residual).sum(axis=1)
+        det = xx * yy - xy * xy
+        solvable = np.isfinite(det) & (det != 0)
         det = np.where(solvable, det, 1.0)
-        step_x = (normal[:, 1, 1] * gradient[:, 0] - normal[:, 0, 1] * gradient[:, 1]) / det
-        step_y = (normal[:, 0, 0] * gradient[:, 1] - normal[:, 1, 0] * gradient[:, 0]) / det
-        step = np.where(solvable[:, None], np.stack([step_x, step_y], axis=-1), 0.0)
-        point = point - np.where(np.isfinite(step), step, 0.0)
-    residual, _ = _model(point, receivers, paths, transmitter)
-    return point, np.sum(weight * np.square(residual), axis=1)
+        step_x = (yy * gradient_x - xy * gradient_y) / det
+        step_y = (xx * gradient_y - xy * gradient_x) / det
+        step_x = np.where(solvable & np.isfinite(step_x), step_x, 0.0)
+        step_y = np.where(solvable & np.isfinite(step_y), step_y, 0.0)
+        x, y = x - step_x, y - step_y
+        if not (np.abs(step_x).max(initial=0.0) > _CONVERGED or np.abs(step_y).max(initial=0.0) > _CONVERGED):
+            break
+    residual, _, _ = _model(x, y, receiver_x, receiver_y, paths, transmitter)
+    return np.stack([x, y], axis=-1), (weight * residual * residual).sum(axis=1)
 
 
-def _model(point, receivers, paths, transmitter):
-    """Residuals (N, K) and Jacobian (N, K, 2) of the specular or edge path model."""
-    to_point = point[:, None, :] - receivers
-    distance = np.linalg.norm(to_point, axis=-1)
-    jacobian = to_point / distance[..., None]
-    predicted = distance
+def _model(x, y, receiver_x, receiver_y, paths, transmitter):
+    """Residuals (N, K) and the Jacobian's x and y columns (N, K) of the specular or edge path model.
+
+    ``x``, ``y`` (N,): the point; ``receiver_x``, ``receiver_y``, ``paths`` (N, K).
+    """
+    to_x = x[:, None] - receiver_x
+    to_y = y[:, None] - receiver_y
+    distance = np.sqrt(to_x * to_x + to_y * to_y)
+    jacobian_x, jacobian_y = to_x / distance, to_y / distance
     if transmitter is not None:
-        from_transmitter = point - transmitter
-        emitter_distance = np.linalg.norm(from_transmitter, axis=-1)
-        predicted = predicted + emitter_distance[:, None]
-        jacobian = jacobian + (from_transmitter / emitter_distance[:, None])[:, None, :]
-    return predicted - paths, jacobian
+        from_x, from_y = x - transmitter[:, 0], y - transmitter[:, 1]
+        emitter_distance = np.sqrt(from_x * from_x + from_y * from_y)
+        distance = distance + emitter_distance[:, None]
+        jacobian_x = jacobian_x + (from_x / emitter_distance)[:, None]
+        jacobian_y = jacobian_y + (from_y / emitter_distance)[:, None]
+    return distance - paths, jacobian_x, jacobian_y
 
 
 def _chi2_upper_quantile(dof, z):

@@ -234,8 +234,8 @@ def _shape(caller: str, **arrays) -> tuple:
 
 
 def _flag(reason: np.ndarray, mask, code: int) -> None:
-    """Set ``code`` where ``mask`` holds and no earlier check has failed."""
-    reason[(reason == OK) & np.broadcast_to(mask, reason.shape)] = code
+    """Set ``code`` where ``mask`` (broadcastable to ``reason``) holds and no earlier check has failed."""
+    reason[(reason == OK) & mask] = code
 
 
 def _finish(reason: np.ndarray, *outputs):
@@ -245,14 +245,7 @@ def _finish(reason: np.ndarray, *outputs):
     dimensions of one entry (0 for scalars, 1 for points, 2 for matrices).
     """
     valid = reason == OK
-    invalid = ~valid
-    results = []
-    for value, core in outputs:
-        value = np.asarray(value)
-        entry_shape = value.shape[value.ndim - core:] if core else ()
-        filled = np.array(np.broadcast_to(value, valid.shape + entry_shape))  # a fresh copy: fill it in place
-        filled[invalid] = np.nan
-        results.append(filled)
+    results = [np.where(valid.reshape(valid.shape + (1,) * core), value, np.nan) for value, core in outputs]
     return valid, results
 
 
@@ -284,8 +277,31 @@ def _receivers(rx1: np.ndarray, rx2: np.ndarray) -> _Receivers:
     return _Receivers(0.5 * (rx1 + rx2), u, n, separation)
 
 
-def _check_common(caller, tx, rx1, rx2, d1, d2):
-    """Validate types and shapes; return the receivers' frame and the first reason codes."""
+@dataclass(frozen=True)
+class _Inputs:
+    """Validated inputs of one solve, what every model derives from them, and the input checks' reasons.
+
+    ``reason`` holds the codes of the checks every model shares (NOT_FINITE,
+    DEGENERATE receivers, NEGATIVE); a model copies it before adding its own.
+    ``too_short`` marks paths shorter than the direct one, ``apart`` paths whose
+    difference exceeds the baseline (both checked by the models in their order).
+    """
+
+    tx: np.ndarray
+    rx1: np.ndarray
+    rx2: np.ndarray
+    d1: np.ndarray
+    d2: np.ndarray
+    frame: _Receivers
+    difference: np.ndarray
+    total: np.ndarray
+    reason: np.ndarray
+    apart: np.ndarray
+    too_short: np.ndarray
+
+
+def _prepare(caller, tx, rx1, rx2, d1, d2) -> _Inputs:
+    """Validate types and shapes once for any number of models of the same echoes."""
     tx = _points("tx", tx, caller)
     rx1 = _points("rx1", rx1, caller)
     rx2 = _points("rx2", rx2, caller)
@@ -298,30 +314,31 @@ def _check_common(caller, tx, rx1, rx2, d1, d2):
     _flag(reason, ~(geometry_finite & np.isfinite(d1) & np.isfinite(d2)), NOT_FINITE)
     _flag(reason, ~(frame.separation > 0), DEGENERATE)
     _flag(reason, ~((d1 > 0) & (d2 > 0)), NEGATIVE)
-    return tx, rx1, rx2, d1, d2, frame, reason
-
-
-def _check_direct_path(reason, tx, rx1, rx2, d1, d2):
-    """A reflected path is never shorter than the direct one (triangle inequality)."""
-    _flag(reason, (d1 < _norm(rx1 - tx)) | (d2 < _norm(rx2 - tx)), TOO_SHORT)
+    difference = d2 - d1  # exact for nearby values (Sterbenz), so no cancellation downstream
+    separation = frame.separation
+    return _Inputs(
+        tx, rx1, rx2, d1, d2, frame, difference, d1 + d2, reason,
+        apart=(separation + difference < 0) | (separation - difference < 0),
+        # A reflected path is never shorter than the direct one (triangle inequality).
+        too_short=(d1 < _norm(rx1 - tx)) | (d2 < _norm(rx2 - tx)),
+    )
 
 
 # --------------------------------------------------------------------------- virtual image
 
-def _image(caller, tx, rx1, rx2, d1, d2):
-    tx, rx1, rx2, d1, d2, frame, reason = _check_common(caller, tx, rx1, rx2, d1, d2)
+def _image(inputs: _Inputs):
+    """The virtual image (..., 2) and its reason codes (a fresh array)."""
+    frame, difference, total = inputs.frame, inputs.difference, inputs.total
     separation = frame.separation
-    difference = d2 - d1  # exact for nearby values (Sterbenz), so no cancellation downstream
-    total = d1 + d2
-    _flag(reason, (separation + difference < 0) | (separation - difference < 0) | (total < separation),
-          NO_INTERSECTION)
-    _check_direct_path(reason, tx, rx1, rx2, d1, d2)
+    reason = inputs.reason.copy()
+    _flag(reason, inputs.apart | (total < separation), NO_INTERSECTION)
+    _flag(reason, inputs.too_short, TOO_SHORT)
     along = -difference * total / (2.0 * separation)
     # Heron: the height over the baseline is 2 * area / D, every factor formed from inputs directly.
     heron = (separation + difference) * (separation - difference) * (total - separation) * (total + separation)
     height = np.sqrt(heron) / (2.0 * separation)
     image = frame.centre + along[..., None] * frame.u + height[..., None] * frame.n
-    return tx, rx1, rx2, d1, d2, frame, reason, image
+    return reason, image
 
 
 @_quiet
@@ -346,7 +363,7 @@ def virtual_image(tx, rx1, rx2, d1, d2) -> PointEstimate:
         ``position`` (..., 2) of ``T'``; reasons NOT_FINITE, DEGENERATE,
         NEGATIVE, NO_INTERSECTION, TOO_SHORT.
     """
-    *_, reason, image = _image("virtual_image", tx, rx1, rx2, d1, d2)
+    reason, image = _image(_prepare("virtual_image", tx, rx1, rx2, d1, d2))
     valid, (image,) = _finish(reason, (image, 1))
     return PointEstimate(image, valid, reason, "virtual_image")
 
@@ -372,13 +389,18 @@ def plane(tx, rx1, rx2, d1, d2) -> PlaneEstimate:
         away from the sensor, ``reflection_points`` (..., 2, 2).  Reasons as
         :func:`virtual_image`, plus DEGENERATE where ``T' = T``.
     """
-    tx, rx1, rx2, d1, d2, frame, reason, image = _image("plane", tx, rx1, rx2, d1, d2)
+    inputs = _prepare("plane", tx, rx1, rx2, d1, d2)
+    return _plane(inputs, *_image(inputs))
+
+
+def _plane(inputs: _Inputs, reason: np.ndarray, image: np.ndarray) -> PlaneEstimate:
+    tx = inputs.tx
     axis = image - tx
     length = _norm(axis)
     _flag(reason, ~(length > 0), DEGENERATE)
     normal = axis / length[..., None]
     points = np.empty(reason.shape + (2, 2))
-    for n, receiver in enumerate((rx1, rx2)):
+    for n, receiver in enumerate((inputs.rx1, inputs.rx2)):
         # Distance of the receiver from the plane over that of T' from it: where R_n T' crosses.
         depth = 0.5 * length - _dot(receiver - tx, normal)
         fraction = depth / (depth + 0.5 * length)
@@ -408,9 +430,13 @@ def corner(tx, rx1, rx2, d1, d2) -> PointEstimate:
         ``position`` (..., 2); reasons as :func:`virtual_image`, plus BEHIND
         where ``G`` is not in front of the receivers.
     """
-    tx, rx1, rx2, d1, d2, frame, reason, image = _image("corner", tx, rx1, rx2, d1, d2)
-    point = 0.5 * (tx + image)
-    _flag(reason, ~(_dot(point - frame.centre, frame.n) > 0), BEHIND)
+    inputs = _prepare("corner", tx, rx1, rx2, d1, d2)
+    return _corner(inputs, *_image(inputs))
+
+
+def _corner(inputs: _Inputs, reason: np.ndarray, image: np.ndarray) -> PointEstimate:
+    point = 0.5 * (inputs.tx + image)
+    _flag(reason, ~(_dot(point - inputs.frame.centre, inputs.frame.n) > 0), BEHIND)
     valid, (point,) = _finish(reason, (point, 1))
     return PointEstimate(point, valid, reason, "corner")
 
@@ -455,13 +481,16 @@ def edge(tx, rx1, rx2, d1, d2) -> PointEstimate:
         (two solutions in front -- only for transmitters in front of the
         receivers).
     """
-    tx, rx1, rx2, d1, d2, frame, reason = _check_common("edge", tx, rx1, rx2, d1, d2)
+    return _edge(_prepare("edge", tx, rx1, rx2, d1, d2))
+
+
+def _edge(inputs: _Inputs) -> PointEstimate:
+    frame, d1, d2, difference, total = inputs.frame, inputs.d1, inputs.d2, inputs.difference, inputs.total
     separation = frame.separation
-    difference = d2 - d1
-    total = d1 + d2
-    _flag(reason, (separation + difference < 0) | (separation - difference < 0), NO_INTERSECTION)
-    _check_direct_path(reason, tx, rx1, rx2, d1, d2)
-    offset = tx - frame.centre
+    reason = inputs.reason.copy()
+    _flag(reason, inputs.apart, NO_INTERSECTION)
+    _flag(reason, inputs.too_short, TOO_SHORT)
+    offset = inputs.tx - frame.centre
     t_u = _dot(offset, frame.u)
     t_n = _dot(offset, frame.n)
     # Difference of the receivers' circles: p_u = (d1 - d2)(d1 + d2 - 2k) / (2D) = beta0 + beta1 k.
@@ -527,9 +556,10 @@ def on_axis(tx, rx1, rx2, d1, d2) -> PointEstimate:
         ``position`` (..., 2); reasons NOT_FINITE, DEGENERATE, NEGATIVE,
         TOO_SHORT (mean path shorter than ``|T - M|``).
     """
-    tx, rx1, rx2, d1, d2, frame, reason = _check_common("on_axis", tx, rx1, rx2, d1, d2)
-    mean = 0.5 * (d1 + d2)
-    offset = frame.centre - tx
+    inputs = _prepare("on_axis", tx, rx1, rx2, d1, d2)
+    frame, reason = inputs.frame, inputs.reason
+    mean = 0.5 * inputs.total
+    offset = frame.centre - inputs.tx
     direct = _norm(offset)
     _flag(reason, mean < direct, TOO_SHORT)
     # |offset + r n|^2 = (mean - r)^2 is linear in r.
@@ -543,6 +573,38 @@ def on_axis(tx, rx1, rx2, d1, d2) -> PointEstimate:
 
 MODELS = {"plane": plane, "corner": corner, "edge": edge}
 """Reflector model name -> localisation function (all share one signature)."""
+
+
+@_quiet
+def hypotheses(tx, rx1, rx2, d1, d2, models=tuple(MODELS)) -> dict:
+    """Several reflector models of the same echoes, validated once and sharing one virtual image.
+
+    The same results as calling each function of :data:`MODELS`, in about half
+    the time for all three (what the localiser node does every ping).
+
+    Parameters
+    ----------
+    tx, rx1, rx2 : array_like, shape (..., 2)
+        Transmitter and receiver positions, m.
+    d1, d2 : array_like, shape (...)
+        Path lengths to ``rx1`` / ``rx2``, m.
+    models : sequence of str
+        Names from :data:`MODELS`.
+
+    Returns
+    -------
+    dict of str to PointEstimate
+        One estimate per requested model (a :class:`PlaneEstimate` for ``plane``).
+    """
+    unknown = set(models) - set(MODELS)
+    if unknown:
+        raise ValueError(f"hypotheses: unknown models {sorted(unknown)}, choose from {sorted(MODELS)}")
+    inputs = _prepare("hypotheses", tx, rx1, rx2, d1, d2)
+    reason, image = _image(inputs) if {"plane", "corner"} & set(models) else (None, None)
+    solvers = {"plane": lambda: _plane(inputs, reason.copy(), image),
+               "corner": lambda: _corner(inputs, reason.copy(), image),
+               "edge": lambda: _edge(inputs)}
+    return {name: solvers[name]() for name in models}
 
 
 @_quiet

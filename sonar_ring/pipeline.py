@@ -149,6 +149,20 @@ def unscented_covariance(points) -> np.ndarray:
     return covariance + (ARC_MSE - 2.0) * bias[:, :, None] * bias[:, None, :]
 
 
+def _covariance(batch, estimate, tx, rx1, rx2, paths_covariance) -> np.ndarray:
+    """Unscented covariance (N, 2, 2) of a model's estimates, first order where a sigma point has no solution.
+
+    Near the border of the solvable region (``|d2 - d1|`` close to the baseline)
+    one sigma point can fall outside it while the estimate itself is valid.
+    """
+    covariance = unscented_covariance(batch.position)
+    lost = estimate.valid & ~np.isfinite(covariance).all(axis=(1, 2))
+    if lost.any():
+        first_order = localise.position_covariance(estimate, tx, rx1, rx2, paths_covariance)
+        covariance[lost] = first_order[lost]
+    return covariance
+
+
 def _first(batch):
     """The estimate at sigma point 0 (the measurement) of a batched model call."""
     return replace(batch, **{f.name: getattr(batch, f.name)[0] for f in fields(batch)
@@ -174,22 +188,29 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
                                                 settings.sigma_speed)
     covariance_paths = covariance_paths * scale[:, :, None] * scale[:, None, :]
     rows = np.arange(echoes.n_echoes)
-    parts = []
     sigma_d1, sigma_d2 = sigma_point_paths(d1, d2, covariance_paths)
-    for model in settings.models:
-        batch = getattr(localise, model)(tx, rx1, rx2, sigma_d1, sigma_d2)
-        estimate = _first(batch)
-        covariance = unscented_covariance(batch.position)
-        if model == "plane":
-            normal = -np.nan_to_num(estimate.normal)
-            segment = np.nan_to_num(estimate.reflection_points)
-        else:
-            normal = None
-            segment = None
-        parts.append(make_landmarks(MODEL_CLASS[model], np.nan_to_num(estimate.position), normal=normal,
-                                    covariance=np.nan_to_num(covariance, nan=0.0), segment=segment,
-                                    group=echoes.group, echo=rows, valid=estimate.valid, reason=estimate.reason))
-    return Landmarks.concatenate(parts)
+    batches = localise.hypotheses(tx, rx1, rx2, sigma_d1, sigma_d2, settings.models)
+    estimates = {model: _first(batch) for model, batch in batches.items()}
+    covariances = [_covariance(batches[model], estimates[model], tx, rx1, rx2, covariance_paths)
+                   for model in estimates]
+    valid = np.concatenate([estimate.valid for estimate in estimates.values()])
+    position = np.concatenate([estimate.position for estimate in estimates.values()])
+    normal = np.zeros_like(position)
+    segment = np.repeat(position[:, None, :], 2, axis=1)
+    if "plane" in estimates:
+        start = list(estimates).index("plane") * echoes.n_echoes
+        block = slice(start, start + echoes.n_echoes)
+        normal[block] = -estimates["plane"].normal
+        segment[block] = estimates["plane"].reflection_points
+    keep = valid[:, None]
+    covariance = np.concatenate(covariances)
+    return make_landmarks(
+        np.repeat([MODEL_CLASS[model] for model in estimates], echoes.n_echoes),
+        np.where(keep, position, 0.0), normal=np.where(keep, normal, 0.0),
+        covariance=np.where(keep[:, :, None], covariance, 0.0),
+        segment=np.where(keep[:, :, None], segment, 0.0), group=np.tile(echoes.group, len(estimates)),
+        echo=np.tile(rows, len(estimates)), valid=valid,
+        reason=np.concatenate([estimate.reason for estimate in estimates.values()]))
 
 
 @functools.lru_cache(maxsize=32)

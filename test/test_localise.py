@@ -159,6 +159,23 @@ def test_leading_shapes_broadcast():
     assert_allclose(scalar.position, GRID[5], atol=1e-12)
 
 
+def test_hypotheses_equal_the_models_one_by_one():
+    """One validation and one shared virtual image give bit-identical results, invalid entries included."""
+    tx, rx1, rx2 = browne_pair()
+    d1, d2 = corner_paths(tx, rx1, rx2, GRID[:200])
+    d1 = d1.copy()
+    d1[:5] = [np.nan, -1.0, d2[2] + 0.05, 0.01, np.inf]
+    together = loc.hypotheses(tx, rx1, rx2, d1, d2)
+    assert list(together) == ["plane", "corner", "edge"]
+    for name, function in loc.MODELS.items():
+        alone = function(tx, rx1, rx2, d1, d2)
+        assert_array_equal(together[name].position, alone.position)
+        assert_array_equal(together[name].reason, alone.reason)
+        assert_array_equal(together[name].valid, alone.valid)
+    assert_array_equal(together["plane"].reflection_points, loc.plane(tx, rx1, rx2, d1, d2).reflection_points)
+    assert list(loc.hypotheses(tx, rx1, rx2, d1, d2, ["edge"])) == ["edge"]
+
+
 def test_invalid_entries_are_nan_and_valid_entries_are_not():
     tx, rx1, rx2 = browne_pair()
     d1, d2 = corner_paths(tx, rx1, rx2, GRID[:4])
@@ -371,6 +388,10 @@ def test_error_handling():
         result = function(tx, rx1, rx2, [np.nan, -1.0, 0.0, np.inf, 0.2], [1.0, 1.0, 1.0, 1.0, 0.2])
         assert_array_equal(result.reason, [loc.NOT_FINITE, loc.NEGATIVE, loc.NEGATIVE, loc.NOT_FINITE, loc.TOO_SHORT])
         assert not result.valid.any()
+    with pytest.raises(ValueError, match=r"unknown models \['wall'\]"):
+        loc.hypotheses(tx, rx1, rx2, 1.0, 1.0, ["plane", "wall"])
+    with pytest.raises(ValueError, match="hypotheses: 'd2' must be real numbers"):
+        loc.hypotheses(tx, rx1, rx2, 1.0, "1.0")
     with pytest.raises(ValueError, match="'rx2' must be real numbers"):
         loc.plane(tx, rx1, np.array([1j, 0]), 1.0, 1.0)
     with pytest.raises(ValueError, match="'separation' must be real"):

@@ -1,0 +1,133 @@
+"""One ping from echoes to labelled landmarks (sonar_ring.pipeline), without ROS."""
+
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose, assert_array_equal
+
+from sonar_ring import localise, pipeline
+from sonar_ring.echoes import EchoArrays
+from sonar_ring.geometry import load_layout
+from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN
+from sonar_ring.simulate import Noise, Simulator, load_scene
+
+CHI2_2DOF_3SIGMA = 11.83  # P(chi2_2 <= 11.83) = 99.73 %
+RING = load_layout("browne_ring")
+
+
+def room_pings(count, sigma_tof, seed=0):
+    scene = load_scene("room")
+    times, poses = scene.trajectory.poses(RING.ping_rate)
+    step = len(times) // count
+    return Simulator(scene, RING).run(poses[::step][:count], times[::step][:count], noise=Noise(tof=sigma_tof),
+                                      rng=np.random.default_rng(seed))
+
+
+def hypothesis_of_true_class(ping, hypotheses):
+    """Index (N,) of each echo's hypothesis of its true class."""
+    index = np.full(ping.n_echoes, -1)
+    for row in range(len(hypotheses)):
+        if hypotheses.landmark_class[row] == ping.truth_class[hypotheses.echo[row]]:
+            index[hypotheses.echo[row]] = row
+    return index
+
+
+def test_noise_free_hypotheses_of_the_true_class_are_exact():
+    compared = 0
+    for ping in room_pings(40, 0.0):
+        hypotheses = pipeline.localise_ping(RING, ping.echoes)
+        assert len(hypotheses) == 3 * ping.n_echoes
+        heard = np.isfinite(ping.tof).all(axis=1)  # an echo one receiver missed gives no landmark
+        index = hypothesis_of_true_class(ping, hypotheses)[heard]
+        assert_array_equal(hypotheses.valid[index], True)
+        assert np.all(hypotheses.reason[~heard[hypotheses.echo]] == localise.NOT_FINITE)
+        assert_allclose(hypotheses.position[index], ping.truth_position[heard], atol=1e-9)
+        planes = ping.truth_class[heard] == PLANE
+        # messages carry the plane normal towards the sensor, as the simulator's truth does
+        assert_allclose(hypotheses.normal[index[planes]], ping.truth_normal[heard][planes], atol=1e-9)
+        compared += np.count_nonzero(heard)
+    assert compared > 1000
+
+
+def test_covariances_hold_99_percent_of_errors_within_3_sigma():
+    inside = total = 0
+    for ping in room_pings(150, 1e-6, seed=3):
+        hypotheses = pipeline.localise_ping(RING, ping.echoes, pipeline.Settings(sigma_tof=1e-6))
+        index = hypothesis_of_true_class(ping, hypotheses)
+        usable = (index >= 0) & hypotheses.valid[np.maximum(index, 0)]
+        error = hypotheses.position[index[usable]] - ping.truth_position[usable]
+        mahalanobis = np.einsum("ni,nij,nj->n", error, np.linalg.inv(hypotheses.covariance[index[usable]]), error)
+        inside += np.count_nonzero(mahalanobis <= CHI2_2DOF_3SIGMA)
+        total += error.shape[0]
+    assert total > 3000
+    assert inside / total >= 0.99
+
+
+def test_a_valid_estimate_next_to_the_tangent_keeps_a_finite_covariance():
+    """One sigma point beyond |d2 - d1| = D has no solution; the covariance falls back to first order."""
+    group = np.array([0])
+    tx = RING.transmitters[RING.group_transmitters[0, 0], :2]
+    rx1, rx2 = RING.receivers[RING.groups[0], :2]
+    separation = np.linalg.norm(rx2 - rx1)
+    d1 = 2.0
+    d2 = d1 + separation * (1 - 1e-7)
+    assert localise.plane(tx, rx1, rx2, d1, d2).valid
+    echoes = EchoArrays(RING.name, 343.0, group, np.array([0]), np.array([[d1, d2]]) / 343.0,
+                        np.empty((1, 0)), np.empty((1, 0)))
+    hypotheses = pipeline.localise_ping(RING, echoes, pipeline.Settings(models=("plane",),
+                                                                         vertical_correction=False))
+    assert hypotheses.valid[0]
+    assert np.isfinite(hypotheses.covariance).all()
+    assert np.all(np.linalg.eigvalsh(hypotheses.covariance[0]) > 0)
+
+
+def test_classified_landmarks_are_right_where_decided_and_placed_as_corners_otherwise():
+    settings = pipeline.Settings(sigma_tof=1e-6)
+    decided = wrong = 0
+    for ping in room_pings(150, 1e-6, seed=5):
+        echoes = ping.echoes
+        hypotheses = pipeline.localise_ping(RING, echoes, settings)
+        labelled = pipeline.classify_ping(RING, echoes, hypotheses, settings)
+        assert len(labelled) == len(np.unique(labelled.echo))  # one landmark per echo
+        assert set(np.unique(labelled.landmark_class)) <= {UNKNOWN, EDGE}  # a ring alone tells no plane from corner
+        known = labelled.landmark_class != UNKNOWN
+        decided += np.count_nonzero(known)
+        wrong += np.count_nonzero(labelled.landmark_class[known] != ping.truth_class[labelled.echo[known]])
+        assert_array_equal(labelled.confidence[~known], 0.0)
+        corners = {e: row for row, e in enumerate(hypotheses.echo) if hypotheses.landmark_class[row] == CORNER}
+        for row in np.flatnonzero(~known):
+            assert_array_equal(labelled.position[row], hypotheses.position[corners[labelled.echo[row]]])
+    assert decided > 0 and wrong / decided < 0.01
+
+
+def test_barshan_kuc_pair_is_decided_by_amplitudes():
+    pair = load_layout("barshan_kuc_pair")
+    scene = load_scene("barshan_kuc_bench")
+    ping = Simulator(scene, pair).run(scene.sensor_pose[None, :], np.zeros(1), noise=Noise(amplitude=0.0))[0]
+    labelled = pipeline.classify_ping(pair, ping.echoes, pipeline.localise_ping(pair, ping.echoes))
+    assert len(labelled) > 0
+    known = labelled.landmark_class != UNKNOWN
+    assert known.any()
+    assert_array_equal(labelled.landmark_class[known], ping.truth_class[labelled.echo[known]])
+
+
+def test_error_handling():
+    with pytest.raises(ValueError, match="models must be a non-empty subset"):
+        pipeline.Settings(models=("plane", "wall"))
+    with pytest.raises(ValueError, match="models must be a non-empty subset"):
+        pipeline.Settings(models=())
+    triad = load_layout("kreczmer_triad")
+    no_phase = EchoArrays(triad.name, 343.0, np.array([0]), np.array([0]), np.full((1, 3), 5e-3),
+                          np.empty((1, 0)), np.empty((1, 0)))
+    with pytest.raises(ValueError, match="two phase delays per row"):
+        pipeline.localise_ping(triad, no_phase)
+    # bad data is flagged, never raised
+    bad = EchoArrays(RING.name, 343.0, np.array([0, 1, 2]), np.zeros(3, int),
+                     np.array([[np.nan, 5e-3], [-1e-3, 5e-3], [5e-3, 5e-3]]), np.empty((3, 0)), np.empty((3, 0)))
+    hypotheses = pipeline.localise_ping(RING, bad)
+    first_two = hypotheses.echo < 2
+    assert not hypotheses.valid[first_two].any()
+    assert np.isfinite(hypotheses.position).all() and np.isfinite(hypotheses.covariance).all()
+    assert len(pipeline.classify_ping(RING, bad, hypotheses)) == 1
+    empty = EchoArrays(RING.name, 343.0, np.zeros(0, int), np.zeros(0, int), np.empty((0, 2)), np.empty((0, 0)),
+                       np.empty((0, 0)))
+    assert len(pipeline.classify_ping(RING, empty, pipeline.localise_ping(RING, empty))) == 0
