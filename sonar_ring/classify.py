@@ -31,6 +31,7 @@ normal (or the direction to the corner) towards ``a``.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -727,9 +728,15 @@ def overlapping_groups(layout):
     ndarray of int, shape (G, J)
         Overlapping groups of each group, nearest facing first; J is the largest count.
     """
-    yaw = layout.group_yaw()
+    return _overlapping_groups(layout.group_yaw().tobytes(), float(layout.beam_half_angle)).copy()
+
+
+@functools.lru_cache(maxsize=16)
+def _overlapping_groups(yaw_bytes: bytes, beam_half_angle: float) -> np.ndarray:
+    """:func:`overlapping_groups` from the group facings (float64 bytes), computed once per layout."""
+    yaw = np.frombuffer(yaw_bytes)
     gap = np.abs(np.angle(np.exp(1j * (yaw[:, None] - yaw[None, :]))))
-    overlap = (gap < 2.0 * layout.beam_half_angle) & ~np.eye(layout.n_groups, dtype=bool)
+    overlap = (gap < 2.0 * beam_half_angle) & ~np.eye(yaw.size, dtype=bool)
     order = np.argsort(np.where(overlap, gap, np.inf), axis=1, kind="stable")
     width = int(overlap.sum(axis=1).max(initial=0))
     chosen = order[:, :width]
