@@ -516,6 +516,9 @@ the one that does not linearly; after 8 the last step is below 1e-10 m for echoe
 0.4-5 m on the ring (checked over random bearings)."""
 
 
+MAX_ECHOES_PER_GROUP = 32
+"""Echoes of one group in one ping beyond which :func:`ring_consistency` leaves that group out."""
+
 _CONVERGED = 1e-13
 """Steps below this (m) for every echo end the fit early: far below the TOF noise, near the rounding of
 positions at sensor ranges."""
@@ -759,6 +762,11 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
     Path lengths are first made horizontal, ``sqrt(d^2 - dz^2)``, exact for vertically
     extruded reflectors, with their standard deviation scaled by ``d / sqrt(d^2 - dz^2)``.
 
+    A group reporting more than :data:`MAX_ECHOES_PER_GROUP` echoes in one ping is
+    not tested and joins no other echo: the gate compares every pair of candidate
+    echoes, so its memory would grow with the square of that count, and no
+    reflector geometry produces so many separate echoes in one pair.
+
     Parameters
     ----------
     layout : sonar_ring.geometry.Layout
@@ -803,11 +811,14 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
     receivers = layout.receivers[layout.groups[group], :2]  # (N, K, 2)
     own = np.arange(layout.n_groups)[:, None]
     slots = np.concatenate([own, overlapping_groups(layout)], axis=1)  # slot 0: the echo's own group
-    candidate, matches = _gated_matches(ping, group, horizontal, sigma, receivers, slots, z)  # (N, 1 + J, C)
+    _, slot_of_row, rows_in_slot = np.unique(ping * layout.n_groups + group, return_inverse=True, return_counts=True)
+    overfull = rows_in_slot[slot_of_row] > MAX_ECHOES_PER_GROUP
+    candidate, matches = _gated_matches(ping, np.where(overfull, -1, group), horizontal, sigma, receivers, slots,
+                                        z)  # (N, 1 + J, C)
     unique = matches.sum(axis=-1) == 1
     match = np.take_along_axis(candidate, np.argmax(matches, axis=-1)[..., None], axis=-1)[..., 0]
     joined = np.where(unique, match, -1)
-    crowded = matches[:, 0].any(axis=-1)
+    crowded = matches[:, 0].any(axis=-1) | overfull
     rows = np.concatenate([np.arange(n_echoes)[:, None], joined[:, 1:]], axis=1)  # (N, 1 + J)
     present = (rows >= 0) & ~crowded[:, None]
     take = np.where(present, rows, 0)
@@ -824,16 +835,17 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
 def _gated_matches(ping, group, horizontal, sigma, receivers, slots, z):
     """Echoes of each slot group (same ping) and whether they pass the gate with each echo.
 
+    A row whose ``group`` is -1 is left out: no candidate of any echo, none of its own.
     Returns ``candidate`` (N, S, C) int, the rows of group ``slots[group[n], s]`` in
     echo ``n``'s ping (C = the most echoes any such group has), and ``matches``
     (N, S, C) bool, True where that candidate exists, is not ``n`` itself, and every
     pair of receivers heard by both satisfies the triangle-inequality gate.
     """
     n_echoes = group.size
-    key = ping * slots.shape[0] + group
+    key = np.where(group >= 0, ping * slots.shape[0] + group, -1)  # -1: left out, never a candidate
     order = np.argsort(key, kind="stable")
     sorted_key = key[order]
-    target = slots[group]  # (N, S)
+    target = np.where(group[:, None] >= 0, slots[group], -1)  # (N, S)
     wanted = ping[:, None] * slots.shape[0] + target
     first = np.searchsorted(sorted_key, wanted, side="left")
     count = np.where(target >= 0, np.searchsorted(sorted_key, wanted, side="right") - first, 0)

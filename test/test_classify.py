@@ -28,6 +28,7 @@ from sonar_ring.classify import (
     working_range,
 )
 from sonar_ring.geometry import beam_half_angle, load_layout
+from sonar_ring.simulate import Noise, Simulator, load_scene
 
 # Barshan & Kuc (1990), section V: lambda = 5.72 mm, a = 20 mm, d = 80 mm, sigma = 2 % of A_max.
 WAVELENGTH = 5.72e-3
@@ -408,6 +409,27 @@ def test_ring_consistency_on_a_triad_with_its_emitter_beside_the_receivers():
     assert_allclose(result.virtual_image, image, atol=1e-9)
     assert_array_equal(result.dof, 1)
     assert_array_equal(result.cls, UNKNOWN)  # 15 mm of aperture cannot see the curvature
+
+
+def test_ring_consistency_leaves_out_a_group_flooded_with_echoes():
+    """Thousands of echoes in one pair (firmware gone wrong) cost linear memory and leave the others alone."""
+    ring = load_layout("browne_ring")
+    scene = load_scene("room")
+    ping = Simulator(scene, ring).ping(scene.sensor_pose, noise=Noise(tof=1e-6), rng=np.random.default_rng(1))
+    paths = ping.tof * ping.speed_of_sound
+    flood = 5000
+    flooded_group = np.full(flood, 30)
+    flooded_paths = np.random.default_rng(2).uniform(0.5, 5.0, (flood, 2))
+    together = classify.ring_consistency(ring, np.concatenate([ping.group, flooded_group]),
+                                         np.concatenate([paths, flooded_paths]), SIGMA_PATH)
+    alone = classify.ring_consistency(ring, ping.group, paths, SIGMA_PATH)
+    assert_array_equal(together.cls[ping.n_echoes:], UNKNOWN)
+    assert np.isnan(together.chi2_edge[ping.n_echoes:]).all()
+    # echoes of groups out of reach of group 30 are tested exactly as without the flood
+    others = ~np.isin(ping.group, [28, 29, 30, 31, 32])
+    assert np.count_nonzero(others) > 20
+    assert_array_equal(together.cls[:ping.n_echoes][others], alone.cls[others])
+    assert_allclose(together.chi2_edge[:ping.n_echoes][others], alone.chi2_edge[others], rtol=1e-9)
 
 
 # --------------------------------------------------------------------------- bad input
