@@ -34,7 +34,7 @@ Conventions
 
 Reason codes
 ------------
-``OK`` 0, ``NOT_FINITE`` 1 (NaN or infinite input), ``DEGENERATE`` 2 (coincident
+``OK`` 0, ``NOT_FINITE`` 1 (NaN, infinite, or beyond :data:`MAX_LENGTH` = 1e6 m), ``DEGENERATE`` 2 (coincident
 receivers, or a singular configuration), ``NEGATIVE`` 3 (a path length <= 0),
 ``NO_INTERSECTION`` 4 (``|d2 - d1| > D`` or ``d1 + d2 < D``: the circles or
 ellipses do not meet), ``TOO_SHORT`` 5 (``d_n < |T - R_n|``: shorter than the
@@ -75,9 +75,13 @@ BEHIND = 7
 AMBIGUOUS = 8
 NONE_VALID = 9
 
+MAX_LENGTH = 1e6
+"""Largest |coordinate| or path length taken, m.  Beyond it an input is corrupt, not a measurement
+(squares of lengths near 1e154 m overflow), and is flagged NOT_FINITE like NaN or infinity."""
+
 REASONS = {
     OK: "ok",
-    NOT_FINITE: "NaN or infinite input",
+    NOT_FINITE: "NaN, infinite or absurd input (beyond MAX_LENGTH)",
     DEGENERATE: "degenerate geometry (coincident receivers or singular configuration)",
     NEGATIVE: "path length not positive",
     NO_INTERSECTION: "no real solution (|d2 - d1| > D or d1 + d2 < D)",
@@ -233,6 +237,11 @@ def _shape(caller: str, **arrays) -> tuple:
         raise ValueError(f"{caller}: leading shapes do not broadcast: {listing}") from None
 
 
+def _bounded(values: np.ndarray) -> np.ndarray:
+    """Finite and at most :data:`MAX_LENGTH` in magnitude (False for NaN)."""
+    return np.abs(values) <= MAX_LENGTH
+
+
 def _flag(reason: np.ndarray, mask, code: int) -> None:
     """Set ``code`` where ``mask`` (broadcastable to ``reason``) holds and no earlier check has failed."""
     reason[(reason == OK) & mask] = code
@@ -310,8 +319,8 @@ def _prepare(caller, tx, rx1, rx2, d1, d2) -> _Inputs:
     shape = _shape(caller, tx=tx, rx1=rx1, rx2=rx2, d1=d1, d2=d2)
     frame = _receivers(rx1, rx2)
     reason = np.zeros(shape, dtype=np.int8)
-    geometry_finite = np.isfinite(tx).all(-1) & np.isfinite(rx1).all(-1) & np.isfinite(rx2).all(-1)
-    _flag(reason, ~(geometry_finite & np.isfinite(d1) & np.isfinite(d2)), NOT_FINITE)
+    geometry_finite = _bounded(tx).all(-1) & _bounded(rx1).all(-1) & _bounded(rx2).all(-1)
+    _flag(reason, ~(geometry_finite & _bounded(d1) & _bounded(d2)), NOT_FINITE)
     _flag(reason, ~(frame.separation > 0), DEGENERATE)
     _flag(reason, ~((d1 > 0) & (d2 > 0)), NEGATIVE)
     difference = d2 - d1  # exact for nearby values (Sterbenz), so no cancellation downstream
@@ -635,7 +644,7 @@ def horizontal_path(d, dz) -> ScalarEstimate:
     d = _real_array("d", d, "horizontal_path")
     dz = _real_array("dz", dz, "horizontal_path")
     reason = np.zeros(_shape("horizontal_path", d=d, dz=dz), dtype=np.int8)
-    _flag(reason, ~(np.isfinite(d) & np.isfinite(dz)), NOT_FINITE)
+    _flag(reason, ~(_bounded(d) & _bounded(dz)), NOT_FINITE)
     _flag(reason, ~(d > 0), NEGATIVE)
     height = np.abs(dz)
     _flag(reason, d < height, BELOW_HEIGHT)
@@ -677,7 +686,7 @@ def bearing(d1, d2, separation, exact=True) -> ScalarEstimate:
     d2 = _real_array("d2", d2, "bearing")
     separation = _real_array("separation", separation, "bearing")
     reason = np.zeros(_shape("bearing", d1=d1, d2=d2, separation=separation), dtype=np.int8)
-    _flag(reason, ~(np.isfinite(d1) & np.isfinite(d2) & np.isfinite(separation)), NOT_FINITE)
+    _flag(reason, ~(_bounded(d1) & _bounded(d2) & _bounded(separation)), NOT_FINITE)
     _flag(reason, ~(separation > 0), DEGENERATE)
     _flag(reason, ~((d1 > 0) & (d2 > 0)), NEGATIVE)
     difference = d2 - d1

@@ -184,11 +184,13 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
     paths, scale = horizontal_paths(echoes, dz, settings)
     rx1, rx2 = receivers[:, 0], receivers[:, 1]
     d1, d2 = paths[:, 0], paths[:, 1]
-    covariance_paths = localise.path_covariance(d1, d2, settings.sigma_tof, echoes.speed_of_sound,
-                                                settings.sigma_speed)
-    covariance_paths = covariance_paths * scale[:, :, None] * scale[:, None, :]
+    # Rows with absurd paths overflow here; localise flags them NOT_FINITE, so the warnings are noise.
+    with np.errstate(over="ignore", invalid="ignore"):
+        covariance_paths = localise.path_covariance(d1, d2, settings.sigma_tof, echoes.speed_of_sound,
+                                                    settings.sigma_speed)
+        covariance_paths = covariance_paths * scale[:, :, None] * scale[:, None, :]
+        sigma_d1, sigma_d2 = sigma_point_paths(d1, d2, covariance_paths)
     rows = np.arange(echoes.n_echoes)
-    sigma_d1, sigma_d2 = sigma_point_paths(d1, d2, covariance_paths)
     batches = localise.hypotheses(tx, rx1, rx2, sigma_d1, sigma_d2, settings.models)
     estimates = {model: _first(batch) for model, batch in batches.items()}
     covariances = [_covariance(batches[model], estimates[model], tx, rx1, rx2, covariance_paths)
