@@ -261,7 +261,8 @@ def azimuth(t01, t02, b1, b2, wavelength, speed_of_sound, eps, max_angle, *, del
     _check_correlation(delay_correlation)
     b12 = b1 + b2
     t01, t02 = np.broadcast_arrays(np.asarray(t01, dtype=float), np.asarray(t02, dtype=float))
-    finite = np.isfinite(t01) & np.isfinite(t02)
+    # A delay is under one carrier period; beyond a second it is corrupt (and overflows below): NOT_FINITE.
+    finite = (np.abs(t01) <= 1.0) & (np.abs(t02) <= 1.0)
     # Path differences modulo one wavelength, in [0, lambda).
     p1 = np.mod(np.where(finite, t01, 0.0) * speed_of_sound, wavelength)
     p2 = np.mod(np.where(finite, t02, 0.0) * speed_of_sound, wavelength)
