@@ -6,9 +6,14 @@ Mirrors the ``sonar_ring/Echoes`` message (N echo rows, K receivers per group);
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
+
+SLOWEST_SPEED_OF_SOUND = 250.0
+"""m/s: below any air a robot works in (-50 degC dry air is 299 m/s); slower is a corrupt value."""
+FASTEST_SPEED_OF_SOUND = 450.0
+"""m/s: above any air a robot works in (+60 degC saturated air is about 375 m/s)."""
 
 
 @dataclass(frozen=True)
@@ -76,7 +81,7 @@ def sanitize(echoes: EchoArrays, n_groups: int, group_transmitters: np.ndarray, 
     """
     group = np.asarray(echoes.group, dtype=np.int64)
     transmitter = np.asarray(echoes.transmitter, dtype=np.int64)
-    known_group = group < n_groups
+    known_group = (group >= 0) & (group < n_groups)
     allowed = np.zeros(echoes.n_echoes, dtype=bool)
     allowed[known_group] = np.any(group_transmitters[group[known_group]] == transmitter[known_group, None], axis=1)
     tof = np.array(echoes.tof, dtype=float)
@@ -99,3 +104,76 @@ def sanitize(echoes: EchoArrays, n_groups: int, group_transmitters: np.ndarray, 
                       transmitter=echoes.transmitter[keep], tof=tof[keep], amplitude=echoes.amplitude[keep],
                       phase_delay=echoes.phase_delay[keep])
     return kept, {reason: n for reason, n in problems.items() if n}
+
+
+def longest_tof(layout) -> float:
+    """Longest time of flight ``layout``'s receivers can report, s.
+
+    The round trip to ``layout.max_range`` at the slowest plausible speed of
+    sound (:data:`SLOWEST_SPEED_OF_SOUND`), with a margin of 25 %.
+    """
+    return 2.5 * layout.max_range / SLOWEST_SPEED_OF_SOUND
+
+
+@dataclass(frozen=True)
+class Screened:
+    """What :func:`screen_ping` kept of a ping and what it threw away.
+
+    Attributes
+    ----------
+    echoes : EchoArrays or None
+        The usable rows, or None when nothing of the ping can be used.
+    problems : dict of str to int
+        Rejections by reason (see :func:`screen_ping`).
+    detail : str
+        Why the whole ping was rejected, for a log line; empty otherwise.
+    """
+
+    echoes: EchoArrays | None
+    problems: dict
+    detail: str = ""
+
+
+def screen_ping(echoes: EchoArrays, layout) -> Screened:
+    """Keep what is usable of a ping for ``layout``; count the rest by reason.
+
+    Every entry point (the driver's hardware and topic sources, the localiser,
+    the classifier) screens pings with this one function, so they agree on what
+    a usable echo row is, and on the row indices of what they keep.
+
+    Whole-ping rejections (the ping cannot be read at all):
+    ``wrong_receivers_per_group`` (the TOF columns are not the layout's K),
+    ``bad_speed_of_sound`` (not finite, or outside 250..450 m/s),
+    ``missing_phase_delay`` (a triad ping without K - 1 phase delays per row).
+    Row and value rejections (the rest of the ping is still used): those of
+    :func:`sanitize`, and ``bad_phase_delay`` (a phase delay that is not finite
+    or longer than the longest TOF, replaced by NaN: that echo's bearing is
+    then not computed).
+
+    Parameters
+    ----------
+    echoes : EchoArrays
+        A ping as received, with its speed of sound, m/s.
+    layout : sonar_ring.geometry.Layout
+        The sensor the ping must fit.
+    """
+    k = layout.receivers_per_group
+    speed = echoes.speed_of_sound
+    if echoes.tof.ndim != 2 or echoes.tof.shape[1] != k:
+        return Screened(None, {"wrong_receivers_per_group": 1},
+                        f"TOF shape {echoes.tof.shape}, layout {layout.name} has {k} receivers per group")
+    if not (np.isfinite(speed) and SLOWEST_SPEED_OF_SOUND <= speed <= FASTEST_SPEED_OF_SOUND):
+        return Screened(None, {"bad_speed_of_sound": 1}, f"speed of sound {speed} m/s is outside "
+                        f"{SLOWEST_SPEED_OF_SOUND:g}..{FASTEST_SPEED_OF_SOUND:g} m/s")
+    if layout.kind == "triad" and echoes.phase_delay.shape[1] != k - 1:
+        return Screened(None, {"missing_phase_delay": 1},
+                        f"a triad needs {k - 1} phase delays per row, got {echoes.phase_delay.shape[1]}")
+    longest = longest_tof(layout)
+    kept, problems = sanitize(echoes, layout.n_groups, layout.group_transmitters, longest)
+    phase = np.array(kept.phase_delay, dtype=float)
+    with np.errstate(invalid="ignore"):  # NaN (not measured) compares False and stays NaN
+        bad_phase = ~(np.abs(phase) <= longest) & ~np.isnan(phase)
+    if np.any(bad_phase):
+        phase[bad_phase] = np.nan
+        problems["bad_phase_delay"] = int(np.count_nonzero(bad_phase))
+    return Screened(replace(kept, layout=layout.name, phase_delay=phase), problems)

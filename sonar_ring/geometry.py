@@ -50,6 +50,14 @@ KINDS = ("ring", "pair", "triad")
 """Group kinds: ring pairs (single emitter), transducer pairs (both transmit), triads."""
 
 
+MAX_RING_PAIRS = 1024
+"""Most receiver pairs a ring layout may have (0.35 deg apart); more is a typing error, not a sensor."""
+MAX_PING_RATE = 2000.0
+"""Fastest ping rate a layout may give, Hz (the driver's ``ping_rate`` range)."""
+MAX_SENSOR_EXTENT = 100.0
+"""Largest |coordinate| of a transducer, m: a sensor is smaller; more is a typing error (and would overflow)."""
+
+
 class LayoutError(ValueError):
     """A layout file or mapping is malformed; the message names file and field."""
 
@@ -250,26 +258,38 @@ def read_config(source, folder: str, error: type[ValueError]) -> tuple[dict, str
         path = config_path(folder, str(source))
     what = folder.rstrip("s")
     try:
-        mapping = yaml.safe_load(path.read_text())
+        mapping = yaml.safe_load(path.read_bytes())
     except OSError as exc:
         raise error(f"{path}: cannot read {what} ({exc.strerror})") from exc
     except yaml.YAMLError as exc:
-        raise error(f"{path}: not valid YAML ({exc})") from exc
+        # PyYAML spreads its message over several lines; a log line wants one.
+        raise error(f"{path}: not valid YAML ({' '.join(str(exc).split())})") from exc
     if not isinstance(mapping, dict):
-        raise error(f"{path}: expected a mapping at the top level")
+        raise error(f"{path}: expected a mapping of fields at the top level, got {type(mapping).__name__}")
     return mapping, str(path)
 
 
-def _field(mapping, key, where, kind=float, positive=True):
+def _field(mapping, key, where, kind=float, positive=True, high=math.inf):
+    """``mapping[key]``: a count in 1..``high`` (``kind`` int) or a number, > 0 if ``positive``, |x| <= ``high``."""
+    if kind is int:
+        expected = f"an integer in 1..{high:g}"
+    elif positive:
+        expected = "a finite number > 0" + (f" and <= {high:g}" if high < math.inf else "")
+    else:
+        expected = f"a number in -{high:g}..{high:g}" if high < math.inf else "a finite number"
+    if not isinstance(mapping, dict):
+        raise LayoutError(f"{where}: expected a mapping with field '{key}' ({expected}), got {mapping!r}")
     if key not in mapping:
-        raise LayoutError(f"{where}: missing field '{key}'")
+        raise LayoutError(f"{where}: missing field '{key}' ({expected})")
     value = mapping[key]
     try:
+        if isinstance(value, bool) or (kind is int and value != int(value)):
+            raise TypeError
         value = kind(value)
-    except (TypeError, ValueError):
-        raise LayoutError(f"{where}: field '{key}' must be {kind.__name__}, got {value!r}") from None
-    if positive and kind is float and not (math.isfinite(value) and value > 0):
-        raise LayoutError(f"{where}: field '{key}' must be a finite number > 0, got {value!r}")
+    except (TypeError, ValueError, OverflowError):
+        raise LayoutError(f"{where}: field '{key}' must be {expected}, got {value!r}") from None
+    if not (math.isfinite(value) and (value > 0 or not positive) and abs(value) <= high):
+        raise LayoutError(f"{where}: field '{key}' must be {expected}, got {value!r}")
     return value
 
 
@@ -284,7 +304,7 @@ def _layout_from_mapping(m: dict, where: str) -> Layout:
         beam_half_angle=math.radians(_field(m, "beam_half_angle_deg", where)),
         frequency=_field(m, "frequency_hz", where),
         aperture_radius=_field(m, "aperture_radius", where),
-        ping_rate=_field(m, "ping_rate_hz", where),
+        ping_rate=_field(m, "ping_rate_hz", where, high=MAX_PING_RATE),
         max_range=_field(m, "max_range", where),
     )
     if kind == "ring":
@@ -307,16 +327,15 @@ def _ring_parts(r: dict, where: str) -> dict:
     when the echo is nearer R1 (d1 < d2), is counter-clockwise positive as REP 103
     wants.
     """
-    pairs = _field(r, "pairs", where, int)
-    if pairs < 1:
-        raise LayoutError(f"{where}: field 'pairs' must be >= 1, got {pairs}")
-    separation = _field(r, "separation", where)
-    emitter_height = _field(r, "emitter_height", where, positive=False)
+    pairs = _field(r, "pairs", where, int, high=MAX_RING_PAIRS)
+    separation = _field(r, "separation", where, high=MAX_SENSOR_EXTENT)
+    emitter_height = _field(r, "emitter_height", where, positive=False, high=MAX_SENSOR_EXTENT)
     tiers = r.get("tiers")
     if not isinstance(tiers, list) or not tiers:
         raise LayoutError(f"{where}: field 'tiers' must be a non-empty list of {{radius, height}}")
-    tier_radius = [_field(t, "radius", f"{where}: tiers[{k}]") for k, t in enumerate(tiers)]
-    tier_height = [_field(t, "height", f"{where}: tiers[{k}]", positive=False) for k, t in enumerate(tiers)]
+    tier_radius = [_field(t, "radius", f"{where}: tiers[{k}]", high=MAX_SENSOR_EXTENT) for k, t in enumerate(tiers)]
+    tier_height = [_field(t, "height", f"{where}: tiers[{k}]", positive=False, high=MAX_SENSOR_EXTENT)
+                   for k, t in enumerate(tiers)]
     index = np.arange(pairs)
     yaw = index * (2 * math.pi / pairs)
     tier = index % len(tiers)
@@ -357,11 +376,14 @@ def _explicit_parts(m: dict, where: str, kind: str) -> dict:
             raise LayoutError(f"{here}: field 'position' must be [x, y, z] in m, got {pos!r}")
         try:
             pos = [float(v) for v in pos]
-        except (TypeError, ValueError):
-            raise LayoutError(f"{here}: field 'position' must hold numbers, got {pos!r}") from None
+        except (TypeError, ValueError, OverflowError):
+            pos = [math.nan]
+        if not all(abs(v) <= MAX_SENSOR_EXTENT for v in pos):
+            raise LayoutError(f"{here}: field 'position' must hold three numbers in -{MAX_SENSOR_EXTENT:g}.."
+                              f"{MAX_SENSOR_EXTENT:g} m, got {t['position']!r}")
         yaw = math.radians(_field(t, "yaw_deg", here, positive=False))
         roles = t.get("roles")
-        if not (isinstance(roles, list) and roles and set(roles) <= {"transmit", "receive"}):
+        if not (isinstance(roles, list) and roles and all(r in ("transmit", "receive") for r in roles)):
             raise LayoutError(f"{here}: field 'roles' must be a list of 'transmit'/'receive', got {roles!r}")
         if "receive" in roles:
             names_rx[name] = len(rx)

@@ -142,6 +142,10 @@ _MIN_RANGE = 1e-3
 _MIN_EXTENT = 0.01
 """Shortest extent (m) over which :func:`_line_floor` spreads the end-point error."""
 
+MAX_COORDINATE = 1e6
+"""Largest |coordinate| (m) of a pose or sighting the map takes: beyond it the value is corrupt (and its
+squares in the association would overflow), so it is counted like a non-finite one."""
+
 
 # --------------------------------------------------------------------------- 2-D helpers
 
@@ -336,15 +340,16 @@ class MapCounts:
     pings : int
         Updates with a finite pose.
     rejected_pings : int
-        Updates skipped because the pose was not finite (their sightings are not
-        counted below).
+        Updates skipped because the pose was not finite or beyond
+        :data:`MAX_COORDINATE` (their sightings are not counted below).
     sightings : int
         Landmarks passed to accepted updates.
     invalid : int
         Landmarks flagged ``valid = False`` upstream.
     not_finite : int
         Landmarks flagged valid whose position, covariance, segment or (planes)
-        normal holds NaN or infinity.
+        normal holds NaN or infinity, or whose position or segment lies beyond
+        :data:`MAX_COORDINATE` or standard deviation exceeds it.
     degenerate : int
         Landmarks with a covariance that is not positive definite, an unknown
         class code, a zero plane normal or a position at the sensor.
@@ -712,7 +717,7 @@ class LandmarkMap:
         """
         _check_landmarks(landmarks, "LandmarkMap.update")
         pose = _pose(sensor_pose, "LandmarkMap.update")
-        if not np.all(np.isfinite(pose)):
+        if not (np.all(np.isfinite(pose)) and np.all(np.abs(pose[:2]) <= MAX_COORDINATE)):
             self._counts.rejected_pings += 1
             return
         self._ping += 1
@@ -740,16 +745,20 @@ class LandmarkMap:
         valid = np.asarray(landmarks.valid, bool)
         position = np.asarray(landmarks.position, float)
         covariance = np.asarray(landmarks.covariance, float)
-        covariance = 0.5 * (covariance + np.swapaxes(covariance, 1, 2))
         segment = np.asarray(landmarks.segment, float)
         normal = np.asarray(landmarks.normal, float)
         plane = landmark_class == PLANE
-        # One test for all fields: a sum holding NaN or inf is not finite.
-        total = position.sum(axis=1) + covariance.sum(axis=(1, 2)) + segment.sum(axis=(1, 2))
-        finite = np.isfinite(total + np.where(plane, normal.sum(axis=1), 0.0))
-        normal_length = np.hypot(normal[:, 0], normal[:, 1])
-        distance = np.hypot(sensor[0] - position[:, 0], sensor[1] - position[:, 1])
-        with np.errstate(invalid="ignore"):  # inf - inf in the determinant of a non-finite row
+        # Rows holding NaN, inf or huge values overflow on the way to being rejected.
+        with np.errstate(invalid="ignore", over="ignore"):
+            covariance = 0.5 * (covariance + np.swapaxes(covariance, 1, 2))
+            # One test for all fields: a sum holding NaN or inf is not finite.
+            total = position.sum(axis=1) + covariance.sum(axis=(1, 2)) + segment.sum(axis=(1, 2))
+            in_range = ((np.abs(position).max(axis=1, initial=0) <= MAX_COORDINATE)
+                        & (np.abs(segment).max(axis=(1, 2), initial=0) <= MAX_COORDINATE)
+                        & (np.abs(covariance).max(axis=(1, 2), initial=0) <= MAX_COORDINATE ** 2))
+            finite = np.isfinite(total + np.where(plane, normal.sum(axis=1), 0.0)) & in_range
+            normal_length = np.hypot(normal[:, 0], normal[:, 1])
+            distance = np.hypot(sensor[0] - position[:, 0], sensor[1] - position[:, 1])
             sound = ((landmark_class <= EDGE) & (covariance[:, 0, 0] > 0) & (_determinant(covariance) > 0)
                      & (distance > _MIN_RANGE) & ((normal_length > 0.5) | ~plane))
         self._counts.invalid += int(np.count_nonzero(~valid))

@@ -256,11 +256,15 @@ def _number(value, where, field, low=-math.inf, high=math.inf, low_open=False):
     return number
 
 
+MAX_COORDINATE = 1e6
+"""Largest |coordinate| of a scene, m (and |yaw|, deg): beyond it a value is a typing error, and would overflow."""
+
+
 def _point(value, where, field, size=2):
     if not (isinstance(value, list | tuple) and len(value) == size):
         shape = "[x, y]" if size == 2 else "[x, y, yaw_deg]"
         raise SceneError(f"{where}: field '{field}' must be {shape} in m, got {value!r}")
-    return [_number(v, where, field) for v in value]
+    return [_number(v, where, field, low=-MAX_COORDINATE, high=MAX_COORDINATE) for v in value]
 
 
 def _scene_from_mapping(m: dict, where: str) -> Scene:
@@ -286,7 +290,7 @@ def _scene_from_mapping(m: dict, where: str) -> Scene:
     walls, wall_rows, edges, corner_specs = [], {}, [], []
     for k, item in enumerate(items):
         here = f"{where}: reflectors[{k}]"
-        if not isinstance(item, dict) or item.get("type") not in REFLECTOR_TYPES:
+        if not isinstance(item, dict) or not isinstance(item.get("type"), str) or item["type"] not in REFLECTOR_TYPES:
             got = item.get("type") if isinstance(item, dict) else item
             raise SceneError(f"{here}: field 'type' must be one of {', '.join(REFLECTOR_TYPES)}, got {got!r}")
         kind = item["type"]
@@ -366,6 +370,10 @@ def _corners(specs, walls, wall_rows):
             np.array(length, dtype=float).reshape(-1, 2), np.array(rows, dtype=int).reshape(-1, 2))
 
 
+MAX_LAP_SECONDS = 3600.0
+"""Longest lap of a scene trajectory, s: the simulator samples a lap's poses at once (2000 Hz: 7.2 M poses)."""
+
+
 def _trajectory(t, where) -> Trajectory:
     if not isinstance(t, dict) or set(t) - {"waypoints", "speed", "loop", "yaw_deg"}:
         raise SceneError(f"{where}: expected a mapping with 'waypoints', 'speed' and optional 'loop', 'yaw_deg'")
@@ -379,9 +387,16 @@ def _trajectory(t, where) -> Trajectory:
     if not isinstance(loop, bool):
         raise SceneError(f"{where}: field 'loop' must be true or false, got {loop!r}")
     yaw = t.get("yaw_deg")
+    speed = _number(t.get("speed"), where, "speed", low=0.0, low_open=True)
+    path = np.vstack([waypoints, waypoints[:1]]) if loop else waypoints
+    with np.errstate(over="ignore"):
+        length = float(np.sum(np.hypot(*np.diff(path, axis=0).T)))
+    if not length / speed <= MAX_LAP_SECONDS:  # the driver samples a whole lap of poses at start
+        raise SceneError(f"{where}: field 'speed' must make one lap last at most {MAX_LAP_SECONDS:g} s "
+                         f"(the path is {length:.6g} m long), got {speed!r}")
     return Trajectory(
         waypoints=waypoints,
-        speed=_number(t.get("speed"), where, "speed", low=0.0, low_open=True),
+        speed=speed,
         loop=loop,
         yaw=None if yaw is None else math.radians(_number(yaw, where, "yaw_deg")),
     )

@@ -5,7 +5,7 @@ bytes, decodes frames (:mod:`sonar_ring.frames`) and hands each frame to a
 callback.  When the device goes away (cable unplugged, TCP reset, UDP silence
 longer than ``silence_timeout``) it closes, waits with exponential back-off
 (``min_backoff`` doubling up to ``max_backoff``) and opens again, without the
-caller noticing more than the counts in :attr:`HardwareReader.events`.
+caller noticing more than the counts of :meth:`HardwareReader.counts`.
 
 Device addresses:
 
@@ -89,8 +89,10 @@ def parse_device(address: str) -> tuple[str, dict]:
     if parts.scheme == "serial":
         if not parts.path:
             raise DeviceError(f"device {address!r}: write serial:///dev/ttyUSB0?baud=921600")
-        baud = int(parse_qs(parts.query).get("baud", ["921600"])[0])
-        return "serial", {"path": parts.path, "baud": baud}
+        baud = parse_qs(parts.query).get("baud", ["921600"])[0]
+        if not baud.isdigit() or int(baud) == 0:
+            raise DeviceError(f"device {address!r}: baud must be a positive integer, e.g. ?baud=921600")
+        return "serial", {"path": parts.path, "baud": int(baud)}
     if parts.scheme in ("udp", "tcp"):
         try:
             port = parts.port
@@ -105,11 +107,7 @@ def parse_device(address: str) -> tuple[str, dict]:
 class HardwareReader:
     """Background reader of one device; frames go to ``on_frame`` (from its thread).
 
-    Attributes
-    ----------
-    events : Counter
-        ``connected``, ``disconnected`` (with the error kind), ``silence``
-        timeouts, and the decoder's dropped bytes by reason.
+    The counters are written by the reader thread; read them with :meth:`counts`.
     """
 
     def __init__(self, address: str, on_frame: Callable[[EchoFrame], None], *, silence_timeout: float = 2.0,
@@ -124,8 +122,24 @@ class HardwareReader:
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"sonar_ring reader {address}", daemon=True)
         self.decoder = FrameDecoder()
-        self.events: Counter[str] = Counter()
+        self._events: Counter[str] = Counter()
+        self._counts_lock = threading.Lock()
         self.connected = threading.Event()
+
+    def counts(self) -> Counter:
+        """Connection events and dropped bytes since start, a copy safe to read from any thread.
+
+        ``connected``; ``device lost: <error>`` (cable unplugged, connection
+        reset), ``device silent`` (no bytes for ``silence_timeout``), ``device
+        open failed: <error>``; and the decoder's drops as ``frame_<reason>``
+        (:class:`sonar_ring.frames.FrameDecoder`).
+        """
+        with self._counts_lock:
+            return self._events + Counter({f"frame_{reason}": n for reason, n in self.decoder.errors.items()})
+
+    def _count(self, event: str) -> None:
+        with self._counts_lock:
+            self._events[event] += 1
 
     def start(self) -> None:
         """Start reading in the background."""
@@ -146,17 +160,18 @@ class HardwareReader:
             try:
                 device = self._open()
             except (OSError, ValueError) as error:
-                self.events[f"open failed: {type(error).__name__}"] += 1
+                self._count(f"device open failed: {type(error).__name__}")
                 self._stop.wait(backoff)
                 backoff = min(2 * backoff, self._max_backoff)
                 continue
-            self.events["connected"] += 1
+            self._count("connected")
             self.connected.set()
             try:
                 self._read_until_lost(device)
                 backoff = self._min_backoff
             except OSError as error:
-                self.events[f"disconnected: {type(error).__name__}"] += 1
+                if not isinstance(error, TimeoutError):
+                    self._count(f"device lost: {type(error).__name__}")
             finally:
                 self.connected.clear()
                 device.close()
@@ -172,10 +187,11 @@ class HardwareReader:
             if not data:
                 silent += self._read_timeout
                 if silent >= self._silence_timeout:
-                    self.events["silence"] += 1
+                    self._count("device silent")
                     raise TimeoutError(f"no bytes for {self._silence_timeout} s")
                 continue
             silent = 0.0
-            frames = self.decoder.feed_datagram(data) if datagrams else self.decoder.feed(data)
+            with self._counts_lock:
+                frames = self.decoder.feed_datagram(data) if datagrams else self.decoder.feed(data)
             for frame in frames:
                 self._on_frame(frame)

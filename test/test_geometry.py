@@ -180,7 +180,7 @@ def test_error_handling():
         load_layout(mapping)
     mapping = copy.deepcopy(raw("browne_ring"))
     mapping["frequency_hz"] = "fast"
-    with pytest.raises(LayoutError, match="'frequency_hz' must be float"):
+    with pytest.raises(LayoutError, match="'frequency_hz' must be a finite number > 0, got 'fast'"):
         load_layout(mapping)
     mapping = raw("barshan_kuc_pair")
     mapping["groups"][0]["receivers"] = ["a", "nobody"]

@@ -20,7 +20,8 @@ from sonar_ring.geometry import load_layout
 from sonar_ring.msg import Echoes, LandmarkArray
 from sonar_ring.ros.convert import MessageError, landmarks_from_msg, landmarks_to_msg
 from sonar_ring.ros.diagnostics import NodeHealth
-from sonar_ring.ros.localiser import check_echoes, settings_from
+from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, check_echoes
+from sonar_ring.ros.localiser import settings_from
 from sonar_ring.ros.markers import landmark_markers
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.run import spin
@@ -36,6 +37,8 @@ PARAMS = [
     Param("consistency_z", classify.CONSISTENCY_Z, "significance of the edge/specular consistency test, "
           "standard deviations", low=1.0, high=10.0),
     Param("marker_lifetime", 0.5, "seconds before a ping's markers vanish", low=0.0, high=60.0),
+    EXPECTED_FRAME,
+    FUTURE_TOLERANCE,
 ]
 
 
@@ -51,14 +54,19 @@ class Classifier(Node):
         self._pending: OrderedDict[tuple, dict] = OrderedDict()
         self._landmarks = self.create_publisher(LandmarkArray, "landmarks", qos_profile_sensor_data)
         self._markers = self.create_publisher(MarkerArray, "markers", 10)
-        self.create_subscription(Echoes, "echoes", lambda m: self._arrived("echoes", m), qos_profile_sensor_data)
-        self.create_subscription(LandmarkArray, "landmarks/raw", lambda m: self._arrived("raw", m),
+        self._gates = {kind: InputGate(self, self.health, topic, self.params)
+                       for kind, topic in (("echoes", "echoes"), ("raw", "landmarks/raw"))}
+        self.create_subscription(Echoes, "echoes", lambda m, i: self._arrived("echoes", m, i),
+                                 qos_profile_sensor_data)
+        self.create_subscription(LandmarkArray, "landmarks/raw", lambda m, i: self._arrived("raw", m, i),
                                  qos_profile_sensor_data)
 
     def _on_change(self, changed: dict) -> None:
         self.settings = settings_from(self.params)
 
-    def _arrived(self, kind: str, msg) -> None:
+    def _arrived(self, kind: str, msg, info=None) -> None:
+        if not self._gates[kind].admit(msg.header, info):
+            return
         key = (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id)
         halves = self._pending.setdefault(key, {})
         halves[kind] = msg

@@ -2,8 +2,8 @@
 
 A node calls :meth:`NodeHealth.received` for every input message,
 :meth:`NodeHealth.processed` with the time it took, :meth:`NodeHealth.problem`
-for every bad input or dropped item (counted by reason, logged throttled, and
-turning the status to WARN), and :meth:`NodeHealth.note` for expected losses
+for every bad input or dropped item (counted by reason, a warning logged at
+most every 5 s per reason, and the status WARN), and :meth:`NodeHealth.note` for expected losses
 (an echo one receiver of a pair missed) that are counted but are no fault.
 Once a second the counts go out as a ``diagnostic_msgs/DiagnosticArray``.
 """
@@ -43,6 +43,7 @@ class NodeHealth:
         self._arrivals: deque[float] = deque(maxlen=LATENCY_WINDOW)
         self._latency: deque[float] = deque(maxlen=LATENCY_WINDOW)
         self._reported: Counter[str] = Counter()
+        self._warned: dict[str, float] = {}
         self.problems: Counter[str] = Counter()
         self.notes: Counter[str] = Counter()
         self.received_count = 0
@@ -59,12 +60,19 @@ class NodeHealth:
         self.published_count += published
 
     def problem(self, reason: str, detail: str = "", count: int = 1) -> None:
-        """Count ``count`` problems of kind ``reason`` and log a throttled warning."""
+        """Count ``count`` problems of kind ``reason``; warn at most every ``WARN_THROTTLE_S`` per reason.
+
+        The throttle is per reason, so a flood of one kind does not hide the
+        first of another; the warning says how many there were so far.
+        """
         if count <= 0:
             return
         self.problems[reason] += count
-        self._node.get_logger().warning(f"{reason}: {detail}" if detail else reason,
-                                        throttle_duration_sec=WARN_THROTTLE_S)
+        now = time.monotonic()
+        if now - self._warned.get(reason, -WARN_THROTTLE_S) >= WARN_THROTTLE_S:
+            self._warned[reason] = now
+            total = f"{reason} ({self.problems[reason]} so far)"
+            self._node.get_logger().warning(f"{total}: {detail}" if detail else total)
 
     def note(self, reason: str, count: int = 1) -> None:
         """Count ``count`` expected losses of kind ``reason`` (no warning)."""

@@ -13,12 +13,14 @@ import time
 import numpy as np
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
+from rclpy.subscription import MessageInfo
 
 from sonar_ring import localise, pipeline
 from sonar_ring.geometry import load_layout
 from sonar_ring.msg import Echoes, LandmarkArray
-from sonar_ring.ros.convert import MessageError, echoes_from_msg, landmarks_to_msg
+from sonar_ring.ros.convert import landmarks_to_msg
 from sonar_ring.ros.diagnostics import NodeHealth
+from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, check_echoes
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.run import spin
 
@@ -41,6 +43,8 @@ PARAMS = [
     Param("triad_eps", 0.0, "triads: Kreczmer eq 6 tolerance (0: from his robustness procedure for the layout)",
           low=0.0, high=1.0),
     Param("triad_max_angle", 50.0, "triads: largest azimuth accepted, deg", low=1.0, high=90.0),
+    EXPECTED_FRAME,
+    FUTURE_TOLERANCE,
 ]
 
 
@@ -58,25 +62,6 @@ def settings_from(values: dict) -> pipeline.Settings:
     )
 
 
-def check_echoes(msg: Echoes, layout, health: NodeHealth):
-    """The ping's arrays, or None after counting why it cannot be used."""
-    try:
-        echoes = echoes_from_msg(msg)
-    except MessageError as error:
-        health.problem("malformed_message", str(error))
-        return None
-    if msg.layout != layout.name:
-        health.problem("layout_mismatch", f"echoes of layout {msg.layout!r}, this node runs {layout.name!r}")
-        return None
-    if echoes.tof.shape[1] != layout.receivers_per_group or np.any(echoes.group >= layout.n_groups):
-        health.problem("does_not_fit_layout", f"receivers per group or group index beyond layout {layout.name}")
-        return None
-    if not (np.isfinite(echoes.speed_of_sound) and echoes.speed_of_sound > 0):
-        health.problem("bad_speed_of_sound", f"{echoes.speed_of_sound}")
-        return None
-    return echoes
-
-
 class Localiser(Node):
     """Echoes in, landmark hypotheses out, one message per ping."""
 
@@ -87,14 +72,17 @@ class Localiser(Node):
         self.settings = settings_from(self.params)
         self.health = NodeHealth(self, hardware_id=self.layout.name)
         self._publisher = self.create_publisher(LandmarkArray, "landmarks/raw", qos_profile_sensor_data)
+        self._gate = InputGate(self, self.health, "echoes", self.params)
         self.create_subscription(Echoes, "echoes", self._on_echoes, qos_profile_sensor_data)
 
     def _on_change(self, changed: dict) -> None:
         self.settings = settings_from(self.params)
 
-    def _on_echoes(self, msg: Echoes) -> None:
+    def _on_echoes(self, msg: Echoes, info: MessageInfo) -> None:
         started = time.perf_counter()
         self.health.received()
+        if not self._gate.admit(msg.header, info):
+            return
         echoes = check_echoes(msg, self.layout, self.health)
         if echoes is None:
             return

@@ -2,7 +2,8 @@
 
 Planes are one LINE_LIST (a short segment along the wall through each foot
 point, or the observed extent where it is longer), corners, edges and unknown
-reflectors one POINTS marker each.  Colours are by class, alpha by confidence;
+reflectors one POINTS marker each.  Colours are by class, alpha by confidence
+(per point where confidences differ, else the marker's colour);
 namespaces and ids are fixed, so each ping replaces the previous markers, and a
 lifetime makes them vanish when pings stop.
 """
@@ -15,7 +16,7 @@ from geometry_msgs.msg import Point
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
-from sonar_ring.landmarks import CLASS_NAMES, CORNER, EDGE, PLANE, UNKNOWN, Landmarks
+from sonar_ring.landmarks import CLASS_NAMES, CORNER, EDGE, PLANE, UNKNOWN, Landmarks, ellipse_outlines
 
 CLASS_COLOURS = {
     PLANE: (0.15, 0.45, 1.0),
@@ -34,10 +35,18 @@ def _duration(seconds: float) -> Duration:
     return Duration(sec=whole, nanosec=int(round((seconds - whole) * 1e9)))
 
 
-def _colours(landmark_class: int, confidence: np.ndarray, repeat: int) -> list[ColorRGBA]:
+def _colour(marker: Marker, landmark_class: int, confidence: np.ndarray, repeat: int) -> None:
+    """Colour by class, alpha by confidence: one marker colour when every landmark has the same alpha.
+
+    A per-point colour list costs a message object per point, so it is built only
+    where alphas differ (decided landmarks); undecided ones all have zero confidence.
+    """
     r, g, b = CLASS_COLOURS[landmark_class]
     alpha = MIN_ALPHA + (1.0 - MIN_ALPHA) * np.clip(confidence, 0.0, 1.0)
-    return [ColorRGBA(r=r, g=g, b=b, a=float(a)) for a in np.repeat(alpha, repeat)]
+    uniform = alpha.size == 0 or bool(np.all(alpha == alpha[0]))
+    marker.color = ColorRGBA(r=r, g=g, b=b, a=float(alpha[0]) if alpha.size else 1.0)
+    if not uniform:
+        marker.colors = [ColorRGBA(r=r, g=g, b=b, a=float(a)) for a in np.repeat(alpha, repeat)]
 
 
 def _points(xy: np.ndarray) -> list[Point]:
@@ -70,13 +79,12 @@ def landmark_markers(landmarks: Landmarks, header, namespace: str, lifetime: flo
             marker.type = Marker.LINE_LIST
             marker.scale.x = line_width
             marker.points = _points(plane_segments(chosen, min_plane_length).reshape(-1, 2))
-            marker.colors = _colours(code, chosen.confidence, 2)
+            _colour(marker, code, chosen.confidence, 2)
         else:
             marker.type = Marker.POINTS
             marker.scale.x = marker.scale.y = point_size
             marker.points = _points(chosen.position)
-            marker.colors = _colours(code, chosen.confidence, 1)
-        marker.color = ColorRGBA(r=CLASS_COLOURS[code][0], g=CLASS_COLOURS[code][1], b=CLASS_COLOURS[code][2], a=1.0)
+            _colour(marker, code, chosen.confidence, 1)
         markers.append(marker)
     return MarkerArray(markers=markers)
 
@@ -86,11 +94,7 @@ def covariance_ellipses(landmarks: Landmarks, header, namespace: str, sigma: flo
     """A LINE_LIST of ``sigma``-sigma position ellipses, one per point landmark."""
     chosen = landmarks.select(landmarks.valid & (landmarks.landmark_class != PLANE)
                               & np.all(np.isfinite(landmarks.covariance), axis=(1, 2)))
-    values, vectors = np.linalg.eigh(chosen.covariance)
-    angle = np.linspace(0.0, 2 * np.pi, sides + 1)
-    circle = np.stack([np.cos(angle), np.sin(angle)], axis=-1)  # (S+1, 2)
-    axes = vectors * (sigma * np.sqrt(np.clip(values, 0.0, None)))[:, None, :]  # (L, 2, 2)
-    ring = chosen.position[:, None, :] + np.einsum("lij,sj->lsi", axes, circle)  # (L, S+1, 2)
+    ring = ellipse_outlines(chosen.position, chosen.covariance, sigma, sides)  # (L, S+1, 2)
     pairs = np.stack([ring[:, :-1], ring[:, 1:]], axis=2).reshape(-1, 2)
     marker = Marker(header=header, ns=f"{namespace}/covariance", id=0, type=Marker.LINE_LIST, action=Marker.ADD)
     marker.pose.orientation.w = 1.0

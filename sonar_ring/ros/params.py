@@ -5,7 +5,9 @@ them all with a ``ParameterDescriptor`` (description, range, read-only) and
 installs one ``add_on_set_parameters_callback`` that refuses a bad value with a
 reason and keeps the old one.  rclpy itself enforces the numeric ranges and
 read-only flags given in the descriptors; the callback adds choices and checks
-that depend on the value (finite numbers, non-empty names).
+that depend on the value (finite numbers, non-empty names).  :func:`file_values`
+gives the values a node would start with from a parameters file, without a node
+(``sonar-ring process``).
 """
 
 from __future__ import annotations
@@ -15,7 +17,14 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.exceptions import ParameterException
 from rclpy.node import Node
+
+from sonar_ring.geometry import read_config
+
+
+class ParameterError(ValueError):
+    """A start-up parameter value the node refuses (the text names the parameter and what it must be)."""
 
 
 @dataclass(frozen=True)
@@ -67,17 +76,22 @@ def declare(node: Node, params: list[Param], on_change: Callable[[dict], None] |
     """Declare ``params`` on ``node``; return their values by name.
 
     Start-up values (launch arguments, YAML) are validated like later changes:
-    a bad one raises ``ValueError`` naming the parameter, so the node stops at
-    launch with the reason rather than running misconfigured.  Later changes
+    a bad one raises :class:`ParameterError` naming the parameter (also for
+    what rclpy refuses: a value out of the descriptor's range or of the wrong
+    type), so the node stops at launch with the reason rather than running
+    misconfigured.  Later changes
     that pass validation are handed to ``on_change`` as ``{name: value}``.
     """
     by_name = {p.name: p for p in params}
     values = {}
     for p in params:
-        value = node.declare_parameter(p.name, p.default, p.descriptor()).value
+        try:
+            value = node.declare_parameter(p.name, p.default, p.descriptor()).value
+        except ParameterException as error:
+            raise ParameterError(f"parameter {p.name}: {error}") from None
         reason = p.problem(value)
         if reason:
-            raise ValueError(f"parameter {reason}")
+            raise ParameterError(f"parameter {reason}")
         values[p.name] = value
 
     def validate(changes) -> SetParametersResult:
@@ -97,3 +111,45 @@ def declare(node: Node, params: list[Param], on_change: Callable[[dict], None] |
 
     node.add_on_set_parameters_callback(validate)
     return values
+
+
+def file_values(path, node_name: str, params: list[Param]) -> dict:
+    """The values a node named ``node_name`` (root namespace) starts with, given a ROS parameters YAML file.
+
+    ``path`` is a YAML path or the name of a shipped ``config/params`` file.
+    The defaults of ``params``, overlaid with the file's ``/**`` section and
+    then its ``/**/<node_name>``, ``<node_name>`` or ``/<node_name>`` section
+    (the ``config/params/<layout>.yaml`` format).  Every value is checked as
+    :func:`declare` checks it: the default's type (as rclpy does) and
+    :meth:`Param.problem`.  Names the node does not declare are ignored, as the
+    node ignores them.  A bad file or value raises :class:`ParameterError`
+    naming the file and the parameter.
+    """
+    document, path = read_config(path, "params", ParameterError)
+    values = {p.name: p.default for p in params}
+    by_name = {p.name: p for p in params}
+    for key in ("/**", f"/**/{node_name}", node_name, f"/{node_name}"):
+        section = document.get(key)
+        if section is None:
+            continue
+        given = section.get("ros__parameters") if isinstance(section, dict) else None
+        if not isinstance(given, dict):
+            raise ParameterError(f"{path}: section {key!r} has no ros__parameters mapping")
+        for name, value in given.items():
+            spec = by_name.get(name)
+            if spec is None:
+                continue
+            if not _same_type(value, spec.default):
+                raise ParameterError(f"{path}: parameter {name} must be like {spec.default!r}, got {value!r}")
+            reason = spec.problem(value)
+            if reason:
+                raise ParameterError(f"{path}: parameter {reason}")
+            values[name] = value
+    return values
+
+
+def _same_type(value, default) -> bool:
+    """Whether rclpy would accept ``value`` for a parameter declared with ``default`` (no int/float mixing)."""
+    if isinstance(default, list):
+        return isinstance(value, list) and (not default or all(_same_type(v, default[0]) for v in value))
+    return type(value) is type(default)

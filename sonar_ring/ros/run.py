@@ -4,24 +4,42 @@ from __future__ import annotations
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.logging import get_logger
+
+from sonar_ring.geometry import LayoutError
+from sonar_ring.ros.params import ParameterError
+from sonar_ring.simulate import SceneError
+from sonar_ring.transport import DeviceError
+
+CONFIG_ERRORS = (LayoutError, SceneError, DeviceError, ParameterError)
+"""What a node refuses to start with: a bad layout, scene, device address or parameter."""
 
 
 def spin(*node_classes, args=None) -> None:
     """Create the nodes and spin them in one executor until Ctrl-C or shutdown.
 
     One class is the ``main()`` of a node executable; several make the
-    single-process graph (components sharing one executor).
+    single-process graph (components sharing one executor).  A configuration
+    error (:data:`CONFIG_ERRORS`) is logged as one line naming the file or
+    parameter, the field and the expected value, and the process exits with
+    status 1, without a traceback.
     """
     rclpy.init(args=args)
     nodes = []
+    starting = "sonar_ring"
     try:
-        nodes = [cls() for cls in node_classes]
+        for cls in node_classes:
+            starting = cls.__name__.lower()
+            nodes.append(cls())
         executor = SingleThreadedExecutor()
         for node in nodes:
             executor.add_node(node)
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except CONFIG_ERRORS as error:
+        get_logger(starting).fatal(f"cannot start: {error}")
+        raise SystemExit(1) from None
     finally:
         for node in nodes:
             node.destroy_node()

@@ -1,0 +1,173 @@
+"""What every node checks of an input message before it uses it: header, order, losses, fit to the layout.
+
+One :class:`InputGate` per subscribed topic and node.  It refuses, counting
+each by reason on ``/diagnostics`` (:meth:`NodeHealth.problem`, warning
+throttled):
+
+* ``empty_frame_id`` -- a header without a frame;
+* ``wrong_frame_id`` -- a frame other than the one the node expects
+  (parameter ``frame_id``; empty: any frame, i.e. the driver's);
+* ``future_stamp`` -- a stamp more than ``future_tolerance`` seconds ahead of
+  the node clock (not checked while that clock reads zero: simulated time
+  before the first ``/clock``);
+* ``duplicate_stamp`` -- the stamp of the last accepted message again (a ping
+  published twice: the mapper must not integrate it twice);
+* ``out_of_order_stamp`` -- older than the last accepted message.
+
+When the node clock jumps backwards (a bag replayed in a loop with
+``use_sim_time``) the order starts afresh (counted as ``clock jumped back``).
+It also counts ``dropped_input (<topic>)``: messages a publisher sent that the
+node never took, found from gaps in the publishers' sequence numbers -- pings that arrived
+faster than the node works are dropped by the bounded subscription queue
+(depth 5, sensor-data QoS), never queued without bound, and this is where they
+are counted.
+
+:func:`check_echoes` then takes what is usable of an ``Echoes`` ping
+(:func:`sonar_ring.echoes.screen_ping`): a bad row or value is dropped and
+counted, the rest of the ping is still used.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Callable
+
+from rclpy.node import Node
+
+from sonar_ring.echoes import EchoArrays, screen_ping
+from sonar_ring.msg import Echoes
+from sonar_ring.ros.convert import MessageError, echoes_from_msg
+from sonar_ring.ros.diagnostics import NodeHealth
+from sonar_ring.ros.params import Param
+
+EXPECTED_FRAME = Param("frame_id", "", "frame that incoming pings must carry (empty: any frame, the driver's)")
+FUTURE_TOLERANCE = Param("future_tolerance", 1.0, "largest lead of an input stamp over this node's clock, s; "
+                         "messages stamped later are dropped", low=0.0, high=3600.0)
+PUBLISHERS_TRACKED = 16
+"""Publishers whose sequence numbers are followed per topic (a restarted publisher is a new one)."""
+
+
+def stamp_ns(header) -> int:
+    """A ``std_msgs/Header`` stamp in integer nanoseconds."""
+    return header.stamp.sec * 10**9 + header.stamp.nanosec
+
+
+class InputGate:
+    """The header checks and loss count of one input topic of one node.
+
+    Parameters
+    ----------
+    node : Node
+        Whose clock and parameters apply.
+    health : NodeHealth
+        Where refusals and losses are counted.
+    topic : str
+        Input topic, for the log lines.
+    params : dict
+        The node's live parameter values (:func:`sonar_ring.ros.params.declare`);
+        ``future_tolerance`` and, if given, ``frame_param`` are read at every message.
+    frame_param : str or None
+        Parameter naming the frame the messages must carry (empty value: any
+        non-empty frame); None: the frame is not checked (the driver's
+        ``tof_in``, which it restamps with its own ``frame_id``).
+    on_clock_jump : callable, optional
+        Called when the node clock jumped backwards, for state kept in stamp
+        order (the mapper's odometry history).
+    """
+
+    def __init__(self, node: Node, health: NodeHealth, topic: str, params: dict,
+                 frame_param: str | None = EXPECTED_FRAME.name, on_clock_jump: Callable[[], None] | None = None
+                 ) -> None:
+        self._node = node
+        self._health = health
+        self._topic = topic
+        self._params = params
+        self._frame_param = frame_param
+        self._on_clock_jump = on_clock_jump
+        self._last_stamp: int | None = None
+        self._last_clock = 0
+        self._sequences: OrderedDict[bytes, int] = OrderedDict()
+
+    def admit(self, header, info=None) -> bool:
+        """True if a message with ``header`` may be used; otherwise count why not.
+
+        ``info`` is the ``MessageInfo`` rclpy passes to a two-argument
+        subscription callback; with it, messages lost before this one are counted.
+        """
+        if info is not None:
+            self._count_lost(info)
+        reason, detail = self._refusal(header)
+        if reason:
+            self._health.problem(reason, f"{self._topic}: {detail}")
+            return False
+        return True
+
+    def _refusal(self, header) -> tuple[str, str]:
+        if self._frame_param is not None:
+            expected = self._params[self._frame_param]
+            if not header.frame_id:
+                return "empty_frame_id", "message without a frame_id"
+            if expected and header.frame_id != expected:
+                return "wrong_frame_id", f"frame {header.frame_id!r}, expected {expected!r}"
+        stamp = stamp_ns(header)
+        now = self._node.get_clock().now().nanoseconds
+        if now < self._last_clock:
+            self._health.note("clock jumped back")
+            self._last_stamp = None
+            if self._on_clock_jump:
+                self._on_clock_jump()
+        self._last_clock = now
+        lead = (stamp - now) * 1e-9
+        if now > 0 and lead > self._params[FUTURE_TOLERANCE.name]:
+            return "future_stamp", f"stamp {lead:.3f} s ahead of the node clock"
+        if self._last_stamp is not None and stamp <= self._last_stamp:
+            if stamp == self._last_stamp:
+                return "duplicate_stamp", f"stamp {stamp} ns again"
+            return "out_of_order_stamp", f"stamp {(self._last_stamp - stamp) * 1e-9:.3f} s older than the last"
+        self._last_stamp = stamp
+        return "", ""
+
+    def _count_lost(self, info) -> None:
+        sequence = info.get("publication_sequence_number")
+        publisher = info.get("publisher_gid")
+        if sequence is None or publisher is None:
+            return
+        key = bytes(publisher["data"])
+        last = self._sequences.pop(key, None)
+        self._sequences[key] = sequence
+        if len(self._sequences) > PUBLISHERS_TRACKED:
+            self._sequences.popitem(last=False)
+        if last is not None and sequence > last + 1:
+            self._health.problem(f"dropped_input ({self._topic})", f"{sequence - last - 1} messages arrived faster "
+                                 "than this node works", count=sequence - last - 1)
+
+
+def check_echoes(msg: Echoes, layout, health: NodeHealth) -> EchoArrays | None:
+    """The usable part of an Echoes ping, or None after counting why nothing is.
+
+    A message whose arrays do not fit together (``malformed_message``), of
+    another layout (``layout_mismatch``) or that the layout cannot read (see
+    :func:`sonar_ring.echoes.screen_ping`) is refused whole; bad rows and values
+    are dropped and counted, and the rest of the ping is returned.  Nodes that
+    screen the same message keep the same rows, so row indices (``echo``)
+    agree between the localiser and the classifier.
+    """
+    try:
+        echoes = echoes_from_msg(msg)
+    except MessageError as error:
+        health.problem("malformed_message", str(error))
+        return None
+    if msg.layout != layout.name:
+        health.problem("layout_mismatch", f"echoes of layout {msg.layout!r}, this node runs {layout.name!r}")
+        return None
+    return screened(echoes, layout, health, f"ping at {msg.header.stamp.sec}.{msg.header.stamp.nanosec:09d}")
+
+
+def screened(echoes: EchoArrays, layout, health: NodeHealth, where: str) -> EchoArrays | None:
+    """:func:`sonar_ring.echoes.screen_ping` with its rejections counted on ``health``."""
+    result = screen_ping(echoes, layout)
+    for reason, count in result.problems.items():
+        health.problem(reason, f"{where}: {result.detail}" if result.detail else where, count)
+    if result.echoes is not None and result.echoes.n_echoes == 0:
+        health.note("empty ping")
+    return result.echoes

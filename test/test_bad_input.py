@@ -1,0 +1,279 @@
+"""Bad messages at every node: counted per reason on /diagnostics, and the valid rest of a ping still used."""
+
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data
+from ros_harness import spin_until
+from sonar_ring.msg import Echoes, LandmarkArray
+from std_msgs.msg import Header
+
+from sonar_ring.echoes import EchoArrays
+from sonar_ring.geometry import load_layout
+from sonar_ring.ros.classifier import Classifier
+from sonar_ring.ros.convert import echoes_to_msg, landmarks_from_msg, landmarks_to_msg
+from sonar_ring.ros.diagnostics import NodeHealth
+from sonar_ring.ros.driver import Driver
+from sonar_ring.ros.inputs import InputGate
+from sonar_ring.ros.localiser import Localiser
+from sonar_ring.ros.mapper import Mapper
+from sonar_ring.simulate import Simulator, load_scene
+
+pytestmark = pytest.mark.ros
+
+LAYOUT = load_layout("browne_ring")
+
+
+def wall_ping() -> EchoArrays:
+    """A noise-free ping of the single-wall scene: every row gives valid hypotheses."""
+    ping = Simulator(load_scene("single_wall"), LAYOUT).ping(load_scene("single_wall").sensor_pose)
+    return replace(ping.echoes, layout=LAYOUT.name)
+
+
+def with_rows(echoes: EchoArrays, group, transmitter, tof) -> EchoArrays:
+    """``echoes`` with extra rows appended (amplitudes 0.5)."""
+    tof = np.asarray(tof, dtype=float).reshape(-1, 2)
+    return replace(echoes, group=np.concatenate([echoes.group, np.asarray(group, np.uint16)]),
+                   transmitter=np.concatenate([echoes.transmitter, np.asarray(transmitter, np.uint8)]),
+                   tof=np.vstack([echoes.tof, tof]),
+                   amplitude=np.vstack([echoes.amplitude, np.full(tof.shape, 0.5, np.float32)]))
+
+
+class Bench:
+    """One node under test and a peer that publishes to it and collects what it publishes."""
+
+    def __init__(self, node, in_topic, in_type, out_topic, out_type):
+        self.node = node
+        self.peer = rclpy.create_node("bad_input_peer")
+        self.publisher = self.peer.create_publisher(in_type, in_topic, qos_profile_sensor_data)
+        self.out = []
+        self.peer.create_subscription(out_type, out_topic, self.out.append, qos_profile_sensor_data)
+        self.executor = SingleThreadedExecutor()
+        for n in (node, self.peer):
+            self.executor.add_node(n)
+        assert spin_until(self.executor, lambda: self.publisher.get_subscription_count() > 0
+                          and self.peer.count_publishers(out_topic) > 0, timeout=10)
+        self._stamp = self.peer.get_clock().now().nanoseconds
+
+    def header(self, frame_id="sonar_ring", seconds_ahead=None):
+        """A header with a fresh stamp after the previous one (or ``seconds_ahead`` of the clock)."""
+        self._stamp += 10**6
+        stamp = self._stamp if seconds_ahead is None else self.peer.get_clock().now().nanoseconds \
+            + int(seconds_ahead * 1e9)
+        header = Header(frame_id=frame_id)
+        header.stamp.sec, header.stamp.nanosec = divmod(stamp, 10**9)
+        return header
+
+    def send(self, msg):
+        """Publish ``msg`` and spin until the node has taken it."""
+        before = self.node.health.received_count
+        self.publisher.publish(msg)
+        assert spin_until(self.executor, lambda: self.node.health.received_count > before, timeout=5)
+        return msg
+
+    def outputs_settle(self, count):
+        return spin_until(self.executor, lambda: len(self.out) >= count, timeout=5)
+
+    def close(self):
+        for n in (self.node, self.peer):
+            n.destroy_node()
+
+
+def problems(node):
+    return {reason: n for reason, n in node.health.problems.items() if n}
+
+
+def diagnostics_values(node):
+    return {value.key: value.value for value in node.health.status().values}
+
+
+def test_driver_topic_source_drops_bad_values_rows_and_messages_and_keeps_the_rest(ros):
+    bench = Bench(Driver(parameter_overrides=[Parameter("source", value="topic")]), "tof_in", Echoes, "echoes",
+                  Echoes)
+    good = wall_ping()
+    n = good.n_echoes
+    bad_rows = with_rows(good, group=[60, 3, 4, 5, 6, 7], transmitter=[0, 9, 0, 0, 0, 0],
+                         tof=[[0.01, 0.01], [0.01, 0.01], [np.inf, 0.01], [-0.01, 0.01], [1e9, 0.01],
+                              [np.nan, np.nan]])
+    bench.send(echoes_to_msg(bad_rows, bench.header()))
+    assert bench.outputs_settle(1)
+    kept = bench.out[-1]
+    # the five good rows, and the three rows that lost one bad TOF but kept the other
+    assert len(kept.group) == n + 3 and list(kept.group[n:]) == [4, 5, 6]
+    tof = np.asarray(kept.tof).reshape(-1, 2)
+    assert np.all(np.isnan(tof[n:, 0])) and np.all(tof[n:, 1] == 0.01)
+    assert problems(bench.node) == {"unknown_group": 1, "unknown_transmitter": 1, "not_finite_tof": 1,
+                                    "not_positive_tof": 1, "tof_too_long": 1, "empty_row": 1}
+
+    malformed = echoes_to_msg(good, bench.header())
+    malformed.tof = malformed.tof[:3]
+    bench.send(malformed)
+    three_receivers = replace(good, tof=np.hstack([good.tof, good.tof[:, :1]]), amplitude=np.empty((n, 0)))
+    bench.send(echoes_to_msg(three_receivers, bench.header()))
+    bench.send(echoes_to_msg(replace(good, speed_of_sound=np.nan), bench.header()))
+    bench.send(echoes_to_msg(replace(good, speed_of_sound=-343.0), bench.header()))
+    last_good = bench.send(echoes_to_msg(good, bench.header()))
+    bench.send(last_good)  # the same ping twice
+    older = bench.header()
+    bench.send(echoes_to_msg(good, bench.header()))
+    bench.send(echoes_to_msg(good, older))
+    bench.send(echoes_to_msg(good, bench.header(seconds_ahead=30.0)))
+    empty = replace(good, group=good.group[:0], transmitter=good.transmitter[:0], tof=good.tof[:0],
+                    amplitude=good.amplitude[:0])
+    bench.send(echoes_to_msg(empty, bench.header()))
+    assert bench.outputs_settle(4)  # the bad-rows ping, the good one, the newer one and the empty one
+    assert [len(m.group) for m in bench.out] == [n + 3, n, n, 0]
+    found = problems(bench.node)
+    assert {reason: found[reason] for reason in ("malformed_message", "wrong_receivers_per_group",
+                                                 "bad_speed_of_sound", "duplicate_stamp", "out_of_order_stamp",
+                                                 "future_stamp")} == {
+        "malformed_message": 1, "wrong_receivers_per_group": 1, "bad_speed_of_sound": 2, "duplicate_stamp": 1,
+        "out_of_order_stamp": 1, "future_stamp": 1}
+    assert bench.node.health.notes["empty ping"] == 1
+    values = diagnostics_values(bench.node)
+    assert values["problems: future_stamp"] == "1" and values["problems: unknown_group"] == "1"
+    assert bench.node.health.status().level == bench.node.health.status().WARN
+    bench.close()
+
+
+def test_localiser_uses_the_valid_rows_of_a_ping_and_refuses_bad_headers(ros):
+    localiser = Localiser(parameter_overrides=[Parameter("frame_id", value="sonar_ring")])
+    bench = Bench(localiser, "echoes", Echoes, "landmarks/raw", LandmarkArray)
+    good = wall_ping()
+    mixed = with_rows(good, group=[60, 2], transmitter=[0, 5], tof=[[0.01, 0.01], [0.01, 0.01]])
+    mixed = replace(mixed, tof=np.vstack([[np.inf, 0.01], mixed.tof[1:]]))  # row 0 loses a receiver
+    bench.send(echoes_to_msg(mixed, bench.header()))
+    assert bench.outputs_settle(1)
+    hypotheses = landmarks_from_msg(bench.out[-1])
+    assert set(hypotheses.group) == set(good.group[1:].tolist())
+    assert set(hypotheses.echo) == set(range(1, good.n_echoes)), "row 0 (one TOF left) gives no pair hypothesis"
+    assert problems(localiser) == {"unknown_group": 1, "unknown_transmitter": 1, "not_finite_tof": 1}
+
+    bench.send(echoes_to_msg(good, bench.header(frame_id="")))
+    bench.send(echoes_to_msg(good, bench.header(frame_id="base_link")))
+    bench.send(echoes_to_msg(replace(good, layout="kreczmer_triad"), bench.header()))
+    duplicate = bench.send(echoes_to_msg(good, bench.header()))
+    bench.send(duplicate)
+    assert bench.outputs_settle(2)
+    assert {reason: n for reason, n in problems(localiser).items() if "frame" in reason or "layout" in reason
+            or "stamp" in reason} == {"empty_frame_id": 1, "wrong_frame_id": 1, "layout_mismatch": 1,
+                                      "duplicate_stamp": 1}
+    result = localiser.set_parameters([Parameter("future_tolerance", value=-1.0)])[0]
+    assert not result.successful and localiser.get_parameter("future_tolerance").value == 1.0
+    bench.close()
+
+
+class ManualClock:
+    """Stands in for a node's clock (simulated time): ``get_clock().now().nanoseconds`` is what the test sets."""
+
+    def __init__(self):
+        self.nanoseconds = 0
+
+    def get_clock(self):
+        return self
+
+    def now(self):
+        return self
+
+
+def test_stamp_order_restarts_when_simulated_time_jumps_back(ros):
+    node = rclpy.create_node("gate_owner")
+    health = NodeHealth(node)
+    clock = ManualClock()
+    forgotten = []
+    gate = InputGate(clock, health, "echoes", {"frame_id": "", "future_tolerance": 1.0},
+                     on_clock_jump=lambda: forgotten.append(True))
+
+    def header(seconds):
+        h = Header(frame_id="sonar_ring")
+        h.stamp.sec = seconds
+        return h
+
+    assert gate.admit(header(100)), "a zero clock (no /clock yet) checks no stamp for the future"
+    clock.nanoseconds = 101 * 10**9
+    assert gate.admit(header(101)) and not gate.admit(header(101)) and not gate.admit(header(99))
+    assert not gate.admit(header(103))
+    clock.nanoseconds = 5 * 10**9  # the bag starts again
+    assert gate.admit(header(5)) and gate.admit(header(6)) and forgotten == [True]
+    assert health.problems == {"duplicate_stamp": 1, "out_of_order_stamp": 1, "future_stamp": 1}
+    assert health.notes == {"clock jumped back": 1}
+    node.destroy_node()
+
+
+def test_warnings_are_throttled_per_reason_and_every_problem_counted(ros, capfd):
+    node = rclpy.create_node("throttled")
+    health = NodeHealth(node)
+    for _ in range(100):
+        health.problem("flood", "the same again")
+    health.problem("other", "something else")
+    logged = capfd.readouterr().err
+    assert logged.count("flood (1 so far): the same again") == 1 and "flood (2 so far)" not in logged
+    assert logged.count("other (1 so far): something else") == 1, "a flood of one kind hides no other"
+    assert health.problems == {"flood": 100, "other": 1}
+    node.destroy_node()
+
+
+def test_a_burst_beyond_the_queue_is_dropped_and_counted_not_queued(ros):
+    localiser = Localiser()
+    bench = Bench(localiser, "echoes", Echoes, "landmarks/raw", LandmarkArray)
+    good = wall_ping()
+    bench.send(echoes_to_msg(good, bench.header()))
+    burst = 50
+    for _ in range(burst):  # faster than the node takes them: nothing spins meanwhile
+        bench.publisher.publish(echoes_to_msg(good, bench.header()))
+    spin_until(bench.executor, lambda: False, timeout=1.0)
+    taken = localiser.health.received_count - 1
+    assert taken <= 10, "the subscription queue holds a few pings, not the burst"
+    assert problems(localiser) == {"dropped_input (echoes)": burst - taken}
+    bench.close()
+
+
+def test_mapper_integrates_a_ping_once_and_refuses_stale_and_future_ones(ros):
+    mapper = Mapper(parameter_overrides=[Parameter("use_odometry", value=False)])
+    bench = Bench(mapper, "landmarks", LandmarkArray, "map/landmarks", LandmarkArray)
+    landmarks = landmarks_from_msg(_one_ping_of_landmarks())
+    first = bench.send(landmarks_to_msg(landmarks, bench.header()))
+    bench.send(first)
+    older = bench.header()
+    bench.send(landmarks_to_msg(landmarks, bench.header()))
+    bench.send(landmarks_to_msg(landmarks, older))
+    bench.send(landmarks_to_msg(landmarks, bench.header(seconds_ahead=5.0)))
+    bench.send(landmarks_to_msg(landmarks, bench.header(frame_id="")))
+    malformed = landmarks_to_msg(landmarks, bench.header())
+    malformed.position = malformed.position[:-1]
+    bench.send(malformed)
+    assert mapper.map.counts.pings == 2
+    assert problems(mapper) == {"duplicate_stamp": 1, "out_of_order_stamp": 1, "future_stamp": 1,
+                                "empty_frame_id": 1, "malformed_message": 1}
+    bench.close()
+
+
+def test_classifier_pairs_each_ping_once(ros):
+    classifier = Classifier()
+    bench = Bench(classifier, "echoes", Echoes, "landmarks", LandmarkArray)
+    raw_publisher = bench.peer.create_publisher(LandmarkArray, "landmarks/raw", qos_profile_sensor_data)
+    assert spin_until(bench.executor, lambda: raw_publisher.get_subscription_count() > 0, timeout=10)
+    header = bench.header()
+    echoes_msg = echoes_to_msg(wall_ping(), header)
+    raw = _one_ping_of_landmarks()
+    raw.header = header
+    for _ in range(2):
+        bench.publisher.publish(echoes_msg)
+        raw_publisher.publish(raw)
+    assert bench.outputs_settle(1)
+    assert spin_until(bench.executor, lambda: classifier.health.problems["duplicate_stamp"] == 2, timeout=5)
+    assert len(bench.out) == 1
+    assert problems(classifier) == {"duplicate_stamp": 2}
+    bench.close()
+
+
+def _one_ping_of_landmarks():
+    """The localiser's hypotheses for the single-wall ping, as a message."""
+    from sonar_ring import pipeline
+
+    hypotheses = pipeline.localise_ping(LAYOUT, wall_ping())
+    return landmarks_to_msg(hypotheses.select(hypotheses.valid), Header(frame_id="sonar_ring"))

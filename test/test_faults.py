@@ -1,0 +1,122 @@
+"""Faults while running: the driver's device resets, a node restarts mid-run, a subscriber joins late."""
+
+import os
+import signal
+import socket
+import struct
+import subprocess
+import time
+
+import pytest
+import rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.parameter import Parameter
+from rclpy.qos import qos_profile_sensor_data
+from ros_harness import MAP_QOS, executable, spin_until
+from sonar_ring.msg import Echoes, LandmarkArray
+from test_transport import frame, ring_ping
+
+from sonar_ring.frames import FrameDecoder
+from sonar_ring.ros.convert import landmarks_from_msg
+from sonar_ring.ros.driver import HARDWARE_QUEUE, Driver
+
+pytestmark = pytest.mark.ros
+
+
+def test_driver_keeps_publishing_across_a_tcp_reset_of_its_device(ros):
+    server = socket.create_server(("127.0.0.1", 0))
+    server.settimeout(10)
+    port = server.getsockname()[1]
+    driver = Driver(parameter_overrides=[Parameter("source", value="hardware"),
+                                         Parameter("device", value=f"tcp://127.0.0.1:{port}")])
+    listener = rclpy.create_node("device_listener")
+    published = []
+    listener.create_subscription(Echoes, "echoes", published.append, qos_profile_sensor_data)
+    executor = SingleThreadedExecutor()
+    for node in (driver, listener):
+        executor.add_node(node)
+
+    def delivered(connection, sequence):
+        """Send frame ``sequence`` until the driver publishes its ping."""
+        group = ring_ping(sequence, n=1).group.tolist()
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            connection.sendall(frame(sequence))
+            if spin_until(executor, lambda: any(list(m.group) == group for m in published), 0.1):
+                return True
+        return False
+
+    with server:
+        connection, _ = server.accept()
+        corrupted = bytearray(frame(7))
+        corrupted[-1] ^= 0xFF
+        connection.sendall(b"junk" + bytes(corrupted))  # dropped and counted; the next frame decodes
+        assert delivered(connection, 1)
+        connection.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, struct.pack("ii", 1, 0))
+        connection.close()  # RST: what a device does when it reboots
+        connection, _ = server.accept()  # the driver reconnects by itself
+        with connection:
+            assert delivered(connection, 2)
+            connection.sendall(frame(2))  # the same frame again: dropped
+            assert spin_until(executor, lambda: driver.health.problems["duplicate_frame"] >= 1, timeout=5)
+    assert driver.health.problems["device lost: ConnectionResetError"] == 1
+    assert driver.health.problems["frame_bad_crc"] == 1 and driver.health.problems["frame_garbage"] >= 4
+    assert driver.health.notes["device connected"] == 2
+    for node in (driver, listener):
+        node.destroy_node()
+
+
+def test_restarted_localiser_rejoins_and_a_late_subscriber_gets_the_map(ros):
+    namespace = f"/faults_{os.getpid()}"
+
+    def start(name):
+        return subprocess.Popen([executable(name), "--ros-args", "-r", f"__ns:={namespace}", "-p",
+                                 "source:=simulator", "-p", "map_rate:=5.0"])
+
+    processes = {name: start(name) for name in ("driver", "localiser", "classifier", "mapper")}
+    observer = rclpy.create_node("fault_observer", namespace=namespace)
+    landmarks = []
+    observer.create_subscription(LandmarkArray, "landmarks", landmarks.append, qos_profile_sensor_data)
+    executor = SingleThreadedExecutor()
+    executor.add_node(observer)
+    try:
+        assert spin_until(executor, lambda: len(landmarks) >= 10, timeout=40)
+        processes["localiser"].send_signal(signal.SIGINT)
+        assert processes["localiser"].wait(timeout=20) == 0
+        spin_until(executor, lambda: False, timeout=0.5)
+        landmarks.clear()
+        spin_until(executor, lambda: False, timeout=1.0)
+        assert not landmarks, "without a localiser the classifier has nothing to label"
+        processes["localiser"] = start("localiser")
+        assert spin_until(executor, lambda: len(landmarks) >= 10, timeout=40), "the new localiser rejoined"
+
+        processes["driver"].send_signal(signal.SIGINT)  # no more pings: the map stops changing,
+        assert processes["driver"].wait(timeout=20) == 0
+        spin_until(executor, lambda: False, timeout=1.0)  # and the mapper stops publishing it
+        late = rclpy.create_node("late_map_subscriber", namespace=namespace)
+        maps = []
+        late.create_subscription(LandmarkArray, "map/landmarks", maps.append, MAP_QOS)
+        executor.add_node(late)
+        assert spin_until(executor, lambda: maps, timeout=10), "transient local: the latest map, at once"
+        assert len(landmarks_from_msg(maps[0])) > 0
+    finally:
+        for process in processes.values():
+            process.send_signal(signal.SIGINT)
+        codes = [process.wait(timeout=20) for process in processes.values()]
+    assert codes == [0, 0, 0, 0]
+
+
+def test_driver_drops_and_counts_frames_beyond_its_queue(ros):
+    """A burst from the device faster than the executor drains it: the oldest frames go, counted."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    driver = Driver(parameter_overrides=[Parameter("source", value="hardware"),
+                                         Parameter("device", value=f"udp://127.0.0.1:{port}")])
+    decoded = FrameDecoder().feed(b"".join(frame(sequence) for sequence in range(100)))
+    for one in decoded:  # what the reader thread hands over while the executor is busy elsewhere
+        driver._on_frame(one)
+    driver._drain_frames()
+    assert driver.pings_published == HARDWARE_QUEUE
+    assert driver.health.problems["dropped_queue_full"] == 100 - HARDWARE_QUEUE
+    driver.destroy_node()
