@@ -133,3 +133,16 @@ def make_landmarks(landmark_class, position, *, normal=None, covariance=None, co
         valid=filled(valid, (count,), bool, True),
         reason=filled(reason, (count,), np.uint8, 0),
     )
+
+
+def ellipse_outlines(position, covariance, sigma: float = 2.0, sides: int = 48) -> np.ndarray:
+    """Closed ``sigma``-sigma outlines of 2-D Gaussians, shape (L, sides + 1, 2), m.
+
+    ``position`` (L, 2) m and ``covariance`` (L, 2, 2) m^2, e.g. of
+    :class:`Landmarks`; the first point of each outline is repeated at its end.
+    """
+    values, vectors = np.linalg.eigh(covariance)
+    angle = np.linspace(0.0, 2.0 * np.pi, sides + 1)
+    circle = np.stack([np.cos(angle), np.sin(angle)], axis=-1)
+    axes = vectors * (sigma * np.sqrt(np.clip(values, 0.0, None)))[:, None, :]
+    return np.asarray(position)[:, None, :] + np.einsum("lij,sj->lsi", axes, circle)

@@ -9,6 +9,8 @@ corners as red squares, edges as green triangles, the sensor's receivers as
 grey dots and its transmitters as stars, and each echo's reflection point
 (where the sound a receiver heard last touched the reflector) as a dot in the
 colour of the reflector's class, joined to its receiver by a thin line.
+:func:`save_map_png` draws a landmark map over the true scene and the robot's
+path (the demo's ``map.png``).
 """
 
 from __future__ import annotations
@@ -17,13 +19,15 @@ from pathlib import Path
 
 import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 
 from sonar_ring.geometry import Layout
+from sonar_ring.landmarks import UNKNOWN, Landmarks, ellipse_outlines
 from sonar_ring.simulate import CLASS_NAMES, CORNER, EDGE, PLANE, Ping, Scene
 
-CLASS_COLOURS = {PLANE: "tab:blue", CORNER: "tab:red", EDGE: "tab:green"}
-"""Colour of each reflector class code."""
+CLASS_COLOURS = {PLANE: "tab:blue", CORNER: "tab:red", EDGE: "tab:green", UNKNOWN: "tab:grey"}
+"""Colour of each class code."""
 
 
 def to_world(points, pose) -> np.ndarray:
@@ -32,16 +36,17 @@ def to_world(points, pose) -> np.ndarray:
     return np.asarray(points) @ np.array([[c, s], [-s, c]]) + pose[:2]
 
 
-def draw_scene(ax, scene: Scene) -> None:
-    """Walls, corners and edges of ``scene`` on the axes ``ax``."""
+def draw_scene(ax, scene: Scene, prefix: str = "") -> None:
+    """Walls, corners and edges of ``scene`` on the axes ``ax``; legend labels start with ``prefix``."""
     for start, end in scene.walls:
-        ax.plot([start[0], end[0]], [start[1], end[1]], color="black", linewidth=2.0, solid_capstyle="butt")
+        ax.plot([start[0], end[0]], [start[1], end[1]], color="black", linewidth=2.0, solid_capstyle="butt",
+                label=f"{prefix}wall")
     if len(scene.corner_point):
         ax.scatter(*scene.corner_point.T, marker="s", s=60, facecolors="none", edgecolors=CLASS_COLOURS[CORNER],
-                   linewidths=1.5, label="corner", zorder=3)
+                   linewidths=1.5, label=f"{prefix}corner", zorder=3)
     if len(scene.edges):
         ax.scatter(*scene.edges.T, marker="^", s=60, facecolors="none", edgecolors=CLASS_COLOURS[EDGE],
-                   linewidths=1.5, label="edge", zorder=3)
+                   linewidths=1.5, label=f"{prefix}edge", zorder=3)
 
 
 def draw_sensor(ax, layout: Layout, pose) -> None:
@@ -94,9 +99,7 @@ def save_png(path, scene: Scene, layout: Layout, pings, title: str | None = None
     Path
         The file written.
     """
-    figure = Figure(figsize=(9, 7.5), dpi=110)
-    FigureCanvasAgg(figure)
-    ax = figure.add_subplot()
+    figure, ax = _world_figure((9, 7.5), dpi=110)
     draw_scene(ax, scene)
     poses = np.array([p.pose for p in pings]).reshape(-1, 3)
     if len(pings) > 1:
@@ -104,15 +107,108 @@ def save_png(path, scene: Scene, layout: Layout, pings, title: str | None = None
     for ping in pings:
         draw_echoes(ax, ping, layout, rays=len(pings) == 1)
     draw_sensor(ax, layout, poses[0])
-    handles, labels = ax.get_legend_handles_labels()
-    unique = dict(zip(labels, handles, strict=True))
-    ax.legend(unique.values(), unique.keys(), loc="upper right", fontsize=8, framealpha=0.9)
+    _legend(ax, loc="upper right")
+    echoes = sum(p.n_echoes for p in pings)
+    return _save(figure, ax, path, title or f"{scene.name} / {layout.name}: {len(pings)} ping(s), {echoes} echoes")
+
+
+def _world_figure(size, dpi: int):
+    """An off-screen figure and its axes, for drawing in the world frame."""
+    figure = Figure(figsize=size, dpi=dpi)
+    FigureCanvasAgg(figure)
+    return figure, figure.add_subplot()
+
+
+def _save(figure, ax, path, title: str, fontsize: float | None = None) -> Path:
+    """Equal axes in metres, the title and a grid; write the PNG and return its path."""
     ax.set_aspect("equal")
     ax.set_xlabel("x [m] (world)")
     ax.set_ylabel("y [m] (world)")
-    echoes = sum(p.n_echoes for p in pings)
-    ax.set_title(title or f"{scene.name} / {layout.name}: {len(pings)} ping(s), {echoes} echoes")
+    ax.set_title(title, fontsize=fontsize)
     ax.grid(True, linewidth=0.3)
+    figure.tight_layout()
     path = Path(path)
     figure.savefig(path)
     return path
+
+
+def _legend(ax, **where) -> None:
+    """One legend entry per label (walls and ellipses are drawn piece by piece under one label)."""
+    handles, labels = ax.get_legend_handles_labels()
+    unique = dict(zip(labels, handles, strict=True))
+    ax.legend(unique.values(), unique.keys(), fontsize=8, framealpha=0.9, **where)
+
+
+def draw_map(ax, landmarks: Landmarks, sigma: float = 2.0, magnify: float = 1.0) -> None:
+    """A landmark map (world frame) on ``ax``: walls as their observed extent, points with ``sigma`` ellipses.
+
+    Colours by class (:data:`CLASS_COLOURS`); corners, edges and unknown
+    reflectors as filled dots; the ellipses drawn ``magnify`` times their size
+    (the legend says so).
+    """
+    walls = landmarks.select(landmarks.valid & (landmarks.landmark_class == PLANE))
+    if len(walls):
+        ax.add_collection(LineCollection(walls.segment, colors=CLASS_COLOURS[PLANE], linewidths=3.0, alpha=0.75,
+                                         label="map: plane", zorder=4))
+    points = landmarks.select(landmarks.valid & (landmarks.landmark_class != PLANE))
+    for code in (CORNER, EDGE, UNKNOWN):
+        chosen = points.select(points.landmark_class == code)
+        if len(chosen):
+            ax.scatter(*chosen.position.T, s=14, color=CLASS_COLOURS[code], label=f"map: {CLASS_NAMES[code]}",
+                       zorder=5)
+    if len(points):
+        label = f"map: {sigma:g}σ ellipse" + (f" ×{magnify:g}" if magnify != 1 else "")
+        ax.add_collection(LineCollection(ellipse_outlines(points.position, points.covariance, sigma * magnify),
+                                         colors=[CLASS_COLOURS[int(c)] for c in points.landmark_class],
+                                         linewidths=0.8, label=label, zorder=5))
+
+
+def visible_magnification(covariance, extent: float, sigma: float = 2.0, share: float = 0.025) -> float:
+    """A 1-2-5 magnification that makes the ellipses of a map visible at the scale of the plot.
+
+    The median half-length of the ``sigma`` ellipses of ``covariance`` (L, 2, 2),
+    m^2, times the factor is at least ``share`` of ``extent`` (m, the plot's
+    size); 1 when it already is.
+    """
+    if not len(covariance):
+        return 1.0
+    semi_axis = sigma * float(np.median(np.sqrt(np.clip(np.linalg.eigvalsh(covariance)[:, -1], 0.0, None))))
+    wanted = share * extent / max(semi_axis, 1e-12)
+    if wanted <= 1.0:
+        return 1.0
+    decade = 10.0 ** np.floor(np.log10(wanted))
+    return float(max(step * decade for step in (1.0, 2.0, 5.0) if step * decade <= wanted))
+
+
+def save_map_png(path, scene: Scene, robot_path, landmarks: Landmarks, title: str) -> Path:
+    """Draw the true scene, the robot's path and an estimated map into a PNG file.
+
+    Parameters
+    ----------
+    path : str or Path
+        The PNG to write.
+    scene : Scene
+        The truth: walls, corners, edges (world frame).
+    robot_path : array_like, shape (P, 2) or (P, 3)
+        Robot positions (x, y, [yaw]) in the world frame, m.
+    landmarks : Landmarks
+        The map, world (``odom``) frame.
+    title : str
+        Figure title.
+
+    Returns
+    -------
+    Path
+        The file written.
+    """
+    figure, ax = _world_figure((8.8, 6.0), dpi=100)
+    draw_scene(ax, scene, prefix="true ")
+    robot_path = np.asarray(robot_path, dtype=float)
+    ax.plot(robot_path[:, 0], robot_path[:, 1], color="dimgrey", linestyle="--", linewidth=1.0, label="robot path")
+    ax.plot(*robot_path[0, :2], marker="o", color="dimgrey", linestyle="none", label="start")
+    points = landmarks.select(landmarks.valid & (landmarks.landmark_class != PLANE))
+    extent = float(np.ptp(np.concatenate([scene.walls.reshape(-1, 2), robot_path[:, :2]]), axis=0).max())
+    draw_map(ax, landmarks, magnify=visible_magnification(points.covariance, extent))
+    _legend(ax, loc="upper left", bbox_to_anchor=(1.02, 1.0))
+    ax.autoscale_view()
+    return _save(figure, ax, path, title, fontsize=10)

@@ -16,10 +16,10 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
-from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 from rosgraph_msgs.msg import Clock
 from sonar_ring.msg import Echoes, LandmarkArray
 
+from sonar_ring.ros.bag import typestore
 from sonar_ring.ros.classifier import Classifier
 from sonar_ring.ros.convert import landmarks_from_msg
 from sonar_ring.ros.driver import Driver
@@ -27,15 +27,7 @@ from sonar_ring.ros.localiser import Localiser
 
 pytestmark = pytest.mark.ros
 
-MSG_DIR = Path(__file__).resolve().parents[1] / "msg"
 PINGS = 40
-
-
-def sonar_ring_typestore():
-    store = get_typestore(Stores.ROS2_KILTED)
-    for path in MSG_DIR.glob("*.msg"):
-        store.register(get_types_from_msg(path.read_text(), f"sonar_ring/msg/{path.stem}"))
-    return store
 
 
 def stamp_ns(msg):
@@ -61,7 +53,7 @@ def record_live_run(bag: Path):
             executor.spin_once(timeout_sec=0.05)
     finally:
         rclpy.shutdown()
-    store = sonar_ring_typestore()
+    store = typestore()
     with Writer(bag, version=9, storage_plugin=StoragePlugin.MCAP) as writer:
         for topic, kind in (("echoes", "sonar_ring/msg/Echoes"), ("landmarks", "sonar_ring/msg/LandmarkArray")):
             connection = writer.add_connection(f"/{topic}", kind, typestore=store)
@@ -111,7 +103,7 @@ def replay(bag: Path):
 def test_replayed_bag_gives_the_landmarks_of_the_live_run(tmp_path):
     bag = tmp_path / "live"
     assert record_live_run(bag) >= PINGS
-    store = sonar_ring_typestore()
+    store = typestore()
     with Reader(bag) as reader:
         assert {c.topic: c.msgtype for c in reader.connections} == {
             "/echoes": "sonar_ring/msg/Echoes", "/landmarks": "sonar_ring/msg/LandmarkArray"}

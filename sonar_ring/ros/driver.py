@@ -2,7 +2,8 @@
 
 Publishes
     ``echoes`` (sonar_ring/Echoes, sensor-data QoS) -- every ping;
-    ``range`` (sensor_msgs/Range) -- per group, the nearest echo (REP 117), for Nav2;
+    ``range/group_NN`` (sensor_msgs/Range) -- per group, the nearest echo (REP 117), for Nav2,
+    and the groups' frames on ``/tf_static`` (:mod:`sonar_ring.ros.ranges`);
     ``odom`` (nav_msgs/Odometry) and ``truth`` (sonar_ring/LandmarkArray) --
     ``source:=simulator`` only: the simulated robot pose and, per echo row, the
     true reflector class and position in the sensor frame;
@@ -15,24 +16,26 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import deque
+from collections import Counter, deque
 from dataclasses import replace
 
 import numpy as np
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
-from sensor_msgs.msg import Range
+from rclpy.subscription import MessageInfo
 from std_msgs.msg import Header
 
-from sonar_ring.echoes import EchoArrays, sanitize
+from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import load_layout, speed_of_sound
 from sonar_ring.landmarks import make_landmarks
 from sonar_ring.msg import Echoes
 from sonar_ring.msg import LandmarkArray as LandmarkArrayMsg
 from sonar_ring.ros.convert import MessageError, echoes_from_msg, echoes_to_msg, landmarks_to_msg
 from sonar_ring.ros.diagnostics import NodeHealth
+from sonar_ring.ros.inputs import FUTURE_TOLERANCE, InputGate, screened
 from sonar_ring.ros.params import Param, declare
+from sonar_ring.ros.ranges import publish_group_frames, range_messages, range_publishers
 from sonar_ring.ros.run import spin
 from sonar_ring.simulate import Noise, Simulator, load_scene
 
@@ -59,7 +62,8 @@ PARAMS = [
           read_only=True),
     Param("speed_of_sound", 0.0, "m/s to use when the source gives none (0: 20 degC dry air)", low=0.0,
           high=400.0),
-    Param("publish_range", True, "publish one sensor_msgs/Range per group on `range`"),
+    Param("publish_range", True, "publish one sensor_msgs/Range per group on `range/group_NN`", read_only=True),
+    FUTURE_TOLERANCE,
 ]
 
 
@@ -71,15 +75,17 @@ class Driver(Node):
         self.params = declare(self, PARAMS, self._on_change)
         self.layout = load_layout(self.params["layout"])
         self.health = NodeHealth(self, hardware_id=f"{self.params['source']}:{self.layout.name}")
-        # Round trip to the maximum range at the slowest plausible sound speed, with margin.
-        self._max_tof = 2.5 * self.layout.max_range / 300.0
         self._echo_publisher = self.create_publisher(Echoes, "echoes", qos_profile_sensor_data)
-        self._range_publisher = self.create_publisher(Range, "range", qos_profile_sensor_data)
+        if self.params["publish_range"]:
+            self._range_publishers = range_publishers(self, self.layout)
+            self._frames_publisher = publish_group_frames(self, self.layout, self.params["frame_id"])
         self.pings_published = 0
+        self.reader = None
         source = self.params["source"]
         if source == "simulator":
             self._start_simulator()
         elif source == "topic":
+            self._gate = InputGate(self, self.health, "tof_in", self.params, frame_param=None)
             self.create_subscription(Echoes, "tof_in", self._on_topic, qos_profile_sensor_data)
         else:
             self._start_hardware()
@@ -116,28 +122,23 @@ class Driver(Node):
         header = self._header()
         self.health.received()
         self._publish(ping.echoes, header)
-        self._odom_publisher.publish(_odometry(pose, header))
-        truth = make_landmarks(ping.truth_class, ping.truth_position,
-                               normal=np.nan_to_num(ping.truth_normal), echo=np.arange(ping.n_echoes),
-                               group=ping.group)
-        self._truth_publisher.publish(landmarks_to_msg(truth, header))
+        self._odom_publisher.publish(odometry_message(pose, header))
+        self._truth_publisher.publish(truth_message(ping, header))
         self.health.processed(time.perf_counter() - started, published=1)
         self._pose_index += 1
         if self._pose_index == len(self._poses):
             self._pose_index = 0
             self._laps_left -= 1
 
-    def _on_topic(self, msg: Echoes) -> None:
+    def _on_topic(self, msg: Echoes, info: MessageInfo) -> None:
         started = time.perf_counter()
         self.health.received()
+        if not self._gate.admit(msg.header, info):
+            return
         try:
             echoes = echoes_from_msg(msg)
         except MessageError as error:
             self.health.problem("malformed_message", str(error))
-            return
-        if echoes.tof.shape[1] != self.layout.receivers_per_group:
-            self.health.problem("wrong_receivers_per_group", f"got {echoes.tof.shape[1]}, layout "
-                                f"{self.layout.name} has {self.layout.receivers_per_group}")
             return
         header = Header(stamp=msg.header.stamp, frame_id=self.params["frame_id"])
         self._publish(echoes, header)
@@ -148,65 +149,68 @@ class Driver(Node):
 
         self._frames: deque = deque()
         self._frames_lock = threading.Lock()
+        self._frames_dropped = 0
+        self._last_frame: tuple[int, int] | None = None
+        self._reader_reported: Counter[str] = Counter()
         self.reader = HardwareReader(self.params["device"], self._on_frame,
                                      silence_timeout=self.params["silence_timeout"])
         self.reader.start()
         self._timer = self.create_timer(0.002, self._drain_frames)
 
     def _on_frame(self, frame) -> None:
-        """Reader thread: queue the frame with its arrival time; drop the oldest when full."""
+        """Reader thread: queue the frame with its arrival time; drop the oldest when full.
+
+        Only the executor thread touches :attr:`health`; drops are counted here
+        and handed over in :meth:`_drain_frames`.
+        """
         with self._frames_lock:
             if len(self._frames) >= HARDWARE_QUEUE:
                 self._frames.popleft()
-                self.health.problems["dropped_queue_full"] += 1
+                self._frames_dropped += 1
             self._frames.append((self.get_clock().now(), frame))
 
     def _drain_frames(self) -> None:
         with self._frames_lock:
             frames, self._frames = list(self._frames), deque()
+            dropped, self._frames_dropped = self._frames_dropped, 0
+        self.health.problem("dropped_queue_full", f"more than {HARDWARE_QUEUE} frames waiting", dropped)
         for stamp, frame in frames:
             started = time.perf_counter()
             self.health.received()
-            header = Header(stamp=stamp.to_msg(), frame_id=self.params["frame_id"])
-            echoes = frame.echoes
-            if echoes.tof.shape[1] != self.layout.receivers_per_group:
-                self.health.problem("wrong_receivers_per_group", f"frame {frame.sequence}")
+            identity = (frame.sequence, frame.device_time_us)
+            if identity == self._last_frame:
+                self.health.problem("duplicate_frame", f"frame {frame.sequence} again")
                 continue
-            self._publish(echoes, header)
+            self._last_frame = identity
+            header = Header(stamp=stamp.to_msg(), frame_id=self.params["frame_id"])
+            self._publish(frame.echoes, header)
             self.health.processed(time.perf_counter() - started)
-        for reason, count in self.reader.decoder.errors.items():
-            self.health.problems[f"frame_{reason}"] = count
+        self._report_reader()
+
+    def _report_reader(self) -> None:
+        """The reader's connection events and the decoder's dropped bytes since the last call, on ``health``."""
+        counts = self.reader.counts()
+        for event, count in (counts - self._reader_reported).items():
+            if event == "connected":
+                self.health.note("device connected", count)
+            else:
+                self.health.problem(event, self.reader.address, count)
+        self._reader_reported = counts
 
     # ------------------------------------------------------------------ output
 
     def _publish(self, echoes: EchoArrays, header: Header) -> None:
-        speed = echoes.speed_of_sound or self.params["speed_of_sound"] or DEFAULT_SPEED_OF_SOUND
-        kept, problems = sanitize(echoes, self.layout.n_groups, self.layout.group_transmitters, self._max_tof)
-        for reason, count in problems.items():
-            self.health.problem(reason, f"ping at {header.stamp.sec}.{header.stamp.nanosec:09d}", count)
-        kept = replace(kept, layout=self.layout.name, speed_of_sound=speed)
+        """Screen a ping (:func:`sonar_ring.echoes.screen_ping`) and publish what is usable of it."""
+        kept = usable_echoes(echoes, self.layout, self.health, header,
+                             self.params["speed_of_sound"] or DEFAULT_SPEED_OF_SOUND)
+        if kept is None:
+            return
         self._echo_publisher.publish(echoes_to_msg(kept, header))
         self.pings_published += 1
         if self.params["publish_range"]:
-            for message in self._ranges(kept, header):
-                self._range_publisher.publish(message)
-
-    def _ranges(self, echoes: EchoArrays, header: Header) -> list[Range]:
-        """REP 117 ranges per group: nearest echo, +inf when the group heard nothing."""
-        nearest = np.full(self.layout.n_groups, np.inf)
-        half_path = 0.5 * echoes.speed_of_sound * np.nanmin(echoes.tof, axis=1) if echoes.n_echoes else []
-        np.minimum.at(nearest, echoes.group.astype(np.int64), half_path)
-        field_of_view = 2.0 * self.layout.beam_half_angle
-        messages = []
-        for group, value in enumerate(nearest):
-            message = Range(radiation_type=Range.ULTRASOUND, field_of_view=field_of_view, min_range=0.02,
-                            max_range=float(self.layout.max_range), range=float(value))
-            message.header.stamp = header.stamp
-            message.header.frame_id = f"{header.frame_id}/group_{group:02d}"
-            if value < message.min_range:
-                message.range = -np.inf
-            messages.append(message)
-        return messages
+            for publisher, message in zip(self._range_publishers, range_messages(self.layout, kept, header),
+                                          strict=True):
+                publisher.publish(message)
 
     def _header(self) -> Header:
         return Header(stamp=self.get_clock().now().to_msg(), frame_id=self.params["frame_id"])
@@ -219,12 +223,31 @@ class Driver(Node):
 
     def destroy_node(self) -> None:
         """Stop the hardware reader thread before the node goes."""
-        if self.params["source"] == "hardware":
+        if self.reader is not None:  # None also when the device address was refused at start-up
             self.reader.stop()
         super().destroy_node()
 
 
-def _odometry(pose: np.ndarray, header: Header) -> Odometry:
+def usable_echoes(echoes: EchoArrays, layout, health, header: Header, speed_of_sound: float) -> EchoArrays | None:
+    """What the driver publishes of a ping, or None when nothing of it is usable.
+
+    ``speed_of_sound`` (m/s) where the source gave none, then screened
+    (:func:`sonar_ring.ros.inputs.screened`: rejections counted on ``health``).
+    """
+    speed = echoes.speed_of_sound or speed_of_sound
+    return screened(replace(echoes, speed_of_sound=speed), layout, health,
+                    f"ping at {header.stamp.sec}.{header.stamp.nanosec:09d}")
+
+
+def truth_message(ping, header: Header) -> LandmarkArrayMsg:
+    """Ground truth of a simulated ping: per echo row, the true class and position (sensor frame, m)."""
+    truth = make_landmarks(ping.truth_class, ping.truth_position, normal=np.nan_to_num(ping.truth_normal),
+                           echo=np.arange(ping.n_echoes), group=ping.group)
+    return landmarks_to_msg(truth, header)
+
+
+def odometry_message(pose: np.ndarray, header: Header) -> Odometry:
+    """The simulated robot at ``pose`` (x, y, yaw in ``odom``; m, rad), child frame ``header.frame_id``."""
     message = Odometry(child_frame_id=header.frame_id)
     message.header.stamp = header.stamp
     message.header.frame_id = "odom"

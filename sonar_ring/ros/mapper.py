@@ -23,6 +23,7 @@ import numpy as np
 from nav_msgs.msg import Odometry
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.subscription import MessageInfo
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
@@ -31,6 +32,7 @@ from sonar_ring.mapping import LandmarkMap, transform_landmarks
 from sonar_ring.msg import LandmarkArray
 from sonar_ring.ros.convert import MessageError, landmarks_from_msg, landmarks_to_msg
 from sonar_ring.ros.diagnostics import NodeHealth
+from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, stamp_ns
 from sonar_ring.ros.markers import covariance_ellipses, landmark_markers
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.run import spin
@@ -61,6 +63,8 @@ PARAMS = [
     Param("max_walls", 500, "map capacity for walls", low=1, high=100000, read_only=True),
     Param("gate", 9.21, "Mahalanobis gate d^2 for association (9.21: 99 % for 2 dof)", low=0.5, high=100.0,
           read_only=True),
+    EXPECTED_FRAME,
+    FUTURE_TOLERANCE,
 ]
 
 
@@ -75,6 +79,62 @@ def compose(pose: np.ndarray, offset: np.ndarray) -> np.ndarray:
     c, s = np.cos(pose[2]), np.sin(pose[2])
     return np.array([pose[0] + c * offset[0] - s * offset[1], pose[1] + s * offset[0] + c * offset[1],
                      pose[2] + offset[2]])
+
+
+def pose_at(stamps, poses, stamp: int) -> np.ndarray | None:
+    """Robot pose at ``stamp`` (ns), interpolated in an odometry history; None while no later odometry exists.
+
+    ``stamps`` are the odometry stamps (ns, increasing, indexable), ``poses``
+    the matching ``(x, y, yaw)`` arrays (m, m, rad).  A stamp before the first
+    odometry gets the first pose.
+    """
+    index = bisect.bisect_left(stamps, stamp)
+    if index == len(stamps):
+        return None
+    if stamps[index] == stamp or index == 0:
+        return poses[index]
+    before, after = poses[index - 1], poses[index]
+    weight = (stamp - stamps[index - 1]) / (stamps[index] - stamps[index - 1])
+    turn = np.arctan2(np.sin(after[2] - before[2]), np.cos(after[2] - before[2]))
+    return np.array([*(before[:2] + weight * (after[:2] - before[:2])), before[2] + weight * turn])
+
+
+def new_map(params: dict) -> LandmarkMap:
+    """An empty map with the capacities and gate of the mapper parameters ``params``."""
+    return LandmarkMap(max_points=params["max_points"], max_walls=params["max_walls"], gate=params["gate"])
+
+
+SIGHTING_PROBLEMS = ("not_finite", "degenerate")
+"""Sightings the map refused as bad data (:class:`~sonar_ring.mapping.MapCounts` fields)."""
+SIGHTING_NOTES = ("ambiguous", "dropped", "evicted")
+"""Sightings the map left out by design."""
+
+
+def integrate(landmark_map: LandmarkMap, landmarks, robot_pose: np.ndarray, sensor_offset) -> dict:
+    """Add one ping's landmarks (sensor frame) to the map, the robot at ``robot_pose`` (x, y, yaw in ``odom``).
+
+    ``sensor_offset`` is the sensor pose ``(x, y, yaw)`` in the robot frame.
+    Returns the sightings refused or left out in this update, by
+    :data:`SIGHTING_PROBLEMS` and :data:`SIGHTING_NOTES` reason.
+    """
+    sensor_pose = compose(robot_pose, np.asarray(sensor_offset, dtype=float))
+    before = landmark_map.counts
+    landmark_map.update(transform_landmarks(landmarks, sensor_pose), sensor_pose)
+    after = landmark_map.counts
+    return {reason: getattr(after, reason) - getattr(before, reason) for reason in SIGHTING_PROBLEMS + SIGHTING_NOTES}
+
+
+def map_messages(landmark_map: LandmarkMap, header: Header, min_observations: int):
+    """The map as published: ``map/landmarks``, ``map/markers`` and ``map/points`` messages, in that order.
+
+    Landmarks seen at least ``min_observations`` times; ``header`` names the
+    map frame and the stamp.
+    """
+    snapshot = landmark_map.snapshot(min_observations=min_observations)
+    markers = landmark_markers(snapshot, header, "map", lifetime=0.0)
+    markers.markers.append(covariance_ellipses(snapshot, header, "map"))
+    return (landmarks_to_msg(snapshot, header), markers,
+            point_cloud(landmark_map.points(min_observations=min_observations), header))
 
 
 def point_cloud(points: np.ndarray, header: Header) -> PointCloud2:
@@ -93,8 +153,7 @@ class Mapper(Node):
     def __init__(self, **kwargs) -> None:
         super().__init__("mapper", **kwargs)
         self.params = declare(self, PARAMS)
-        self.map = LandmarkMap(max_points=self.params["max_points"], max_walls=self.params["max_walls"],
-                               gate=self.params["gate"])
+        self.map = new_map(self.params)
         self.health = NodeHealth(self, hardware_id="map")
         self._stamps: list[int] = []
         self._poses: deque = deque(maxlen=POSE_HISTORY)
@@ -105,6 +164,9 @@ class Mapper(Node):
         self._map_landmarks = self.create_publisher(LandmarkArray, "map/landmarks", latched)
         self._map_markers = self.create_publisher(MarkerArray, "map/markers", latched)
         self._map_points = self.create_publisher(PointCloud2, "map/points", latched)
+        self._landmarks_gate = InputGate(self, self.health, "landmarks", self.params)
+        self._odometry_gate = InputGate(self, self.health, "odom", self.params, frame_param="odom_frame",
+                                        on_clock_jump=self._forget_poses)
         self.create_subscription(LandmarkArray, "landmarks", self._on_landmarks, qos_profile_sensor_data)
         if self.params["use_odometry"]:
             self.create_subscription(Odometry, "odom", self._on_odometry, 50)
@@ -112,12 +174,17 @@ class Mapper(Node):
 
     # ------------------------------------------------------------------ poses
 
-    def _on_odometry(self, msg: Odometry) -> None:
-        stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
-        pose = msg.pose.pose
-        if self._stamps and stamp <= self._stamps[-1]:
-            self.health.problem("odometry_out_of_order", f"stamp {stamp} after {self._stamps[-1]}")
+    def _forget_poses(self) -> None:
+        """Time went backwards (bag replayed again): the odometry history no longer applies."""
+        self._stamps.clear()
+        self._poses.clear()
+        self._pending.clear()
+
+    def _on_odometry(self, msg: Odometry, info: MessageInfo) -> None:
+        if not self._odometry_gate.admit(msg.header, info):
             return
+        stamp = stamp_ns(msg.header)
+        pose = msg.pose.pose
         if len(self._stamps) == POSE_HISTORY:
             self._stamps.pop(0)
         self._stamps.append(stamp)
@@ -130,21 +197,15 @@ class Mapper(Node):
         """Robot pose at ``stamp`` (ns), interpolated; None while no later odometry exists."""
         if not self.params["use_odometry"]:
             return np.asarray(self.params["fixed_pose"], dtype=float)
-        index = bisect.bisect_left(self._stamps, stamp)
-        if index == len(self._stamps):
-            return None
-        if self._stamps[index] == stamp or index == 0:
-            return self._poses[index]
-        before, after = self._poses[index - 1], self._poses[index]
-        weight = (stamp - self._stamps[index - 1]) / (self._stamps[index] - self._stamps[index - 1])
-        turn = np.arctan2(np.sin(after[2] - before[2]), np.cos(after[2] - before[2]))
-        return np.array([*(before[:2] + weight * (after[:2] - before[:2])), before[2] + weight * turn])
+        return pose_at(self._stamps, self._poses, stamp)
 
     # ------------------------------------------------------------------ landmarks
 
-    def _on_landmarks(self, msg: LandmarkArray) -> None:
+    def _on_landmarks(self, msg: LandmarkArray, info: MessageInfo) -> None:
         self.health.received()
-        stamp = msg.header.stamp.sec * 10**9 + msg.header.stamp.nanosec
+        if not self._landmarks_gate.admit(msg.header, info):
+            return
+        stamp = stamp_ns(msg.header)
         if self.params["use_odometry"] and self._stamps and stamp < self._stamps[0]:
             self.health.problem("pose_too_old", "ping older than the odometry history")
             return
@@ -164,14 +225,11 @@ class Mapper(Node):
         except MessageError as error:
             self.health.problem("malformed_message", str(error))
             return
-        sensor_pose = compose(robot_pose, np.asarray(self.params["sensor_offset"], dtype=float))
-        before = self.map.counts
-        self.map.update(transform_landmarks(landmarks, sensor_pose), sensor_pose)
-        after = self.map.counts
-        for reason in ("not_finite", "degenerate"):
-            self.health.problem(f"sightings {reason}", count=getattr(after, reason) - getattr(before, reason))
-        for reason in ("ambiguous", "dropped", "evicted"):
-            self.health.note(f"sightings {reason}", getattr(after, reason) - getattr(before, reason))
+        lost = integrate(self.map, landmarks, robot_pose, self.params["sensor_offset"])
+        for reason in SIGHTING_PROBLEMS:
+            self.health.problem(f"sightings {reason}", count=lost[reason])
+        for reason in SIGHTING_NOTES:
+            self.health.note(f"sightings {reason}", lost[reason])
         self._changed = True
         self.health.processed(time.perf_counter() - started, published=0)
 
@@ -181,13 +239,10 @@ class Mapper(Node):
             return
         self._changed = False
         header = Header(stamp=self.get_clock().now().to_msg(), frame_id=self.params["odom_frame"])
-        snapshot = self.map.snapshot(min_observations=self.params["min_observations"])
-        self._map_landmarks.publish(landmarks_to_msg(snapshot, header))
-        markers = landmark_markers(snapshot, header, "map", lifetime=0.0)
-        markers.markers.append(covariance_ellipses(snapshot, header, "map"))
-        self._map_markers.publish(markers)
-        self._map_points.publish(point_cloud(self.map.points(min_observations=self.params["min_observations"]),
-                                             header))
+        messages = map_messages(self.map, header, self.params["min_observations"])
+        for publisher, message in zip((self._map_landmarks, self._map_markers, self._map_points), messages,
+                                      strict=True):
+            publisher.publish(message)
 
 
 def main(args=None) -> None:

@@ -1,0 +1,589 @@
+"""The graph over rosbag2 files, in bag time and without DDS: ``sonar-ring process`` and ``sonar-ring record-sim``.
+
+:func:`process_bag` runs the localiser, classifier and mapper over the echoes
+recorded in a bag and writes what they publish to a new bag;
+:func:`record_sim` writes what the driver's simulator source publishes.
+Both call the functions the nodes call -- :func:`sonar_ring.ros.inputs.check_echoes`,
+:mod:`sonar_ring.pipeline`, :mod:`sonar_ring.ros.convert`,
+:mod:`sonar_ring.ros.markers`, the mapper's :func:`~sonar_ring.ros.mapper.integrate`
+and :func:`~sonar_ring.ros.mapper.map_messages`, the driver's message builders
+-- on rclpy messages serialized by rclpy, so each output message is the one the
+live graph publishes for the same input; rosbags only reads and writes the files.
+
+Bag time replaces the node clocks: a ping's outputs are written at its echoes'
+bag time with its echoes' header, and the map at ``map_rate`` ticks of bag time
+(the first one ``1 / map_rate`` after the first ping), when it changed.
+
+The localiser's and classifier's work on a ping needs nothing of other pings
+(:class:`PingStage`), so ``process`` hands it to worker processes; the input
+check, the mapper and the file I/O stay in order in the main process.
+"""
+
+from __future__ import annotations
+
+import itertools
+import multiprocessing
+import os
+import time
+from collections import Counter, deque
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from nav_msgs.msg import Odometry
+from rclpy.serialization import deserialize_message, serialize_message
+from std_msgs.msg import Header
+
+from sonar_ring import pipeline
+from sonar_ring.geometry import Layout, LayoutError, config_path, load_layout
+from sonar_ring.landmarks import CLASS_NAMES, Landmarks
+from sonar_ring.msg import Echoes
+from sonar_ring.progress import Progress
+from sonar_ring.ros import classifier, localiser, mapper
+from sonar_ring.ros.bag import TOPIC, BagError, BagReader, BagWriter, absolute, range_topics
+from sonar_ring.ros.convert import echoes_to_msg, landmarks_to_msg
+from sonar_ring.ros.driver import DEFAULT_SPEED_OF_SOUND, odometry_message, truth_message, usable_echoes
+from sonar_ring.ros.inputs import InputGate, check_echoes, stamp_ns
+from sonar_ring.ros.markers import landmark_markers
+from sonar_ring.ros.params import file_values
+from sonar_ring.ros.ranges import range_messages
+from sonar_ring.simulate import Noise, Simulator, load_scene
+
+ECHOES_TYPE = TOPIC["echoes"].type_name
+ODOMETRY_TYPE = TOPIC["odom"].type_name
+NODE_PARAMS = {"localiser": localiser.PARAMS, "classifier": classifier.PARAMS, "mapper": mapper.PARAMS}
+"""The nodes ``process`` stands in for, with their parameter lists."""
+SIM_START_NS = 10**9
+"""Stamp of the first simulated ping, ns: trajectory time plus 1 s (a zero stamp means "latest" to tf and RViz)."""
+
+
+class Tally:
+    """Problems and expected losses counted by reason: the part of ``NodeHealth`` the shared checks call."""
+
+    def __init__(self) -> None:
+        self.problems: Counter[str] = Counter()
+        self.notes: Counter[str] = Counter()
+
+    def problem(self, reason: str, detail: str = "", count: int = 1) -> None:
+        """Count ``count`` bad inputs of ``reason`` (``detail`` is for a node's log line)."""
+        if count:
+            self.problems[reason] += count
+
+    def note(self, reason: str, count: int = 1) -> None:
+        """Count ``count`` expected losses of ``reason``."""
+        if count:
+            self.notes[reason] += count
+
+
+class BagClock:
+    """Stands in for a node in :class:`~sonar_ring.ros.inputs.InputGate`: its clock reads bag time.
+
+    The gates then refuse what the nodes refuse on replay with ``use_sim_time``
+    (empty or wrong frame, stamps ahead of bag time, duplicate and out-of-order stamps).
+    """
+
+    def __init__(self) -> None:
+        self.nanoseconds = 0
+
+    def get_clock(self) -> BagClock:
+        """The clock (this object)."""
+        return self
+
+    def now(self) -> BagClock:
+        """The time (this object: ``nanoseconds`` is the bag time of the message being read)."""
+        return self
+
+
+def node_values(params_file) -> dict:
+    """Parameter values of the localiser, classifier and mapper, by node name, from a parameters file or defaults."""
+    if params_file is None:
+        return {node: {p.name: p.default for p in params} for node, params in NODE_PARAMS.items()}
+    return {node: file_values(params_file, node, params) for node, params in NODE_PARAMS.items()}
+
+
+# --------------------------------------------------------------------------- process
+
+
+@dataclass
+class ProcessReport:
+    """What :func:`process_bag` did.
+
+    Attributes
+    ----------
+    pings : int
+        Echo messages read.
+    seconds : float
+        Wall-clock time of the run, s.
+    data_seconds : float
+        Bag time from the first to the last echo message, s.
+    layout : str
+        Layout the echoes were processed with.
+    params_file : str
+        Parameters file used, or ``defaults``.
+    per_class : Counter
+        Labelled landmarks written, by class name.
+    map_per_class : Counter
+        Landmarks of the final maps (all echo topics), by class name.
+    problems : Counter
+        Inputs refused or lost, by reason.
+    notes : Counter
+        Expected losses (no fault, e.g. an empty ping), by reason.
+    skipped : list of str
+        Topics asked for or looked for that could not be used, and why.
+    """
+
+    pings: int = 0
+    seconds: float = 0.0
+    data_seconds: float = 0.0
+    layout: str = ""
+    params_file: str = "defaults"
+    per_class: Counter = field(default_factory=Counter)
+    map_per_class: Counter = field(default_factory=Counter)
+    problems: Counter = field(default_factory=Counter)
+    notes: Counter = field(default_factory=Counter)
+    skipped: list = field(default_factory=list)
+
+
+@dataclass(frozen=True)
+class PingOutput:
+    """What the localiser and classifier make of one ping.
+
+    Attributes
+    ----------
+    problems, notes : dict of str to int
+        Refusals and expected losses of :func:`~sonar_ring.ros.inputs.check_echoes`, by reason.
+    messages : tuple of bytes
+        Serialized ``landmarks/raw``, ``landmarks`` and ``markers`` messages;
+        empty when the ping was refused.
+    landmarks : Landmarks or None
+        The labelled landmarks (sensor frame), for the mapper.
+    """
+
+    problems: dict
+    notes: dict
+    messages: tuple = ()
+    landmarks: Landmarks | None = None
+
+
+@dataclass(frozen=True)
+class PingStage:
+    """The localiser's and the classifier's work on one ping: it needs nothing of other pings.
+
+    So it can run in worker processes (:func:`ordered_map`); a ping's output
+    does not depend on where it ran.
+    """
+
+    layout: Layout
+    localiser_settings: pipeline.Settings
+    classifier_settings: pipeline.Settings
+    marker_lifetime: float
+
+    @classmethod
+    def from_values(cls, layout: Layout, values: dict) -> PingStage:
+        """The stage of the localiser and classifier parameter values ``values`` (by node name)."""
+        return cls(layout, localiser.settings_from(values["localiser"]), localiser.settings_from(values["classifier"]),
+                   values["classifier"]["marker_lifetime"])
+
+    def __call__(self, msg: Echoes) -> PingOutput:
+        """Check, localise, classify and draw one Echoes message, as the two nodes do."""
+        tally = Tally()
+        echoes = check_echoes(msg, self.layout, tally)
+        if echoes is None:
+            return PingOutput(dict(tally.problems), dict(tally.notes))
+        # The messages carry the arrays' own dtypes, so the nodes' message round trips are lossless and skipped.
+        hypotheses = pipeline.localise_ping(self.layout, echoes, self.localiser_settings)
+        hypotheses = hypotheses.select(hypotheses.valid)
+        labelled = pipeline.classify_ping(self.layout, echoes, hypotheses, self.classifier_settings)
+        messages = (landmarks_to_msg(hypotheses, msg.header), landmarks_to_msg(labelled, msg.header),
+                    landmark_markers(labelled, msg.header, "landmarks", self.marker_lifetime))
+        return PingOutput(dict(tally.problems), dict(tally.notes), tuple(serialize_message(m) for m in messages),
+                          labelled)
+
+
+_worker_stage: PingStage | None = None
+"""The stage of this worker process (set by :func:`_start_worker`)."""
+
+
+def _start_worker(stage: PingStage) -> None:
+    global _worker_stage
+    _worker_stage = stage
+
+
+def _work(batch: list[bytes]) -> list[PingOutput]:
+    return [_worker_stage(deserialize_message(data, Echoes)) for data in batch]
+
+
+def ordered_map(stage: PingStage, items, jobs: int, batch: int = 16):
+    """``(item, stage(message))`` for ``(message, data, item)`` in ``items``, in order, with ``jobs`` processes.
+
+    ``jobs`` 1 runs the stage here.  Otherwise forked workers take batches of
+    ``batch`` serialized messages (``data``); at most ``2 * jobs`` batches are
+    in flight, so a long bag is streamed, not loaded.
+    """
+    if jobs <= 1:
+        for message, _, item in items:
+            yield item, stage(message)
+        return
+    context = multiprocessing.get_context("fork")
+    with ProcessPoolExecutor(jobs, mp_context=context, initializer=_start_worker, initargs=(stage,)) as pool:
+        pending = deque()
+        chunks = iter(lambda: list(itertools.islice(items, batch)), [])
+        for chunk in itertools.chain(chunks, [None]):
+            if chunk is not None:
+                pending.append(([item for _, _, item in chunk], pool.submit(_work, [data for _, data, _ in chunk])))
+            while pending and (chunk is None or len(pending) >= 2 * jobs):
+                chunk_items, future = pending.popleft()
+                yield from zip(chunk_items, future.result(), strict=True)
+
+
+class OfflineGraph:
+    """The input check and the mapper of one echoes topic, and the writing of its outputs, in bag-time order.
+
+    The per-ping work between them is a :class:`PingStage`.
+
+    Parameters
+    ----------
+    values : dict
+        Parameter values by node name (:func:`node_values`).
+    namespace : str
+        Namespace of the echoes topic; the outputs are written in it.
+    odometry : tuple or None
+        ``(stamps, poses)``: odometry stamps (ns, increasing, list of int) and
+        robot poses (O, 3) ``(x, y, yaw)`` in the odometry frame (m, rad); None
+        to place every ping at the mapper's ``fixed_pose``.
+    writer : BagWriter
+        Where the outputs go.
+    tally : Tally
+        Where refused inputs are counted.
+    """
+
+    OUTPUTS = ("landmarks/raw", "landmarks", "markers", "map/landmarks", "map/markers", "map/points")
+
+    def __init__(self, values: dict, namespace: str, odometry, writer: BagWriter, tally: Tally) -> None:
+        self._mapper = values["mapper"]
+        self.map = mapper.new_map(self._mapper)
+        self._odometry = odometry
+        self._writer = writer
+        self._tally = tally
+        self._clock = BagClock()
+        self._gate = InputGate(self._clock, tally, "echoes", values["localiser"])
+        self._connections = {name: writer.connection(absolute(name, namespace), TOPIC[name].message, TOPIC[name].qos)
+                             for name in self.OUTPUTS}
+        self._map_period = int(round(1e9 / self._mapper["map_rate"]))
+        self._next_map: int | None = None
+        self._map_changed = False
+        self.per_class = np.zeros(len(CLASS_NAMES), dtype=np.int64)
+
+    def admit(self, time_ns: int, data: bytes) -> Echoes | None:
+        """The Echoes message recorded at bag time ``time_ns`` (ns), or None when the localiser would refuse it."""
+        try:
+            msg = deserialize_message(data, Echoes)
+        except Exception:  # rclpy raises a bare RuntimeError/TypeError for CDR it cannot decode
+            self._tally.problem("undecodable_message")
+            return None
+        self._clock.nanoseconds = time_ns
+        return msg if self._gate.admit(msg.header) else None
+
+    def take(self, time_ns: int, header, output: PingOutput) -> None:
+        """Write a ping's outputs at ``time_ns`` and add its landmarks to the map (and the map ticks before it)."""
+        self._maps_until(time_ns)
+        self._tally.problems.update(output.problems)
+        self._tally.notes.update(output.notes)
+        if output.landmarks is None:
+            return
+        for name, data in zip(("landmarks/raw", "landmarks", "markers"), output.messages, strict=True):
+            self._writer.write(self._connections[name], time_ns, data)
+        self.per_class += np.bincount(output.landmarks.landmark_class, minlength=len(CLASS_NAMES))
+        pose = self._robot_pose(stamp_ns(header))
+        if pose is not None:
+            lost = mapper.integrate(self.map, output.landmarks, pose, self._mapper["sensor_offset"])
+            for reason in mapper.SIGHTING_PROBLEMS:
+                self._tally.problem(f"sightings {reason}", count=lost[reason])
+            self._map_changed = True
+
+    def finish(self) -> None:
+        """Write the map at the tick after the last ping, as the live mapper would, if it changed."""
+        if self._map_changed and self._next_map is not None:
+            self._write_map(self._next_map)
+
+    def _robot_pose(self, stamp: int) -> np.ndarray | None:
+        if self._odometry is None:
+            return np.asarray(self._mapper["fixed_pose"], dtype=float)
+        stamps, poses = self._odometry
+        if not stamps or stamp < stamps[0]:
+            self._tally.problem("pose_too_old", "ping before the first odometry")
+            return None
+        pose = mapper.pose_at(stamps, poses, stamp)
+        if pose is None:
+            self._tally.problem("no_odometry", "no odometry at or after the ping's stamp")
+        return pose
+
+    def _maps_until(self, time_ns: int) -> None:
+        """Write the map at the ticks up to ``time_ns`` (the last one that saw a change)."""
+        if self._next_map is None:
+            self._next_map = time_ns + self._map_period
+            return
+        if self._next_map > time_ns:
+            return
+        if self._map_changed:
+            self._write_map(self._next_map)
+        self._next_map += ((time_ns - self._next_map) // self._map_period + 1) * self._map_period
+
+    def _write_map(self, time_ns: int) -> None:
+        header = Header(frame_id=self._mapper["odom_frame"])
+        header.stamp.sec, header.stamp.nanosec = divmod(time_ns, 10**9)
+        messages = mapper.map_messages(self.map, header, self._mapper["min_observations"])
+        for name, message in zip(("map/landmarks", "map/markers", "map/points"), messages, strict=True):
+            self._writer.write(self._connections[name], time_ns, serialize_message(message))
+        self._map_changed = False
+
+    def map_per_class(self) -> np.ndarray:
+        """Landmarks of the map as published (seen ``min_observations`` times), per class code."""
+        snapshot = self.map.snapshot(min_observations=self._mapper["min_observations"])
+        return np.bincount(snapshot.landmark_class, minlength=len(CLASS_NAMES))
+
+
+def _topics_by_name(bag: BagReader) -> dict:
+    topics = {}
+    for connection in bag.connections:
+        topics.setdefault(connection.topic, []).append(connection)
+    return topics
+
+
+def _echo_topics(topics: dict, requested, report: ProcessReport) -> list[str]:
+    """The echoes topics to process: ``requested`` (names) or every topic of type Echoes; the rest reported."""
+    if not requested:
+        return sorted(name for name, connections in topics.items() if connections[0].msgtype == ECHOES_TYPE)
+    chosen = []
+    for name in dict.fromkeys(absolute(n) for n in requested):
+        if name not in topics:
+            report.skipped.append(f"{name}: not in the bag")
+        elif topics[name][0].msgtype != ECHOES_TYPE:
+            report.skipped.append(f"{name}: type {topics[name][0].msgtype}, not {ECHOES_TYPE}")
+        else:
+            chosen.append(name)
+    return chosen
+
+
+def _namespace(topic: str) -> str:
+    return topic.rsplit("/", 1)[0]
+
+
+def _read_odometry(bag: BagReader, connections, mapper_values: dict, tally: Tally):
+    """Odometry stamps (ns, list) and poses (O, 3) of a topic, without what the mapper's input gate refuses."""
+    clock = BagClock()
+    gate = InputGate(clock, tally, "odom", mapper_values, frame_param="odom_frame")
+    stamps, poses = [], []
+    for _, time_ns, data in bag.messages(connections):
+        try:
+            msg = deserialize_message(data, Odometry)
+        except Exception:  # see OfflineGraph.ping
+            tally.problem("undecodable_odometry")
+            continue
+        clock.nanoseconds = time_ns
+        if gate.admit(msg.header):
+            stamps.append(stamp_ns(msg.header))
+            pose = msg.pose.pose
+            poses.append((pose.position.x, pose.position.y, mapper.yaw_of(pose.orientation)))
+    return stamps, np.array(poses, dtype=float).reshape(-1, 3)
+
+
+def _layout_of(bag: BagReader, connections, layout):
+    """The layout given, or the one the first echoes message names."""
+    if layout is not None:
+        return load_layout(layout)
+    for _, _, data in bag.messages(connections):
+        try:
+            name = deserialize_message(data, Echoes).layout
+        except Exception:  # see OfflineGraph.ping; the next message may be readable
+            continue
+        try:
+            return load_layout(name)
+        except LayoutError as error:
+            raise LayoutError(f"the echoes name layout {name!r}, which is not shipped ({error}); "
+                              "give it with --layout") from None
+    raise BagError(f"{bag.path}: no readable echoes message to take the layout from; give --layout")
+
+
+def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topics=None, odom_topic=None,
+                storage: str = "mcap", jobs: int | None = None, progress: bool = True) -> ProcessReport:
+    """Run the localiser, classifier and mapper over a bag's echoes; write their outputs to a new bag.
+
+    Parameters
+    ----------
+    in_path, out_path : str or Path
+        Input rosbag2 (directory, ``.mcap`` or ``.db3``); output bag directory
+        (must not exist; removed again if the run fails).
+    layout : str, optional
+        Layout name or YAML path; default the one the echoes name.
+    params_file : str or Path, optional
+        Node parameters (``config/params/<layout>.yaml`` format); default the
+        shipped file of the layout.
+    echoes_topics : list of str, optional
+        Echoes topics; default every topic of type ``sonar_ring/msg/Echoes``.
+        Each is processed by its own graph, its outputs written in its namespace.
+    odom_topic : str, optional
+        Odometry for the mapper, relative to each echoes topic's namespace
+        (default ``odom``); without it the mapper uses ``fixed_pose``.
+    storage : str
+        ``mcap`` or ``sqlite3``, for the output.
+    jobs : int, optional
+        Processes for the localiser's and classifier's work (the mapper and
+        the file I/O stay in this one); 1 does everything here; default one
+        per CPU this process may use.
+    progress : bool
+        Draw a progress bar on stderr.
+
+    Raises
+    ------
+    BagError, LayoutError, ParameterError
+        One line naming the file or topic and the problem.
+    """
+    started = time.perf_counter()
+    report = ProcessReport()
+    tally = Tally()
+    with BagReader(in_path) as bag:
+        topics = _topics_by_name(bag)
+        chosen = _echo_topics(topics, echoes_topics, report)
+        if not chosen:
+            found = ", ".join(f"{name} ({c[0].msgtype})" for name, c in sorted(topics.items())) or "none"
+            skipped = "".join(f"{reason}; " for reason in report.skipped)
+            raise BagError(f"{in_path}: no usable echoes topic (type {ECHOES_TYPE}): {skipped}the bag has {found}")
+        namespaces = [_namespace(name) for name in chosen]
+        if len(set(namespaces)) != len(namespaces):
+            raise BagError(f"{', '.join(chosen)}: two echoes topics in one namespace would write the same outputs; "
+                           "choose one with --echoes-topic")
+        echo_connections = [c for name in chosen for c in topics[name]]
+        sensor = _layout_of(bag, echo_connections, layout)
+        report.layout = sensor.name
+        if params_file is None and config_path("params", sensor.name).is_file():
+            params_file = config_path("params", sensor.name)
+        report.params_file = str(params_file or "defaults")
+        values = node_values(params_file)
+        with BagWriter(out_path, storage) as writer:
+            graphs = {}
+            for name, namespace in zip(chosen, namespaces, strict=True):
+                odometry = None
+                if values["mapper"]["use_odometry"]:
+                    odometry = _odometry_for(bag, topics, absolute(odom_topic or "odom", namespace),
+                                             values["mapper"], tally, report, explicit=odom_topic is not None)
+                graphs[name] = OfflineGraph(values, namespace, odometry, writer, tally)
+            bar = Progress("pings", sum(c.msgcount for c in echo_connections)) if progress else None
+            times = []
+
+            def admitted():
+                for connection, time_ns, data in bag.messages(echo_connections):
+                    times.append(time_ns)
+                    graph = graphs[connection.topic]
+                    message = graph.admit(time_ns, data)
+                    if message is not None:
+                        yield message, data, (graph, time_ns, message.header)
+                    if bar:
+                        bar.update(len(times))
+
+            stage = PingStage.from_values(sensor, values)
+            jobs = jobs or len(os.sched_getaffinity(0))
+            for (graph, time_ns, header), output in ordered_map(stage, admitted(), jobs):
+                graph.take(time_ns, header, output)
+            if bar:
+                bar.close()
+            for graph in graphs.values():
+                graph.finish()
+                report.per_class.update(dict(zip(CLASS_NAMES, graph.per_class.tolist(), strict=True)))
+                report.map_per_class.update(dict(zip(CLASS_NAMES, graph.map_per_class().tolist(), strict=True)))
+    report.pings = len(times)
+    report.data_seconds = (times[-1] - times[0]) * 1e-9 if times else 0.0
+    report.problems, report.notes = tally.problems, tally.notes
+    report.seconds = time.perf_counter() - started
+    return report
+
+
+def _odometry_for(bag: BagReader, topics: dict, name: str, mapper_values: dict, tally: Tally,
+                  report: ProcessReport, explicit: bool):
+    """The odometry history of topic ``name``, or None (reported) when the bag has none there."""
+    connections = topics.get(name)
+    if connections is None or connections[0].msgtype != ODOMETRY_TYPE:
+        why = "not in the bag" if connections is None else f"type {connections[0].msgtype}, not {ODOMETRY_TYPE}"
+        if explicit or connections is not None:
+            report.skipped.append(f"{name}: {why}")
+        report.skipped.append(f"map at fixed_pose {list(mapper_values['fixed_pose'])}: no odometry on {name}")
+        return None
+    return _read_odometry(bag, connections, mapper_values, tally)
+
+
+# --------------------------------------------------------------------------- record-sim
+
+
+@dataclass
+class RecordReport:
+    """What :func:`record_sim` wrote: pings, their bag-time span (s), the wall-clock time (s), problems."""
+
+    pings: int = 0
+    data_seconds: float = 0.0
+    seconds: float = 0.0
+    problems: Counter = field(default_factory=Counter)
+
+
+def record_sim(scene, out_path, *, layout="browne_ring", laps: int = 1, pings: int | None = None, seed: int = 0,
+               sigma_t: float = 1e-6, sigma_a: float = 0.02, with_range: bool = True, frame_id: str = "sonar_ring",
+               storage: str = "mcap", progress: bool = True) -> RecordReport:
+    """Write what the driver's simulator source publishes over ``laps`` of the scene's trajectory to a new bag.
+
+    ``pings`` stops earlier, after that many pings.
+
+    Topics ``/echoes``, ``/odom``, ``/truth`` and (``with_range``)
+    ``/range/group_NN``, with the driver's QoS (not ``/tf_static``: the
+    driver's group frames need tf2_msgs).  Ping k is stamped (and written at) trajectory time
+    ``k / ping_rate`` plus :data:`SIM_START_NS`; a scene without a trajectory
+    pings at its ``sensor_pose``, one ping per lap.  The noise (``sigma_t``,
+    s; ``sigma_a`` relative to A_max) and the seed mean what the driver's
+    ``sigma_tof``, ``sigma_amplitude`` and ``seed`` mean, so with the same
+    values the echoes are the driver's.
+    """
+    started = time.perf_counter()
+    scene = load_scene(scene)
+    sensor = load_layout(layout)
+    simulator = Simulator(scene, sensor)
+    rate = sensor.ping_rate
+    poses = scene.trajectory.poses(rate)[1] if scene.trajectory is not None else scene.sensor_pose[None, :]
+    noise = Noise(tof=sigma_t, amplitude=sigma_a)
+    rng = np.random.default_rng(seed)
+    tally = Tally()
+    report = RecordReport()
+    total = laps * len(poses) if pings is None else min(pings, laps * len(poses))
+    bar = Progress("pings", total) if progress else None
+    with BagWriter(out_path, storage) as writer:
+        topics = [TOPIC["echoes"], TOPIC["odom"], TOPIC["truth"], *(range_topics(sensor) if with_range else [])]
+        connection = {topic.name: writer.connection(absolute(topic.name), topic.message, topic.qos)
+                      for topic in topics}
+        ranges = [topic.name for topic in topics[3:]]
+        for k in range(total):
+            pose = poses[k % len(poses)]
+            ping = simulator.ping(pose, noise=noise, rng=rng)
+            stamp = SIM_START_NS + round(k * 1e9 / rate)
+            header = Header(frame_id=frame_id)
+            header.stamp.sec, header.stamp.nanosec = divmod(stamp, 10**9)
+            kept = usable_echoes(ping.echoes, sensor, tally, header, DEFAULT_SPEED_OF_SOUND)
+            messages = [("odom", odometry_message(pose, header)), ("truth", truth_message(ping, header))]
+            if kept is not None:
+                messages.insert(0, ("echoes", echoes_to_msg(kept, header)))
+                if with_range:
+                    messages += zip(ranges, range_messages(sensor, kept, header), strict=True)
+            for name, message in messages:
+                writer.write(connection[name], stamp, serialize_message(message))
+            if bar:
+                bar.update(k + 1)
+        if bar:
+            bar.close()
+    report.pings = total
+    report.data_seconds = (total - 1) / rate if total else 0.0
+    report.problems = tally.problems
+    report.seconds = time.perf_counter() - started
+    return report
+
+
+def describe(path) -> str:
+    """``PATH (N MB)`` of a written bag, for the command's last line."""
+    size = sum(f.stat().st_size for f in Path(path).rglob("*") if f.is_file())
+    return f"{path} ({size / 1e6:.1f} MB)"
