@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import math
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -19,20 +18,22 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from common import machine  # noqa: E402
-
 from sonar_ring import doa  # noqa: E402
-from sonar_ring.geometry import load_layout  # noqa: E402
+from sonar_ring.benchmark.azimuth import (  # noqa: E402
+    GROSS_ERROR,
+    SPEED,
+    TIMER,
+    WAVELENGTH,
+    Triad,
+    compare_estimators,
+    shipped_triad,
+)
+from sonar_ring.benchmark.environment import machine  # noqa: E402
 
-WAVELENGTH = 8.7e-3
-SPEED = 348.0
-PERIOD = WAVELENGTH / SPEED
-TIMER = 0.33e-6
 CROSSING_STD = 0.2e-6
 MM, US = 1e-3, 1e-6
 DISTANCES = (1.0, 1.5, 2.0)
 ROTATIONS = np.arange(-50, 51)
-GROSS_ERROR = 10.0  # deg: the wrong lobes of these triads are >= 20 deg away, noise is < 3 deg (3 sigma)
 RESULT = ROOT / "bench" / "results" / "doa.md"
 
 PAPER_TABLE_1 = [  # b1, b2 (mm), range (deg), eps, dt (us), min delta phi (deg)
@@ -41,41 +42,6 @@ PAPER_TABLE_1 = [  # b1, b2 (mm), range (deg), eps, dt (us), min delta phi (deg)
     (4, 11, 60, 0.4, 1.5, 4.7),
     (4, 11, 50, 0.3, 2.5, 7.8),
 ]
-
-
-def best_time(function, repeats=3) -> float:
-    best = math.inf
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        best = min(best, time.perf_counter() - start)
-    return best
-
-
-# --------------------------------------------------------------------------- the triads
-
-class Triad:
-    """Receivers (3, 3) and emitter (3,) of a module facing +x, with its eps and max angle."""
-
-    def __init__(self, name, receivers, emitter, eps, max_angle):
-        self.name = name
-        self.receivers = np.asarray(receivers, dtype=float)
-        self.emitter = np.asarray(emitter, dtype=float)
-        self.b1, self.b2 = np.linalg.norm(np.diff(self.receivers[:, :2], axis=0), axis=1)
-        self.eps = eps
-        self.max_angle = max_angle
-
-    def azimuth(self, t01, t02):
-        """:func:`doa.azimuth` with this triad's baselines, eps and max angle."""
-        return doa.azimuth(t01, t02, self.b1, self.b2, WAVELENGTH, SPEED, self.eps, self.max_angle)
-
-
-def shipped_triad() -> Triad:
-    layout = load_layout("kreczmer_triad")
-    robust = doa.robustness(11 * MM, 4 * MM, layout.beam_half_angle, WAVELENGTH, SPEED)
-    return Triad(f"shipped kreczmer_triad (b1, b2) = (11, 4) mm, eps = {robust.eps:.2f} (ours, +-60 deg)",
-                 layout.group_receivers()[0], layout.transmitters[layout.group_transmitters[0, 0]], robust.eps,
-                 layout.beam_half_angle)
 
 
 def paper_experiment_triad() -> Triad:
@@ -145,73 +111,6 @@ def noise_sweep(triad: Triad, crossing_stds, trials, rng) -> list[tuple]:
         budget = doa.timing_error_budget(doa.delay_std(crossing_std, TIMER), TIMER)
         rows.append((crossing_std, budget, correct.mean(axis=1).min(), correct.mean(), three_sigma))
     return rows
-
-
-# --------------------------------------------------------------------------- the estimators compared
-
-def wrap_path(path):
-    """Path difference reduced to [-lambda/2, lambda/2)."""
-    return np.mod(path + WAVELENGTH / 2, WAVELENGTH) - WAVELENGTH / 2
-
-
-def grid_search(t01, t02, b1, b2, grid, chunk=500):
-    """Brute force: the grid azimuth whose wrapped delays best fit both measured ones.
-
-    Cost: GLS norm (correlation 0.5) of the two path residuals, each wrapped to one
-    wavelength, so the search needs no (n1, n2).  Returns the angle (rad) per echo.
-    """
-    t01, t02 = np.atleast_1d(t01), np.atleast_1d(t02)
-    sines = np.sin(grid)
-    best = np.empty(t01.shape)
-    for start in range(0, t01.size, chunk):
-        part = slice(start, start + chunk)
-        r1 = wrap_path(SPEED * t01[part, None] - b1 * sines)
-        r2 = wrap_path(SPEED * t02[part, None] - (b1 + b2) * sines)
-        best[part] = grid[np.argmin(r1 * r1 + r2 * r2 - r1 * r2, axis=1)]
-    return best
-
-
-def direct_sub_half_wavelength(t01, t02, b2):
-    """Eq 1 on the R1 -- R2 pair (b2 = 4 mm < lambda / 2 = 4.35 mm): unambiguous, no search."""
-    sine = wrap_path(SPEED * (np.asarray(t02) - np.asarray(t01))) / b2
-    return np.arcsin(np.clip(sine, -1.0, 1.0)), np.abs(sine) <= 1.0
-
-
-def compare_estimators(triad: Triad, crossing_std, n, rng) -> list[tuple]:
-    angle = rng.uniform(-math.radians(50), math.radians(50), n)
-    distance = rng.uniform(1.0, 4.0, n)  # image distance of a wall 0.5 .. 2 m away
-    middle = 0.5 * (triad.receivers[0, :2] + triad.receivers[2, :2])
-    source = middle + distance[:, None] * np.stack([np.cos(angle), np.sin(angle)], axis=-1)
-    delays = doa.phase_delays(source, triad.receivers[:, :2], WAVELENGTH, SPEED, crossing_std=crossing_std,
-                              timer_resolution=TIMER, rng=rng)
-    t01, t02 = delays[:, 0], delays[:, 1]
-    coarse = np.radians(np.arange(-60, 60.001, 0.1))
-    fine = np.radians(np.arange(-60, 60.0001, 0.01))
-    methods = [
-        ("Kreczmer (n1, n2) search", lambda a, b: _kreczmer(triad, a, b)),
-        ("grid search over phi, 0.1 deg", lambda a, b: (grid_search(a, b, triad.b1, triad.b2, coarse), None)),
-        ("grid search over phi, 0.01 deg", lambda a, b: (grid_search(a, b, triad.b1, triad.b2, fine), None)),
-        ("direct, R1-R2 pair (4 mm < lambda/2)", lambda a, b: direct_sub_half_wavelength(a, b, triad.b2)),
-    ]
-    rows = []
-    scalar_calls = 300
-    for name, method in methods:
-        estimate, valid = method(t01, t02)
-        valid = np.ones(n, dtype=bool) if valid is None else valid
-        error = np.degrees(estimate - angle)[valid]
-        gross = np.abs(error) > GROSS_ERROR
-        batched = best_time(lambda method=method: method(t01, t02)) / n
-        one_by_one = best_time(lambda method=method: [method(t01[i], t02[i]) for i in range(scalar_calls)], 7)
-        one_by_one /= scalar_calls
-        good = error[~gross]
-        rows.append((name, 1 - valid.mean(), gross.sum() / n, 3 * good.std(), np.sqrt(np.mean(good**2)),
-                     np.abs(error).max(), batched, one_by_one))
-    return rows
-
-
-def _kreczmer(triad: Triad, t01, t02):
-    result = triad.azimuth(t01, t02)
-    return result.angle, result.valid
 
 
 # --------------------------------------------------------------------------- report
@@ -290,17 +189,23 @@ def estimator_section(triad: Triad, rng) -> list[str]:
              ""]
     for crossing_std in (CROSSING_STD, 0.6 * US):
         n = 20000
-        rows = compare_estimators(triad, crossing_std, n, rng)
+        runs = compare_estimators(triad, crossing_std, n, rng)
         lines += [f"### crossing jitter {crossing_std / US:.1f} us, timer {TIMER / US:.2f} us, {n} echoes", "",
                   "| method | invalid | gross errors | 3 sigma [deg] | RMS [deg] | max abs [deg] "
                   "| batched [us/estimate] | one call per echo [us] |", "|---|---|---|---|---|---|---|---|"]
-        for name, invalid, gross, three_sigma, rms, worst, batched, single in rows:
-            lines.append(f"| {name} | {invalid:.4f} | {gross:.4f} | {three_sigma:.3f} | {rms:.3f} | {worst:.2f} "
-                         f"| {batched / US:.2f} | {single / US:.0f} |")
-        kreczmer, fine = rows[0], rows[2]
-        lines += ["", f"Grid search (0.01 deg) / Kreczmer time: batched x{fine[6] / kreczmer[6]:.0f}, "
-                  f"per call x{fine[7] / kreczmer[7]:.1f}; direct / Kreczmer 3 sigma: "
-                  f"x{rows[3][3] / kreczmer[3]:.1f}.", ""]
+        spread = []
+        for run in runs:
+            error = np.degrees(run.error[run.valid])
+            gross = np.abs(error) > math.degrees(GROSS_ERROR)
+            good = error[~gross]
+            spread.append(3 * good.std())
+            lines.append(f"| {run.name} | {1 - run.valid.mean():.4f} | {gross.sum() / n:.4f} | {3 * good.std():.3f} "
+                         f"| {np.sqrt(np.mean(good**2)):.3f} | {np.abs(error).max():.2f} | {run.batched / US:.2f} "
+                         f"| {run.per_call / US:.0f} |")
+        kreczmer, fine = runs[0], runs[2]
+        lines += ["", f"Grid search (0.01 deg) / Kreczmer time: batched x{fine.batched / kreczmer.batched:.0f}, "
+                  f"per call x{fine.per_call / kreczmer.per_call:.1f}; direct / Kreczmer 3 sigma: "
+                  f"x{spread[3] / spread[0]:.1f}.", ""]
     return lines
 
 

@@ -27,9 +27,9 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from common import machine  # noqa: E402
-
 from sonar_ring import localise as loc  # noqa: E402
+from sonar_ring.benchmark.environment import machine  # noqa: E402
+from sonar_ring.benchmark.timing import interleaved_best  # noqa: E402
 from sonar_ring.geometry import load_layout  # noqa: E402
 from sonar_ring.reference import browne  # noqa: E402
 
@@ -145,16 +145,11 @@ def time_full_grid(tx, rx1, rx2, radius, separation):
         "bearing": (lambda c1, c2, e1, e2: loc.bearing(c1, c2, separation),
                     lambda c1, c2, e1, e2: browne.bearing_eq4(c1, c2, separation)),
     }
-    seconds = {name: [np.inf, np.inf] for name in calls}
     # production and reference alternate, so that load from other processes hits both alike
-    for _ in range(REPEATS):
-        for name, pair in calls.items():
-            for which, function in enumerate(pair):
-                start = time.perf_counter()
-                for arrays in prepared:
-                    function(*arrays)
-                seconds[name][which] = min(seconds[name][which], time.perf_counter() - start)
-    return seconds
+    runs = {(name, which): (lambda function=function: [function(*arrays) for arrays in prepared])
+            for name, pair in calls.items() for which, function in enumerate(pair)}
+    best = interleaved_best(runs, REPEATS)
+    return {name: [best[name, 0], best[name, 1]] for name in calls}
 
 
 def monte_carlo(samples=100_000):

@@ -21,9 +21,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from common import machine  # noqa: E402
-
 from sonar_ring import pipeline, simulate  # noqa: E402
+from sonar_ring.benchmark.environment import machine  # noqa: E402
 from sonar_ring.geometry import load_layout  # noqa: E402
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, make_landmarks  # noqa: E402
 from sonar_ring.mapping import LandmarkMap, transform_landmarks  # noqa: E402

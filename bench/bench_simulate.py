@@ -14,8 +14,6 @@ Timings depend on the machine and on its load, which the file records.
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -25,6 +23,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from sonar_ring.benchmark.environment import machine  # noqa: E402
 from sonar_ring.geometry import load_layout  # noqa: E402
 from sonar_ring.simulate import Noise, Simulator, load_scene  # noqa: E402
 
@@ -37,16 +36,6 @@ CASES = [  # scene, layout; the first is the headline figure
     ("room", "kreczmer_triad"),
     ("single_wall", "browne_ring"),
 ]
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def measure(scene_name: str, layout_name: str, repeats: int) -> dict:
@@ -75,18 +64,15 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="laps per case (default 5)")
     parser.add_argument("--output", type=Path, default=RESULT, help="Markdown file to write")
     args = parser.parse_args()
+    host = machine()
     rows = [measure(scene, layout, args.repeats) for scene, layout in CASES]
-    load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
     head = rows[0]
     lines = [
         "# Scene simulator throughput -- `sonar_ring.simulate`",
         "",
         "Regenerate: `cd /work/main && .venv/bin/python bench/bench_simulate.py`",
         "",
-        f"Machine: {cpu_name()} ({os.cpu_count()} logical CPUs), {platform.system()} {platform.release()}, "
-        f"Python {platform.python_version()}, numpy {np.__version__}; single process. "
-        f"Load average while measuring: {load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} (1 / 5 / 15 min) "
-        "-- other jobs on the machine slow the figures down.",
+        f"Machine: {host}; single process.",
         "",
         f"Headline: **{head['median']:.0f} pings/s** (median lap; best {head['best']:.0f}; "
         f"{head['cpu']:.0f} per CPU-second) for the room scene with Browne's 48-pair ring, "

@@ -7,7 +7,9 @@ subcommand by writing such a pair and listing the ``_add_`` function in
 
 ``sonar-ring simulate SCENE`` runs the scene simulator (:mod:`sonar_ring.simulate`)
 and writes the pings as ``.npz`` or ``.json`` (format in :func:`write_pings`)
-and, on request, a PNG picture.
+and, on request, a PNG picture.  ``sonar-ring process IN_BAG OUT_BAG`` and
+``sonar-ring record-sim SCENE OUT_BAG`` work on rosbag2 files
+(:mod:`sonar_ring.ros.offline`); they need ROS 2 and import it only when run.
 """
 
 from __future__ import annotations
@@ -161,7 +163,142 @@ def write_pings(path, pings, *, scene: str, layout: str) -> Path:
     return path
 
 
-SUBCOMMANDS = (_add_simulate,)
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return value
+
+
+def _offline():
+    """:mod:`sonar_ring.ros.offline`, imported only now: it needs ROS 2 (rclpy, the built messages) and rosbags."""
+    try:
+        from sonar_ring.ros import offline
+    except ImportError as error:
+        if error.name == "rosbags":
+            raise ValueError("needs the rosbags library: pip install rosbags") from None
+        raise ValueError(f"needs ROS 2 ({error}): source tools/env.sh in the repository, or your ROS 2 "
+                         "workspace's install/setup.bash") from None
+    return offline
+
+
+def _add_output_options(p) -> None:
+    """``--storage`` and ``--quiet``, for the commands that write a bag."""
+    p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap", help="output storage (default: mcap)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+
+
+def _add_process(subparsers) -> None:
+    p = subparsers.add_parser(
+        "process",
+        help="run the localiser, classifier and mapper over the echoes of a rosbag2, faster than real time",
+        description="Read the echoes (sonar_ring/msg/Echoes) of a rosbag2 (sqlite3 or MCAP), run them through the "
+                    "localiser, classifier and mapper in bag time, and write landmarks/raw, landmarks, markers, "
+                    "map/landmarks, map/markers and map/points to a new bag: the messages the live graph publishes.",
+    )
+    p.add_argument("in_bag", metavar="IN_BAG", help="input rosbag2: a directory, .mcap or .db3 file")
+    p.add_argument("out_bag", metavar="OUT_BAG", help="output rosbag2 directory (must not exist)")
+    p.add_argument("--layout", help="layout name or YAML path (default: the layout the echoes name)")
+    p.add_argument("--params", metavar="FILE", help="node parameters YAML, the format of config/params/<layout>.yaml "
+                   "(default: that file for the layout)")
+    p.add_argument("--echoes-topic", action="append", metavar="TOPIC",
+                   help="echoes topic to process; repeat for several (default: every sonar_ring/msg/Echoes topic)")
+    p.add_argument("--odom-topic", metavar="TOPIC", help="nav_msgs/Odometry for the mapper, relative to the echoes' "
+                   "namespace (default: odom if the bag has it, else the mapper's fixed_pose)")
+    p.add_argument("--jobs", type=_positive_int, metavar="N", help="processes for the per-ping work; 1: all in "
+                   "this one (default: one per CPU)")
+    _add_output_options(p)
+    p.set_defaults(handler=_run_process)
+
+
+def _run_process(args) -> int:
+    offline = _offline()
+    report = offline.process_bag(args.in_bag, args.out_bag, layout=args.layout, params_file=args.params,
+                                 echoes_topics=args.echoes_topic, odom_topic=args.odom_topic, storage=args.storage,
+                                 jobs=args.jobs, progress=not args.quiet)
+    for skipped in report.skipped:
+        print(f"sonar-ring process: warning: {skipped}", file=sys.stderr)
+    speed = report.data_seconds / report.seconds if report.seconds else 0.0
+    print(f"processed {report.pings} pings ({report.data_seconds:.1f} s of data, layout {report.layout}, "
+          f"parameters {report.params_file}) in {report.seconds:.2f} s: {speed:.1f}x real time")
+    print("  landmarks per class: " + _counts(report.per_class, CLASS_NAMES))
+    print("  map: " + _counts(report.map_per_class, CLASS_NAMES))
+    print("  refused: " + (", ".join(f"{n} {reason}" for reason, n in sorted(report.problems.items())) or "nothing"))
+    if report.notes:
+        print("  expected losses: " + ", ".join(f"{n} {reason}" for reason, n in sorted(report.notes.items())))
+    print(f"wrote {offline.describe(args.out_bag)}")
+    return 0
+
+
+def _counts(counter, names) -> str:
+    return ", ".join(f"{counter.get(name, 0)} {name}" for name in names)
+
+
+def _add_record_sim(subparsers) -> None:
+    p = subparsers.add_parser(
+        "record-sim",
+        help="write a rosbag2 of simulated echoes, as the driver's simulator source publishes them",
+        description="Simulate the scene's trajectory and write /echoes, /odom, /truth and /range/group_NN to a new "
+                    "rosbag2, stamped with trajectory time from 1 s: data in the hardware's format for ros2 bag play "
+                    "and sonar-ring process.",
+    )
+    p.add_argument("scene", metavar="SCENE", help="scene name (config/scenes/NAME.yaml) or path to a scene YAML file")
+    p.add_argument("out_bag", metavar="OUT_BAG", help="output rosbag2 directory (must not exist)")
+    p.add_argument("--layout", default="browne_ring",
+                   help="layout name (config/layouts/NAME.yaml) or path (default: browne_ring)")
+    p.add_argument("--laps", type=_positive_int, default=1,
+                   help="passes over the scene's trajectory; one ping each without a trajectory (default: 1)")
+    p.add_argument("--pings", type=_positive_int, help="stop after this many pings (default: all of the laps)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the noise generator (default: 0)")
+    p.add_argument("--sigma-t", type=_non_negative, default=1e-6, metavar="S",
+                   help="time-of-flight noise standard deviation, s (default: 1e-6, the driver's)")
+    p.add_argument("--sigma-a", type=_non_negative, default=0.02, metavar="A",
+                   help="amplitude noise standard deviation relative to A_max (default: 0.02)")
+    p.add_argument("--no-range", action="store_true",
+                   help="leave out /range/group_NN (a sensor_msgs/Range topic per group)")
+    _add_output_options(p)
+    p.set_defaults(handler=_run_record_sim)
+
+
+def _run_record_sim(args) -> int:
+    offline = _offline()
+    report = offline.record_sim(args.scene, args.out_bag, layout=args.layout, laps=args.laps, pings=args.pings,
+                                seed=args.seed, sigma_t=args.sigma_t, sigma_a=args.sigma_a,
+                                with_range=not args.no_range, storage=args.storage, progress=not args.quiet)
+    print(f"recorded {report.pings} pings ({report.data_seconds:.1f} s of data) in {report.seconds:.2f} s")
+    if report.problems:
+        print("  refused: " + ", ".join(f"{n} {reason}" for reason, n in sorted(report.problems.items())))
+    print(f"wrote {offline.describe(args.out_bag)}")
+    return 0
+
+
+def _add_bench(subparsers) -> None:
+    p = subparsers.add_parser(
+        "bench",
+        help="measure speed against error of every method and write BENCHMARKS.md with plots",
+        description="Simulate the standard scenes, run every localisation, classification and azimuth method of "
+                    "the package and the baselines on the same echoes at sigma_t = 0, 0.3, 1, 2 us, time them, and "
+                    "write DIR/BENCHMARKS.md and DIR/bench/plots/*.png (2-3 minutes on 2 cores). Where "
+                    "DIR/README.md has the report's markers, its main tables are replaced too. The least-squares "
+                    "baseline needs scipy, the plots matplotlib, the graph row ROS 2.",
+    )
+    p.add_argument("--out", type=Path, default=Path("."), metavar="DIR",
+                   help="directory of BENCHMARKS.md and bench/plots/ (default: the current directory)")
+    p.add_argument("--quick", action="store_true",
+                   help="small sizes: checks that the report is produced, in seconds; figures not for reading")
+    p.add_argument("--seed", type=int, default=None, metavar="N", help="seed of every random stream (default: 0)")
+    p.set_defaults(handler=_run_bench)
+
+
+def _run_bench(args) -> int:
+    from sonar_ring.benchmark import report  # scipy and matplotlib only when benchmarking
+
+    seed = report.DEFAULT_SEED if args.seed is None else args.seed
+    report.run(args.out, quick=args.quick, seed=seed)
+    return 0
+
+
+SUBCOMMANDS = (_add_simulate, _add_process, _add_record_sim, _add_bench)
 """Functions that each add one subcommand to the parser."""
 
 

@@ -1,0 +1,206 @@
+"""Graph benchmark: ping -> markers latency and the highest sustained ping rate of the running nodes.
+
+The four nodes run as the ``graph`` executable does (one process, one executor,
+``source:=topic``, fixed pose) in a child process; this process plays the
+sensor.  Each ping -- 48 pairs of the Browne ring, 3 echoes per pair -- goes to
+the driver's ``tof_in`` stamped with the wall clock when it is sent; a ping's
+latency is the time from that stamp until its markers (which carry the same
+stamp) arrive here, so it includes the DDS hops, the driver (checks, Range per
+group), localiser, classifier and the marker message.  Needs ROS 2 (rclpy and
+the built ``sonar_ring`` messages).
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from sonar_ring.echoes import EchoArrays
+from sonar_ring.geometry import Layout, load_layout
+
+LAYOUT = "browne_ring"
+ECHO_RANGES = (1.0, 2.2, 3.5)
+"""Distances of the three poles in front of every pair, m."""
+SIGMA_TOF = 1e-6
+SPEED_OF_SOUND = 343.0
+LATENCY_RATE = 30.0
+"""Hz: the ring's nominal ping rate, for the latency figures."""
+SUSTAINED_SHARE = 0.99
+"""A rate is sustained when at least this share of its pings come out as markers."""
+
+
+@dataclass(frozen=True)
+class Plan:
+    """How long each part runs: pings at the nominal rate, and the rate ladder."""
+
+    latency_pings: int
+    ladder: tuple[float, ...]
+    seconds_per_rate: float
+
+
+FULL = Plan(latency_pings=600, ladder=(60, 100, 150, 200, 300, 400, 500, 700, 1000), seconds_per_rate=4.0)
+QUICK = Plan(latency_pings=60, ladder=(30, 100), seconds_per_rate=1.0)
+
+
+def benchmark_echoes(layout: Layout, rng: np.random.Generator) -> EchoArrays:
+    """One ping with three pole echoes per pair, on the pair's axis at :data:`ECHO_RANGES`.
+
+    Paths are exact for a vertical pole: ``sqrt((|P - T| + |P - R|)^2 + dz^2)``
+    (unfolded), with Gaussian TOF noise of :data:`SIGMA_TOF`.
+
+    Returns
+    -------
+    EchoArrays
+        ``3 G`` rows (G groups, K = 2 receivers), sensor frame, no amplitudes.
+    """
+    groups = np.repeat(np.arange(layout.n_groups), len(ECHO_RANGES))
+    yaw = layout.group_yaw()[groups]
+    facing = np.stack([np.cos(yaw), np.sin(yaw)], axis=-1)
+    centre = layout.group_centre()[groups, :2]
+    pole = centre + np.tile(ECHO_RANGES, layout.n_groups)[:, None] * facing
+    transmitter = layout.group_transmitters[groups, 0]
+    tx = layout.transmitters[transmitter]
+    receivers = layout.receivers[layout.groups[groups]]  # (N, K, 3)
+    horizontal = (np.linalg.norm(pole - tx[:, :2], axis=-1)[:, None]
+                  + np.linalg.norm(pole[:, None, :] - receivers[..., :2], axis=-1))
+    dz = tx[:, None, 2] - receivers[..., 2]
+    tof = np.sqrt(horizontal**2 + dz**2) / SPEED_OF_SOUND + rng.normal(0.0, SIGMA_TOF, horizontal.shape)
+    return EchoArrays(layout.name, SPEED_OF_SOUND, groups.astype(np.uint16), transmitter.astype(np.uint8), tof,
+                      np.empty((len(groups), 0)), np.empty((len(groups), 0)))
+
+
+def _percentiles(latencies_ms: list[float]) -> tuple[float, float]:
+    if not latencies_ms:
+        return float("nan"), float("nan")
+    return float(np.median(latencies_ms)), float(np.percentile(latencies_ms, 99))
+
+
+def run(quick: bool = False) -> dict:
+    """Start the graph, measure, stop it; return the figures.
+
+    Returns
+    -------
+    dict
+        ``latency_median_ms``, ``latency_p99_ms`` (ping -> markers at
+        :data:`LATENCY_RATE`), ``rate_hz`` (that rate), ``pings`` (sent at it),
+        ``dropped`` (of those, pings whose markers never came),
+        ``max_sustained_rate_hz`` (highest rate of the ladder with at least
+        :data:`SUSTAINED_SHARE` of pings through; 0 when none), ``ladder``
+        (per rate: sent, received, latency median and p99), ``node_latency_ms``
+        (each node's median compute time per message from ``/diagnostics``),
+        ``rows_per_ping`` and ``note`` (what was measured).
+    """
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.qos import qos_profile_sensor_data
+    from rclpy.serialization import deserialize_message
+    from std_msgs.msg import Header
+    from visualization_msgs.msg import MarkerArray
+
+    from sonar_ring.msg import Echoes
+    from sonar_ring.ros.convert import echoes_to_msg
+
+    plan = QUICK if quick else FULL
+    layout = load_layout(LAYOUT)
+    echoes = benchmark_echoes(layout, np.random.default_rng(0))
+    domain = 100 + os.getpid() % 100  # apart from other graphs on this machine
+    environment = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    command = [sys.executable, "-c", "from sonar_ring.ros.graph import main; main()", "--ros-args",
+               "-p", "source:=topic", "-p", f"layout:={LAYOUT}", "-p", "use_odometry:=false",
+               "--log-level", "error"]
+    errors = tempfile.TemporaryFile(mode="w+")
+    # cwd "/": a source checkout as cwd would shadow the built package (which holds sonar_ring.msg)
+    graph = subprocess.Popen(command, cwd="/", env=environment, stdout=subprocess.DEVNULL, stderr=errors, text=True)
+    context = rclpy.Context()
+    rclpy.init(context=context, domain_id=domain)
+    arrived: dict[int, int] = {}
+    node_latency: dict[str, float] = {}
+    try:
+        node = rclpy.create_node("graph_benchmark", context=context)
+        sender = node.create_publisher(Echoes, "tof_in", qos_profile_sensor_data)
+
+        def on_markers(raw: bytes) -> None:
+            now = time.time_ns()
+            markers = deserialize_message(raw, MarkerArray).markers
+            if markers:
+                stamp = markers[0].header.stamp
+                arrived.setdefault(stamp.sec * 10**9 + stamp.nanosec, now)
+
+        def on_diagnostics(message) -> None:
+            for status in message.status:
+                values = {pair.key: pair.value for pair in status.values}
+                if values.get("latency median (ms)", "n/a") != "n/a":
+                    node_latency[status.name.rsplit("/", 1)[-1]] = float(values["latency median (ms)"])
+
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        node.create_subscription(MarkerArray, "markers", on_markers, 100, raw=True)
+        node.create_subscription(DiagnosticArray, "/diagnostics", on_diagnostics, 10)
+        executor = SingleThreadedExecutor(context=context)
+        executor.add_node(node)
+        deadline = time.monotonic() + 30.0
+        while sender.get_subscription_count() < 1 or node.count_publishers("markers") < 1:
+            if graph.poll() is not None or time.monotonic() > deadline:
+                errors.seek(0)
+                raise RuntimeError(f"the graph did not start: {errors.read().strip() or 'no output'}")
+            executor.spin_once(timeout_sec=0.1)
+
+        def send(rate: float, count: int) -> list[int]:
+            """Send ``count`` pings at ``rate``; return their stamps (ns), after waiting for stragglers."""
+            stamps = []
+            period = 1.0 / rate
+            start = time.perf_counter()
+            for index in range(count):
+                while (wait := start + index * period - time.perf_counter()) > 0:
+                    executor.spin_once(timeout_sec=wait)
+                stamp = time.time_ns()
+                header = Header(frame_id="sonar_ring")
+                header.stamp.sec, header.stamp.nanosec = divmod(stamp, 10**9)
+                sender.publish(echoes_to_msg(echoes, header))
+                stamps.append(stamp)
+            settle = time.monotonic() + 0.5
+            while time.monotonic() < settle:
+                executor.spin_once(timeout_sec=0.02)
+            return stamps
+
+        def figures(stamps: list[int]) -> tuple[int, list[float]]:
+            latencies = [(arrived[s] - s) * 1e-6 for s in stamps if s in arrived]
+            return len(latencies), latencies
+
+        send(LATENCY_RATE, 30)  # warm-up: discovery of every topic, first-call costs
+        stamps = send(LATENCY_RATE, plan.latency_pings)
+        received, latencies = figures(stamps)
+        median, p99 = _percentiles(latencies)
+        ladder = []
+        sustained = 0.0
+        for rate in plan.ladder:
+            sent = send(rate, int(rate * plan.seconds_per_rate))
+            through, rate_latencies = figures(sent)
+            ladder.append({"rate_hz": rate, "sent": len(sent), "received": through,
+                           "latency_median_ms": _percentiles(rate_latencies)[0],
+                           "latency_p99_ms": _percentiles(rate_latencies)[1]})
+            if through < SUSTAINED_SHARE * len(sent):
+                break
+            sustained = rate
+    finally:
+        context.try_shutdown()
+        graph.terminate()
+        try:
+            graph.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            graph.kill()
+        errors.close()
+    return {
+        "latency_median_ms": median, "latency_p99_ms": p99, "rate_hz": LATENCY_RATE, "pings": len(stamps),
+        "dropped": len(stamps) - received, "max_sustained_rate_hz": sustained, "ladder": ladder,
+        "node_latency_ms": node_latency, "rows_per_ping": echoes.n_echoes,
+        "note": (f"{layout.n_groups} pairs x {len(ECHO_RANGES)} pole echoes ({echoes.n_echoes} rows) per ping, "
+                 f"sigma_t {SIGMA_TOF * 1e6:g} us; the graph executable in its own process (source:=topic, fixed "
+                 "pose); latency from the ping's stamp to its markers arriving in another process"),
+    }

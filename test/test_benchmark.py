@@ -1,0 +1,50 @@
+"""``sonar-ring bench --quick``: the report is produced end to end -- rows, targets, plots -- not its timings."""
+
+import re
+
+from sonar_ring.benchmark.measure import LSQ_NAME
+from sonar_ring.benchmark.methods import BEARING, RING_FAMILIES
+from sonar_ring.benchmark.report import PLOT_DIR, REPORT, TABLE_BEGIN, TABLE_END
+from sonar_ring.cli import main
+
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def test_quick_report_has_every_row_the_targets_and_the_plots(tmp_path):
+    readme = tmp_path / "README.md"
+    readme.write_text(f"# Project\n\n{TABLE_BEGIN}\nan old table\n{TABLE_END}\n\n## Next section\n")
+    assert main(["bench", "--quick", "--out", str(tmp_path), "--seed", "3"]) == 0
+
+    text = (tmp_path / REPORT).read_text()
+    tables = text[text.index(TABLE_BEGIN):text.index(TABLE_END)]
+    for family in (BEARING, *RING_FAMILIES):
+        for method in family.methods:
+            assert f"| {family.name} | {method.name} | {method.role} |" in tables
+    for family in ("plane", "corner", "edge"):
+        assert f"| {family} | {LSQ_NAME} | baseline |" in tables
+    for row in ("| classification | amplitude rules", "| classification | consistency test",
+                "| azimuth (triad) | Kreczmer (n1, n2) search", "| azimuth (triad) | grid search over phi, 0.01 deg",
+                "| azimuth (triad) | direct, R1-R2 pair", "| graph | ping → markers"):
+        assert row in tables
+    # the graph row holds figures where ROS 2 is there, else says what it needs
+    graph_row = next(line for line in tables.splitlines() if line.startswith("| graph |"))
+    assert "latency median" in graph_row or "needs ROS 2" in graph_row or "failed" in graph_row
+
+    targets = text[text.index("## Targets"):text.index("## Main tables")]
+    for target in ("≤ 100 ns per landmark", "plane: ≥ 1000× faster than per-point least squares",
+                   "corner: ≥ 1000× faster", "edge: ≥ 1000× faster", "noise-free position error ≤ 1e-9 m",
+                   "within 10 % of the CRLB", "in < 10 min on 2 cores"):
+        line = next(line for line in targets.splitlines() if target in line)
+        assert re.search(r"\*\*(met|missed)\*\*", line), line
+    for stated in ("- Date: ", "- Machine: ", "- Versions: Python", "`--seed 3`", "--quick"):
+        assert stated in text
+
+    for name in ("pareto.png", "error_vs_range.png", "error_vs_bearing.png"):
+        picture = tmp_path / PLOT_DIR / name
+        assert picture.read_bytes()[:8] == PNG_SIGNATURE
+        assert f"]({(PLOT_DIR / name).as_posix()})" in text
+
+    updated = readme.read_text()
+    assert "an old table" not in updated
+    assert updated.startswith("# Project\n\n" + TABLE_BEGIN) and updated.endswith(TABLE_END + "\n\n## Next section\n")
+    assert tables.strip() in updated
