@@ -48,7 +48,8 @@ HARDWARE_QUEUE = 64
 PARAMS = [
     Param("source", "simulator", "where echoes come from", choices=SOURCES, read_only=True),
     Param("layout", "browne_ring", "sensor layout: a name in config/layouts or a YAML path", read_only=True),
-    Param("frame_id", "sonar_ring", "frame of the echoes (sensor frame at the ring centre)"),
+    Param("frame_id", "sonar_ring", "frame of the echoes (sensor frame at the ring centre); the range frames hang "
+          "from it on /tf_static", read_only=True),
     Param("device", "udp://0.0.0.0:5600", "hardware: serial:///dev/ttyUSB0?baud=921600, udp://HOST:PORT or "
           "tcp://HOST:PORT", read_only=True),
     Param("silence_timeout", 2.0, "hardware: seconds without bytes before reconnecting", low=0.1, high=60.0,
