@@ -123,3 +123,10 @@ def test_invalid_parameter_changes_are_refused_and_the_old_value_kept(ros):
     for node in (localiser, classifier, driver):
         node.destroy_node()
 
+
+
+def test_graph_nodes_add_no_qos_event_waitables_to_the_executor(ros):
+    """Every waitable is visited on every executor wait; the default QoS event handlers were 40 of them."""
+    nodes = [cls(parameter_overrides=[Parameter("source", value="topic")]) for cls in NODES]
+    assert [len(list(node.waitables)) for node in nodes] == [0, 0, 0, 0]
+    assert len(list(nodes[0].publishers)) > 48  # echoes and one Range topic per group, all without handlers

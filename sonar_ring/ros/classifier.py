@@ -11,7 +11,6 @@ from __future__ import annotations
 import time
 from collections import OrderedDict
 
-from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from visualization_msgs.msg import MarkerArray
 
@@ -23,6 +22,7 @@ from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, check_echoes
 from sonar_ring.ros.localiser import settings_from
 from sonar_ring.ros.markers import landmark_markers
+from sonar_ring.ros.node import SonarNode
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.run import spin
 
@@ -42,7 +42,7 @@ PARAMS = [
 ]
 
 
-class Classifier(Node):
+class Classifier(SonarNode):
     """Hypotheses and echoes in, labelled landmarks and markers out, one message each per ping."""
 
     def __init__(self, **kwargs) -> None:

@@ -21,7 +21,6 @@ from dataclasses import replace
 
 import numpy as np
 from nav_msgs.msg import Odometry
-from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.subscription import MessageInfo
 from std_msgs.msg import Header
@@ -34,6 +33,7 @@ from sonar_ring.msg import LandmarkArray as LandmarkArrayMsg
 from sonar_ring.ros.convert import MessageError, echoes_from_msg, echoes_to_msg, landmarks_to_msg
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import FUTURE_TOLERANCE, InputGate, screened
+from sonar_ring.ros.node import SonarNode
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.ranges import publish_group_frames, range_messages, range_publishers
 from sonar_ring.ros.run import spin
@@ -68,7 +68,7 @@ PARAMS = [
 ]
 
 
-class Driver(Node):
+class Driver(SonarNode):
     """Publishes each ping of the selected source as one Echoes message."""
 
     def __init__(self, **kwargs) -> None:

@@ -11,7 +11,6 @@ from __future__ import annotations
 import time
 
 import numpy as np
-from rclpy.node import Node
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.subscription import MessageInfo
 
@@ -21,6 +20,7 @@ from sonar_ring.msg import Echoes, LandmarkArray
 from sonar_ring.ros.convert import landmarks_to_msg
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, check_echoes
+from sonar_ring.ros.node import SonarNode
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.run import spin
 
@@ -62,7 +62,7 @@ def settings_from(values: dict) -> pipeline.Settings:
     )
 
 
-class Localiser(Node):
+class Localiser(SonarNode):
     """Echoes in, landmark hypotheses out, one message per ping."""
 
     def __init__(self, **kwargs) -> None:

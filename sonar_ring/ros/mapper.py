@@ -21,7 +21,6 @@ from collections import deque
 
 import numpy as np
 from nav_msgs.msg import Odometry
-from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from rclpy.subscription import MessageInfo
 from sensor_msgs.msg import PointCloud2, PointField
@@ -34,6 +33,7 @@ from sonar_ring.ros.convert import MessageError, landmarks_from_msg, landmarks_t
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, stamp_ns
 from sonar_ring.ros.markers import covariance_ellipses, landmark_markers
+from sonar_ring.ros.node import SonarNode
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.run import spin
 
@@ -147,7 +147,7 @@ def point_cloud(points: np.ndarray, header: Header) -> PointCloud2:
                        point_step=12, row_step=12 * points.shape[0], data=xyz.tobytes(), is_dense=True)
 
 
-class Mapper(Node):
+class Mapper(SonarNode):
     """Landmarks and odometry in, the map out at ``map_rate``."""
 
     def __init__(self, **kwargs) -> None:

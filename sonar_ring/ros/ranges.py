@@ -44,7 +44,7 @@ def range_publishers(node: Node, layout: Layout) -> list:
     Without QoS event handlers: 48 of them would double the work of every
     executor wait in the node's process.
     """
-    quiet = PublisherEventCallbacks(use_default_callbacks=False)
+    quiet = PublisherEventCallbacks(use_default_callbacks=False)  # whatever the node's default
     return [node.create_publisher(Range, range_topic(group), qos_profile_sensor_data, event_callbacks=quiet)
             for group in range(layout.n_groups)]
 
