@@ -1,5 +1,6 @@
 """``sonar-ring bench --quick``: the report is produced end to end -- rows, targets, plots -- not its timings."""
 
+import importlib.util
 import re
 
 from sonar_ring.benchmark.measure import LSQ_NAME
@@ -28,12 +29,16 @@ def test_quick_report_has_every_row_the_targets_and_the_plots(tmp_path):
         assert row in tables
     # the graph row holds figures where ROS 2 is there, else says what it needs
     graph_row = next(line for line in tables.splitlines() if line.startswith("| graph |"))
-    assert "latency median" in graph_row or "needs ROS 2" in graph_row or "failed" in graph_row
+    if importlib.util.find_spec("rclpy") is None:
+        assert "needs ROS 2" in graph_row
+    else:  # make test runs in the built ROS 2 environment: the graph must have run
+        assert "latency median" in graph_row, graph_row
 
     targets = text[text.index("## Targets"):text.index("## Main tables")]
     for target in ("≤ 100 ns per landmark", "plane: ≥ 1000× faster than per-point least squares",
                    "corner: ≥ 1000× faster", "edge: ≥ 1000× faster", "noise-free position error ≤ 1e-9 m",
-                   "within 10 % of the CRLB", "in < 10 min on 2 cores"):
+                   "within 10 % of the CRLB", "in < 10 min on 2 cores", "graph: ping → markers median ≤ 2 ms",
+                   "pings/s sustained"):
         line = next(line for line in targets.splitlines() if target in line)
         assert re.search(r"\*\*(met|missed)\*\*", line), line
     for stated in ("- Date: ", "- Machine: ", "- Versions: Python", "`--seed 3`", "--quick"):
