@@ -36,11 +36,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN
 from sonar_ring.localise import horizontal_path
-
-# The class codes (UNKNOWN 0, PLANE 1, CORNER 2, EDGE 3, as in Landmark.msg) are defined
-# once, for now beside the scene reflector types.
-from sonar_ring.simulate import CORNER, EDGE, PLANE, UNKNOWN
 
 DECISION_MARGIN = 6.0
 """Barshan & Kuc eqs 13-14: one amplitude is *greater* than another only by more than 6 sigma."""
