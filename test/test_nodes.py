@@ -120,9 +120,13 @@ def test_invalid_parameter_changes_are_refused_and_the_old_value_kept(ros):
     assert not result.successful and "read-only" in result.reason
     assert localiser.set_parameters([Parameter("models", value=["corner"])])[0].successful
     assert localiser.settings.models == ("corner",)
+    # the driver's fallback speed of sound: 0 (the default) or what the echo screening accepts
+    result = driver.set_parameters([Parameter("speed_of_sound", value=200.0)])[0]
+    assert not result.successful and "250..450 m/s" in result.reason
+    assert driver.set_parameters([Parameter("speed_of_sound", value=420.0)])[0].successful
+    assert driver.set_parameters([Parameter("speed_of_sound", value=0.0)])[0].successful
     for node in (localiser, classifier, driver):
         node.destroy_node()
-
 
 
 def test_graph_nodes_add_no_qos_event_waitables_to_the_executor(ros):

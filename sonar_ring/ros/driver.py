@@ -25,7 +25,7 @@ from rclpy.qos import qos_profile_sensor_data
 from rclpy.subscription import MessageInfo
 from std_msgs.msg import Header
 
-from sonar_ring.echoes import EchoArrays
+from sonar_ring.echoes import FASTEST_SPEED_OF_SOUND, SLOWEST_SPEED_OF_SOUND, EchoArrays
 from sonar_ring.geometry import load_layout, speed_of_sound
 from sonar_ring.landmarks import make_landmarks
 from sonar_ring.msg import Echoes
@@ -45,6 +45,13 @@ DEFAULT_SPEED_OF_SOUND = float(speed_of_sound(20.0))
 HARDWARE_QUEUE = 64
 """Decoded frames waiting to be published; older ones are dropped (and counted) beyond this."""
 
+def _speed_of_sound_problem(value: float) -> str | None:
+    if value == 0.0 or SLOWEST_SPEED_OF_SOUND <= value <= FASTEST_SPEED_OF_SOUND:
+        return None
+    return (f"speed_of_sound must be 0 or {SLOWEST_SPEED_OF_SOUND:g}..{FASTEST_SPEED_OF_SOUND:g} m/s (the pings "
+            f"would all be refused as bad_speed_of_sound), got {value:g}")
+
+
 PARAMS = [
     Param("source", "simulator", "where echoes come from", choices=SOURCES, read_only=True),
     Param("layout", "browne_ring", "sensor layout: a name in config/layouts or a YAML path", read_only=True),
@@ -61,8 +68,9 @@ PARAMS = [
     Param("seed", 0, "simulator: noise seed", low=0, high=2**31 - 1, read_only=True),
     Param("loops", 0, "simulator: laps of the scene trajectory before stopping (0: forever)", low=0, high=10**6,
           read_only=True),
-    Param("speed_of_sound", 0.0, "m/s to use when the source gives none (0: 20 degC dry air)", low=0.0,
-          high=400.0),
+    Param("speed_of_sound", 0.0, f"m/s to use when the source gives none: 0 (20 degC dry air) or "
+          f"{SLOWEST_SPEED_OF_SOUND:g}..{FASTEST_SPEED_OF_SOUND:g}, what the echo screening accepts",
+          low=0.0, high=FASTEST_SPEED_OF_SOUND, check=_speed_of_sound_problem),
     Param("publish_range", True, "publish one sensor_msgs/Range per group on `range/group_NN`", read_only=True),
     FUTURE_TOLERANCE,
 ]
