@@ -19,7 +19,8 @@ from std_msgs.msg import Header
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import load_layout
 from sonar_ring.ros.driver import Driver
-from sonar_ring.ros.ranges import MIN_RANGE, STATIC_QOS, group_frame, group_transforms, range_messages, range_topic
+from sonar_ring.ros.node import LATCHED
+from sonar_ring.ros.ranges import MIN_RANGE, group_frame, group_transforms, range_messages, range_topic
 
 pytestmark = pytest.mark.ros
 
@@ -109,7 +110,7 @@ def test_driver_publishes_the_group_frames_on_tf_static(ros):
     driver = Driver(parameter_overrides=[Parameter("scene", value="single_wall")])
     listener = rclpy.create_node("tf_listener")
     received = []
-    listener.create_subscription(TFMessage, "/tf_static", received.append, STATIC_QOS)  # late: transient local
+    listener.create_subscription(TFMessage, "/tf_static", received.append, LATCHED)  # late: transient local
     executor = SingleThreadedExecutor()
     executor.add_node(driver)
     executor.add_node(listener)

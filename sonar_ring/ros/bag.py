@@ -22,7 +22,7 @@ from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticArray
 from nav_msgs.msg import Odometry
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
 from rosbags.rosbag2 import Reader, StoragePlugin, Writer
 from rosbags.typesys import Stores, get_types_from_msg, get_typestore
@@ -31,13 +31,13 @@ from visualization_msgs.msg import MarkerArray
 
 from sonar_ring.geometry import CONFIG_DIR, Layout
 from sonar_ring.msg import Echoes, LandmarkArray
-from sonar_ring.ros.ranges import STATIC_QOS, range_topic
+from sonar_ring.ros.node import LATCHED
+from sonar_ring.ros.ranges import range_topic
 
 MSG_DIR = CONFIG_DIR.parent / "msg"
 """This package's interface definitions (``share/sonar_ring/msg`` when installed, ``msg/`` in a checkout)."""
 
 RELIABLE = QoSProfile(depth=10)
-LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
 """``--storage`` choices."""
 
@@ -93,7 +93,7 @@ def graph_topics(layout: Layout) -> list[Topic]:
         from tf2_msgs.msg import TFMessage
     except ImportError:  # not on PyPI; the driver then publishes no group frames either
         return topics
-    return [*topics, Topic("/tf_static", TFMessage, STATIC_QOS)]
+    return [*topics, Topic("/tf_static", TFMessage, LATCHED)]
 
 
 def message_type_name(message: type) -> str:

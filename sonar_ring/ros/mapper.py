@@ -21,7 +21,7 @@ from collections import deque
 
 import numpy as np
 from nav_msgs.msg import Odometry
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import qos_profile_sensor_data
 from rclpy.subscription import MessageInfo
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
@@ -33,7 +33,7 @@ from sonar_ring.ros.convert import MessageError, landmarks_from_msg, landmarks_t
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, stamp_ns
 from sonar_ring.ros.markers import covariance_ellipses, landmark_markers
-from sonar_ring.ros.node import SonarNode
+from sonar_ring.ros.node import LATCHED, SonarNode
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.run import spin
 
@@ -124,6 +124,18 @@ def integrate(landmark_map: LandmarkMap, landmarks, robot_pose: np.ndarray, sens
     return {reason: getattr(after, reason) - getattr(before, reason) for reason in SIGHTING_PROBLEMS + SIGHTING_NOTES}
 
 
+def count_sightings(health, lost: dict) -> None:
+    """Count what :func:`integrate` left out: refused sightings as problems, those left out by design as notes.
+
+    ``health`` is a :class:`~sonar_ring.ros.diagnostics.NodeHealth` or anything with its
+    ``problem`` and ``note`` methods (``sonar-ring process`` counts the same way).
+    """
+    for reason in SIGHTING_PROBLEMS:
+        health.problem(f"sightings {reason}", count=lost[reason])
+    for reason in SIGHTING_NOTES:
+        health.note(f"sightings {reason}", lost[reason])
+
+
 def map_messages(landmark_map: LandmarkMap, header: Header, min_observations: int):
     """The map as published: ``map/landmarks``, ``map/markers`` and ``map/points`` messages, in that order.
 
@@ -159,11 +171,9 @@ class Mapper(SonarNode):
         self._poses: deque = deque(maxlen=POSE_HISTORY)
         self._pending: deque = deque()
         self._changed = False
-        latched = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE,
-                             durability=DurabilityPolicy.TRANSIENT_LOCAL)
-        self._map_landmarks = self.create_publisher(LandmarkArray, "map/landmarks", latched)
-        self._map_markers = self.create_publisher(MarkerArray, "map/markers", latched)
-        self._map_points = self.create_publisher(PointCloud2, "map/points", latched)
+        self._map_landmarks = self.create_publisher(LandmarkArray, "map/landmarks", LATCHED)
+        self._map_markers = self.create_publisher(MarkerArray, "map/markers", LATCHED)
+        self._map_points = self.create_publisher(PointCloud2, "map/points", LATCHED)
         self._landmarks_gate = InputGate(self, self.health, "landmarks", self.params)
         self._odometry_gate = InputGate(self, self.health, "odom", self.params, frame_param="odom_frame",
                                         on_clock_jump=self._forget_poses)
@@ -225,11 +235,7 @@ class Mapper(SonarNode):
         except MessageError as error:
             self.health.problem("malformed_message", str(error))
             return
-        lost = integrate(self.map, landmarks, robot_pose, self.params["sensor_offset"])
-        for reason in SIGHTING_PROBLEMS:
-            self.health.problem(f"sightings {reason}", count=lost[reason])
-        for reason in SIGHTING_NOTES:
-            self.health.note(f"sightings {reason}", lost[reason])
+        count_sightings(self.health, integrate(self.map, landmarks, robot_pose, self.params["sensor_offset"]))
         self._changed = True
         self.health.processed(time.perf_counter() - started, published=0)
 

@@ -12,6 +12,10 @@ from __future__ import annotations
 
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
+from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
+
+LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
+"""Reliable and transient local, depth 1: the map and the static frames, which a late subscriber still gets."""
 
 
 class SonarNode(Node):

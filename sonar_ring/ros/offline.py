@@ -297,9 +297,8 @@ class OfflineGraph:
         self.per_class += np.bincount(output.landmarks.landmark_class, minlength=len(CLASS_NAMES))
         pose = self._robot_pose(stamp_ns(header))
         if pose is not None:
-            lost = mapper.integrate(self.map, output.landmarks, pose, self._mapper["sensor_offset"])
-            for reason in mapper.SIGHTING_PROBLEMS:
-                self._tally.problem(f"sightings {reason}", count=lost[reason])
+            mapper.count_sightings(self._tally, mapper.integrate(self.map, output.landmarks, pose,
+                                                                 self._mapper["sensor_offset"]))
             self._map_changed = True
 
     def finish(self) -> None:

@@ -19,18 +19,17 @@ import math
 
 import numpy as np
 from geometry_msgs.msg import TransformStamped
-from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.node import Node
-from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Range
 
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import Layout
+from sonar_ring.ros.node import LATCHED, SonarNode
 
 MIN_RANGE = 0.02
 """m: nearer echoes are reported as -inf (too close, REP 117)."""
 
-STATIC_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
 def range_topic(group: int) -> str:
@@ -38,14 +37,13 @@ def range_topic(group: int) -> str:
     return f"range/group_{group:02d}"
 
 
-def range_publishers(node: Node, layout: Layout) -> list:
+def range_publishers(node: SonarNode, layout: Layout) -> list:
     """One sensor-data publisher per group on :func:`range_topic`.
 
-    Without QoS event handlers: 48 of them would double the work of every
-    executor wait in the node's process.
+    ``node`` is a :class:`~sonar_ring.ros.node.SonarNode`: with QoS event
+    handlers, 48 publishers would double the work of every executor wait.
     """
-    quiet = PublisherEventCallbacks(use_default_callbacks=False)  # whatever the node's default
-    return [node.create_publisher(Range, range_topic(group), qos_profile_sensor_data, event_callbacks=quiet)
+    return [node.create_publisher(Range, range_topic(group), qos_profile_sensor_data)
             for group in range(layout.n_groups)]
 
 
@@ -82,7 +80,7 @@ def publish_group_frames(node: Node, layout: Layout, frame_id: str):
         node.get_logger().info("tf2_msgs is not installed: the range frames <frame_id>/group_NN are not published "
                                "on /tf_static; give them to tf from elsewhere (e.g. the URDF)")
         return None
-    publisher = node.create_publisher(TFMessage, "/tf_static", STATIC_QOS)
+    publisher = node.create_publisher(TFMessage, "/tf_static", LATCHED)
     publisher.publish(TFMessage(transforms=group_transforms(layout, frame_id, node.get_clock().now().to_msg())))
     return publisher
 
