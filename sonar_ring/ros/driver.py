@@ -161,6 +161,7 @@ class Driver(SonarNode):
         self._frames_dropped = 0
         self._last_frame: tuple[int, int] | None = None
         self._reader_reported: Counter[str] = Counter()
+        self._next_reader_report = 0.0
         self.reader = HardwareReader(self.params["device"], self._on_frame,
                                      silence_timeout=self.params["silence_timeout"])
         self.reader.start()
@@ -194,7 +195,10 @@ class Driver(SonarNode):
             header = Header(stamp=stamp.to_msg(), frame_id=self.params["frame_id"])
             self._publish(frame.echoes, header)
             self.health.processed(time.perf_counter() - started)
-        self._report_reader()
+        # The reader's counters take its lock, which it holds while decoding: read them with the frames,
+        # or once a second when none come (a lost device), not at every 2 ms tick.
+        if frames or time.monotonic() >= self._next_reader_report:
+            self._report_reader()
 
     def _report_reader(self) -> None:
         """The reader's connection events and the decoder's dropped bytes since the last call, on ``health``."""
@@ -205,6 +209,7 @@ class Driver(SonarNode):
             else:
                 self.health.problem(event, self.reader.address, count)
         self._reader_reported = counts
+        self._next_reader_report = time.monotonic() + 1.0
 
     # ------------------------------------------------------------------ output
 
