@@ -35,6 +35,7 @@ from sonar_ring.benchmark.classification import (  # noqa: E402
     ring_decisions,
 )
 from sonar_ring.benchmark.environment import machine  # noqa: E402
+from sonar_ring.benchmark.scenes import ring_scene  # noqa: E402
 from sonar_ring.classify import CORNER, PLANE, UNKNOWN  # noqa: E402
 from sonar_ring.geometry import beam_half_angle, load_layout  # noqa: E402
 
@@ -201,19 +202,6 @@ def array_section(trials, rng) -> list[str]:
 
 
 # --------------------------------------------------------------------------- the ring
-
-def ring_scene(kind, range_m):
-    if kind == "wall":
-        reflectors = [{"type": "wall", "name": "wall", "from": [range_m, -10.0], "to": [range_m, 10.0]}]
-    elif kind == "pole":
-        reflectors = [{"type": "edge", "name": "pole", "at": [range_m, 0.0]}]
-    else:
-        arm = 1.5 * range_m / math.sqrt(2)  # arms of 1.5 R opening towards the sensor
-        reflectors = [{"type": "wall", "name": "left", "from": [range_m, 0.0], "to": [range_m - arm, arm]},
-                      {"type": "wall", "name": "right", "from": [range_m, 0.0], "to": [range_m - arm, -arm]},
-                      {"type": "corner", "name": "corner", "walls": ["left", "right"]}]
-    return simulate.load_scene({"name": f"{kind}_{range_m}", "reflectors": reflectors})
-
 
 def ring_row(label, is_edge, said_edge, said_specular) -> str:
     specular = ~is_edge

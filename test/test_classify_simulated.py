@@ -11,6 +11,7 @@ import pytest
 from numpy.testing import assert_allclose
 
 from sonar_ring import classify, simulate
+from sonar_ring.benchmark.scenes import ring_scene
 from sonar_ring.classify import CORNER, EDGE, PLANE, UNKNOWN
 from sonar_ring.geometry import load_layout
 
@@ -84,19 +85,6 @@ def test_bench_decisions_are_right_inside_the_working_range_and_abstain_outside(
     assert 0.2 < unknown / count < 0.9  # reported honestly: many abstentions near the beam edge
     correct, unknown, wrong, count = totals[False]
     assert wrong <= 0.001 * count and unknown >= 0.95 * count
-
-
-def ring_scene(kind, range_m):
-    if kind == "wall":
-        reflectors = [{"type": "wall", "name": "wall", "from": [range_m, -10.0], "to": [range_m, 10.0]}]
-    elif kind == "pole":
-        reflectors = [{"type": "edge", "name": "pole", "at": [range_m, 0.0]}]
-    else:
-        arm = 1.5 * range_m / math.sqrt(2)
-        reflectors = [{"type": "wall", "name": "left", "from": [range_m, 0.0], "to": [range_m - arm, arm]},
-                      {"type": "wall", "name": "right", "from": [range_m, 0.0], "to": [range_m - arm, -arm]},
-                      {"type": "corner", "name": "corner", "walls": ["left", "right"]}]
-    return simulate.load_scene({"name": kind, "reflectors": reflectors})
 
 
 def ring_outcome(layout, scene, poses, rng):

@@ -267,3 +267,20 @@ def bearing_sweep(count: int, rng: np.random.Generator) -> BearingSweep:
     d2 = np.sqrt(np.sum(np.square(image - rx2.astype(exact)), axis=-1)).astype(float)
     return BearingSweep(tx, rx1, rx2, float(np.hypot(*(rx2 - rx1))), bearing, distance, distance.copy(), d2,
                         SWEEP_SPEED)
+
+
+def ring_scene(kind: str, range_m: float) -> simulate.Scene:
+    """One reflector straight ahead of the sensor: ``wall``, ``pole`` or ``corner`` at ``range_m`` (m).
+
+    The wall is 20 m long; the corner's arms, 1.5 ``range_m`` long, open towards the sensor.
+    """
+    if kind == "wall":
+        reflectors = [{"type": "wall", "name": "wall", "from": [range_m, -10.0], "to": [range_m, 10.0]}]
+    elif kind == "pole":
+        reflectors = [{"type": "edge", "name": "pole", "at": [range_m, 0.0]}]
+    else:
+        arm = 1.5 * range_m / math.sqrt(2)
+        reflectors = [{"type": "wall", "name": "left", "from": [range_m, 0.0], "to": [range_m - arm, arm]},
+                      {"type": "wall", "name": "right", "from": [range_m, 0.0], "to": [range_m - arm, -arm]},
+                      {"type": "corner", "name": "corner", "walls": ["left", "right"]}]
+    return simulate.load_scene({"name": f"{kind}_{range_m}", "reflectors": reflectors})
