@@ -2,7 +2,7 @@
 
 Two independent kinds of evidence are implemented.  Each returns a class code, the
 *margin* ``m`` by which the deciding test passed its threshold, in standard
-deviations of the tested statistic, and a *confidence* ``2 Phi(m) - 1`` in [0, 1)
+deviations of the tested statistic, and a *confidence* ``2 Phi(m) - 1`` in [0, 1]
 (``Phi`` the standard normal distribution): 0 at the threshold and whenever no
 decision is made, 0.68 one standard deviation beyond it, 0.95 two, 0.997 three.
 
@@ -58,7 +58,7 @@ class Classification:
         By how many standard deviations of the tested difference the deciding test
         passed its threshold, >= 0; 0 where ``cls`` is UNKNOWN.
     confidence : ndarray of float, shape (N,)
-        ``2 Phi(margin) - 1``, in [0, 1); 0 where ``cls`` is UNKNOWN.
+        ``2 Phi(margin) - 1``, in [0, 1]; 0 where ``cls`` is UNKNOWN.
     """
 
     cls: np.ndarray
@@ -83,7 +83,7 @@ class ConsistencyResult:
         decision was made, else 0: the excess of the statistic over its threshold in
         its linearised standard deviation ``2 sqrt(|D|)``.
     confidence : ndarray of float, shape (N,)
-        ``2 Phi(margin) - 1``, in [0, 1); 0 where nothing was decided.
+        ``2 Phi(margin) - 1``, in [0, 1]; 0 where nothing was decided.
     chi2_specular, chi2_edge : ndarray of float, shape (N,)
         Weighted residual sums of squares of the two fitted models (NaN where untested).
     dof : ndarray of int, shape (N,)
@@ -127,7 +127,7 @@ def _beam_and_noise(theta0, sigma_rel, margin_rule):
 
 
 def confidence_from_margin(margin):
-    """Confidence in [0, 1) from a test margin in standard deviations: ``2 Phi(m) - 1``.
+    """Confidence in [0, 1] from a test margin in standard deviations: ``2 Phi(m) - 1``.
 
     ``erf(m / sqrt(2))``, the probability that a standard normal deviate lies within
     ``+-m``; evaluated with Abramowitz & Stegun 7.1.26 (absolute error < 2e-7) so the

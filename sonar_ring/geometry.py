@@ -293,11 +293,26 @@ def _field(mapping, key, where, kind=float, positive=True, high=math.inf):
     return value
 
 
+_COMMON_FIELDS = ("name", "kind", "beam_half_angle_deg", "frequency_hz", "aperture_radius", "ping_rate_hz",
+                  "max_range")
+_LAYOUT_FIELDS = {"ring": _COMMON_FIELDS + ("ring",),
+                  "pair": _COMMON_FIELDS + ("transducers", "groups", "isotropic_emitter"),
+                  "triad": _COMMON_FIELDS + ("transducers", "groups", "isotropic_emitter")}
+"""Fields a layout of each kind may have; any other is a typing error (an optional field would be ignored)."""
+
+
+def _known_fields(mapping: dict, allowed, where: str) -> None:
+    unknown = sorted(set(mapping) - set(allowed), key=str)
+    if unknown:
+        raise LayoutError(f"{where}: unknown field '{unknown[0]}' (expected some of {sorted(allowed)})")
+
+
 def _layout_from_mapping(m: dict, where: str) -> Layout:
     name = str(m.get("name", Path(where).stem))
     kind = m.get("kind")
     if kind not in KINDS:
         raise LayoutError(f"{where}: field 'kind' must be one of {', '.join(KINDS)}, got {kind!r}")
+    _known_fields(m, _LAYOUT_FIELDS[kind], where)
     common = dict(
         name=name,
         kind=kind,
@@ -327,12 +342,16 @@ def _ring_parts(r: dict, where: str) -> dict:
     when the echo is nearer R1 (d1 < d2), is counter-clockwise positive as REP 103
     wants.
     """
+    _known_fields(r, ("pairs", "separation", "emitter_height", "tiers"), where)
     pairs = _field(r, "pairs", where, int, high=MAX_RING_PAIRS)
     separation = _field(r, "separation", where, high=MAX_SENSOR_EXTENT)
     emitter_height = _field(r, "emitter_height", where, positive=False, high=MAX_SENSOR_EXTENT)
     tiers = r.get("tiers")
     if not isinstance(tiers, list) or not tiers:
         raise LayoutError(f"{where}: field 'tiers' must be a non-empty list of {{radius, height}}")
+    for k, t in enumerate(tiers):
+        if isinstance(t, dict):
+            _known_fields(t, ("radius", "height"), f"{where}: tiers[{k}]")
     tier_radius = [_field(t, "radius", f"{where}: tiers[{k}]", high=MAX_SENSOR_EXTENT) for k, t in enumerate(tiers)]
     tier_height = [_field(t, "height", f"{where}: tiers[{k}]", positive=False, high=MAX_SENSOR_EXTENT)
                    for k, t in enumerate(tiers)]
@@ -370,6 +389,7 @@ def _explicit_parts(m: dict, where: str, kind: str) -> dict:
         here = f"{where}: transducers[{k}]"
         if not isinstance(t, dict):
             raise LayoutError(f"{here}: expected a mapping")
+        _known_fields(t, ("name", "position", "yaw_deg", "roles"), here)
         name = str(t.get("name", k))
         pos = t.get("position")
         if not (isinstance(pos, list) and len(pos) == 3):
@@ -400,6 +420,8 @@ def _explicit_parts(m: dict, where: str, kind: str) -> dict:
     g_rx, g_tx = [], []
     for k, g in enumerate(groups):
         here = f"{where}: groups[{k}]"
+        if isinstance(g, dict):
+            _known_fields(g, ("receivers", "transmitters"), here)
         try:
             g_rx.append([names_rx[str(n)] for n in g["receivers"]])
             g_tx.append([names_tx[str(n)] for n in g["transmitters"]])

@@ -18,10 +18,14 @@ PAIRS = r"ring: field 'pairs' must be an integer in 1\.\.1024, got "
 LAYOUT_CASES = [
     ("wrong type", RING.replace("frequency_hz: 50000.0", "frequency_hz: fifty kHz"),
      r"field 'frequency_hz' must be a finite number > 0, got 'fifty kHz'"),
-    ("missing field", RING.replace("max_range:", "range_max:"), r"missing field 'max_range' \(a finite number > 0\)"),
+    ("missing field", RING.replace("max_range:", "# max_range:"), r"missing field 'max_range' \(a finite number > 0\)"),
     ("out of range", RING.replace("pairs: 48", "pairs: 0"), PAIRS + "0"),
     ("too many", RING.replace("pairs: 48", "pairs: 1000000000"), PAIRS + "1000000000"),
     ("not a number", RING.replace("pairs: 48", "pairs: .nan"), PAIRS + "nan"),
+    ("unknown field", RING.replace("max_range: 6.0", "max_range: 6.0\nmax_range_m: 8.0"),
+     r"unknown field 'max_range_m' \(expected some of \['aperture_radius', "),
+    ("unknown nested field", RING.replace("separation:", "spacing: 0.04\n  separation:", 1),
+     r"ring: unknown field 'spacing' \(expected some of \['emitter_height', 'pairs', 'separation', 'tiers'\]\)"),
     ("not YAML", "kind: ring\n  frequency_hz: [40000\n", r"not valid YAML \(.*line 2"),
     ("not a mapping", "- kind\n- ring\n", r"expected a mapping of fields at the top level, got list"),
 ]
