@@ -515,10 +515,6 @@ class Ping:
         """Number of echo rows N."""
         return int(self.group.shape[0])
 
-    def path_length(self) -> np.ndarray:
-        """Path lengths ``d = c * tof``, shape (N, K), m (NaN where not heard)."""
-        return self.speed_of_sound * self.tof
-
     @property
     def echoes(self) -> EchoArrays:
         """What the hardware would report of this ping (no ground truth)."""

@@ -119,7 +119,7 @@ def test_path_lengths_obey_fermat_in_3d_for_every_echo_of_the_room(layout_name):
     checked = {PLANE: 0, CORNER: 0, EDGE: 0}
     for pose in room_poses(np.random.default_rng(7)):
         p = simulator.ping(pose)
-        d = p.path_length()
+        d = p.echoes.path_lengths()
         for n in range(p.n_echoes):
             f = p.truth_reflector[n]
             row = scene.kind_index[f]
@@ -174,17 +174,17 @@ def test_ranges_match_barshan_kuc_eqs_15_to_20():
     """
     half = D_BK / 2
     for radius in (0.2, 0.8, 1.6):
-        eq17_at_zero = ping(wall_scene(radius), BK_WIDE, [0, 0, 0], threshold=1e-300).path_length()[0, 1] / 2
+        eq17_at_zero = ping(wall_scene(radius), BK_WIDE, [0, 0, 0], threshold=1e-300).echoes.path_lengths()[0, 1] / 2
         assert_allclose(eq17_at_zero, math.sqrt(radius**2 + half**2), rtol=1e-15)
         for inclination in np.radians([-8.0, -2.0, 0.0, 5.0]):
             pose = [0.0, 0.0, -inclination]  # the sensor turns; the reflector's angle is +inclination
             s = math.sin(inclination)
             cross = math.sqrt(radius**2 + (half * math.cos(inclination)) ** 2)
-            plane = ping(wall_scene(radius), BK_WIDE, pose, threshold=1e-300).path_length() / 2
+            plane = ping(wall_scene(radius), BK_WIDE, pose, threshold=1e-300).echoes.path_lengths() / 2
             assert_allclose(plane[0], [radius - half * s, cross], rtol=0, atol=1e-12)  # eq 15
             assert_allclose(plane[1], [cross, radius + half * s], rtol=0, atol=1e-12)  # eq 16
             p = ping(corner_scene(radius), BK_WIDE, pose, threshold=1e-300)
-            corner = p.path_length()[p.truth_class == CORNER] / 2
+            corner = p.echoes.path_lengths()[p.truth_class == CORNER] / 2
             assert_allclose(corner[0], [math.sqrt(radius**2 + half**2 - radius * D_BK * s), radius],
                             atol=1e-12)  # eqs 18, 20
             assert_allclose(corner[1], [radius, math.sqrt(radius**2 + half**2 + radius * D_BK * s)],
@@ -639,7 +639,7 @@ def localise_rows(layout, p: Ping, columns):
     and the valid flags, all in the sensor frame.
     """
     first, second = columns
-    d = p.path_length()
+    d = p.echoes.path_lengths()
     rows = np.flatnonzero(np.isfinite(d[:, first]) & np.isfinite(d[:, second]))
     g, cls = p.group[rows], p.truth_class[rows]
     slot = np.argmax(layout.group_transmitters[g] == p.transmitter[rows][:, None], axis=1)
