@@ -34,6 +34,7 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN
@@ -650,53 +651,77 @@ def _far_field_image(centroid, outward, receivers, paths, usable):
     return centroid + mean_path[:, None] * direction
 
 
+_KERNEL = dict(cache=True, error_model="numpy", nogil=True)
+"""How the per-echo loops are compiled: cached beside the module (or in the user's cache when that is
+read-only), IEEE division (inf/NaN, as numpy) instead of ZeroDivisionError.  With a handful of receivers
+per echo, numpy's cost per call, not arithmetic, dominated these loops (classification was 2.3 ms for a
+144-echo ping, 0.3 ms compiled); each echo's result does not depend on the others in the batch."""
+
+
 def _gauss_newton(start, receivers, paths, weight, transmitter):
     """Weighted least squares for a virtual image (``transmitter`` None) or an edge point.
 
+    ``start`` (N, 2) m; ``receivers`` (N, K, 2) m; ``paths`` (N, K) m; ``weight``
+    (N, K), 0 for receivers left out; ``transmitter`` (N, 2) m or None.
     Returns the fitted points (N, 2) and their weighted residual sums of squares (N,).
-    The 2x2 normal equations are solved component-wise: with a handful of receivers
-    per echo, per-call overhead, not arithmetic, is the cost.
+    Each echo iterates on its own, up to :data:`_GAUSS_NEWTON_STEPS` steps or until
+    its step is below :data:`_CONVERGED`, so its fit is the same in any batch.
     """
-    x, y = start[:, 0], start[:, 1]
-    receiver_x, receiver_y = receivers[..., 0], receivers[..., 1]
-    for _ in range(_GAUSS_NEWTON_STEPS):
-        residual, jacobian_x, jacobian_y = _model(x, y, receiver_x, receiver_y, paths, transmitter)
-        weighted_x, weighted_y = weight * jacobian_x, weight * jacobian_y
-        xx = (weighted_x * jacobian_x).sum(axis=1)
-        xy = (weighted_x * jacobian_y).sum(axis=1)
-        yy = (weighted_y * jacobian_y).sum(axis=1)
-        gradient_x = (weighted_x * residual).sum(axis=1)
-        gradient_y = (weighted_y * residual).sum(axis=1)
-        det = xx * yy - xy * xy
-        solvable = np.isfinite(det) & (det != 0)
-        det = np.where(solvable, det, 1.0)
-        step_x = (yy * gradient_x - xy * gradient_y) / det
-        step_y = (xx * gradient_y - xy * gradient_x) / det
-        step_x = np.where(solvable & np.isfinite(step_x), step_x, 0.0)
-        step_y = np.where(solvable & np.isfinite(step_y), step_y, 0.0)
-        x, y = x - step_x, y - step_y
-        if not (np.abs(step_x).max(initial=0.0) > _CONVERGED or np.abs(step_y).max(initial=0.0) > _CONVERGED):
-            break
-    residual, _, _ = _model(x, y, receiver_x, receiver_y, paths, transmitter)
-    return np.stack([x, y], axis=-1), (weight * residual * residual).sum(axis=1)
+    edge = transmitter is not None
+    emitter = np.ascontiguousarray(transmitter if edge else start, dtype=float)
+    return _fit(np.ascontiguousarray(start, dtype=float), np.ascontiguousarray(receivers, dtype=float),
+                np.ascontiguousarray(paths, dtype=float), np.ascontiguousarray(weight, dtype=float), emitter, edge,
+                _GAUSS_NEWTON_STEPS, _CONVERGED)
 
 
-def _model(x, y, receiver_x, receiver_y, paths, transmitter):
-    """Residuals (N, K) and the Jacobian's x and y columns (N, K) of the specular or edge path model.
-
-    ``x``, ``y`` (N,): the point; ``receiver_x``, ``receiver_y``, ``paths`` (N, K).
-    """
-    to_x = x[:, None] - receiver_x
-    to_y = y[:, None] - receiver_y
-    distance = np.sqrt(to_x * to_x + to_y * to_y)
-    jacobian_x, jacobian_y = to_x / distance, to_y / distance
-    if transmitter is not None:
-        from_x, from_y = x - transmitter[:, 0], y - transmitter[:, 1]
-        emitter_distance = np.sqrt(from_x * from_x + from_y * from_y)
-        distance = distance + emitter_distance[:, None]
-        jacobian_x = jacobian_x + (from_x / emitter_distance)[:, None]
-        jacobian_y = jacobian_y + (from_y / emitter_distance)[:, None]
-    return distance - paths, jacobian_x, jacobian_y
+@numba.njit(**_KERNEL)
+def _fit(start, receivers, paths, weight, emitter, edge, steps, converged):  # pragma: no cover (compiled)
+    n_echoes, n_receivers = paths.shape
+    fitted = np.empty((n_echoes, 2))
+    chi2 = np.empty(n_echoes)
+    for n in range(n_echoes):
+        x, y = start[n, 0], start[n, 1]
+        step, last = 0, steps
+        while True:
+            xx = xy = yy = gradient_x = gradient_y = squares = 0.0
+            emitter_x = emitter_y = emitter_distance = 0.0
+            if edge:
+                emitter_x, emitter_y = x - emitter[n, 0], y - emitter[n, 1]
+                emitter_distance = np.sqrt(emitter_x * emitter_x + emitter_y * emitter_y)
+            for k in range(n_receivers):
+                w = weight[n, k]
+                if w == 0.0:
+                    continue
+                to_x, to_y = x - receivers[n, k, 0], y - receivers[n, k, 1]
+                distance = np.sqrt(to_x * to_x + to_y * to_y)
+                jacobian_x, jacobian_y = to_x / distance, to_y / distance
+                if edge:
+                    distance += emitter_distance
+                    jacobian_x += emitter_x / emitter_distance
+                    jacobian_y += emitter_y / emitter_distance
+                residual = distance - paths[n, k]
+                xx += w * jacobian_x * jacobian_x
+                xy += w * jacobian_x * jacobian_y
+                yy += w * jacobian_y * jacobian_y
+                gradient_x += w * jacobian_x * residual
+                gradient_y += w * jacobian_y * residual
+                squares += w * residual * residual
+            chi2[n] = squares
+            if step == last:
+                break
+            det = xx * yy - xy * xy
+            if not (np.isfinite(det) and det != 0.0):
+                break
+            step_x = (yy * gradient_x - xy * gradient_y) / det
+            step_y = (xx * gradient_y - xy * gradient_x) / det
+            if not (np.isfinite(step_x) and np.isfinite(step_y)):
+                break
+            x, y = x - step_x, y - step_y
+            step += 1
+            if abs(step_x) <= converged and abs(step_y) <= converged:
+                last = step  # one more pass, for the chi-square at the final point
+        fitted[n, 0], fitted[n, 1] = x, y
+    return fitted, chi2
 
 
 def _chi2_upper_quantile(dof, z):
@@ -837,8 +862,9 @@ def _gated_matches(ping, group, horizontal, sigma, receivers, slots, z):
     A row whose ``group`` is -1 is left out: no candidate of any echo, none of its own.
     Returns ``candidate`` (N, S, C) int, the rows of group ``slots[group[n], s]`` in
     echo ``n``'s ping (C = the most echoes any such group has), and ``matches``
-    (N, S, C) bool, True where that candidate exists, is not ``n`` itself, and every
-    pair of receivers heard by both satisfies the triangle-inequality gate.
+    (N, S, C) bool, True where that candidate exists, is not ``n`` itself, both
+    heard the echo with at least one receiver, and every pair of receivers heard
+    by both satisfies the triangle-inequality gate.
     """
     n_echoes = group.size
     key = np.where(group >= 0, ping * slots.shape[0] + group, -1)  # -1: left out, never a candidate
@@ -851,11 +877,40 @@ def _gated_matches(ping, group, horizontal, sigma, receivers, slots, z):
     width = max(int(count.max(initial=0)), 1)  # one column even when empty, so argmax works
     candidate = order[np.minimum(first[..., None] + np.arange(width), max(n_echoes - 1, 0))]
     exists = (np.arange(width) < count[..., None]) & (candidate != np.arange(n_echoes)[:, None, None])
-    own_h, other_h = horizontal[:, None, None, :, None], horizontal[candidate][..., None, :]
-    own_s, other_s = sigma[:, None, None, :, None], sigma[candidate][..., None, :]
-    spacing = np.linalg.norm(receivers[:, None, None, :, None, :] - receivers[candidate][..., None, :, :], axis=-1)
-    with np.errstate(invalid="ignore"):
-        slack = spacing + z * np.sqrt(own_s**2 + other_s**2) - np.abs(own_h - other_h)
-    heard = np.isfinite(own_h) & np.isfinite(other_h)
-    passes = np.all(np.where(heard, slack >= 0, True), axis=(-1, -2)) & np.any(heard, axis=(-1, -2))
-    return candidate, exists & passes
+    passes = _gate(candidate, exists, np.ascontiguousarray(horizontal, dtype=float),
+                   np.ascontiguousarray(sigma, dtype=float), np.ascontiguousarray(receivers, dtype=float), float(z))
+    return candidate, passes
+
+
+@numba.njit(**_KERNEL)
+def _gate(candidate, exists, horizontal, sigma, receivers, z):  # pragma: no cover (compiled)
+    """``exists`` and the triangle-inequality gate over every pair of receivers heard by both echoes."""
+    n_echoes, n_slots, width = candidate.shape
+    n_receivers = horizontal.shape[1]
+    passes = np.zeros(candidate.shape, dtype=np.bool_)
+    for n in range(n_echoes):
+        for slot in range(n_slots):
+            for c in range(width):
+                if not exists[n, slot, c]:
+                    continue
+                other = candidate[n, slot, c]
+                heard, fits = False, True
+                for i in range(n_receivers):
+                    own = horizontal[n, i]
+                    if not np.isfinite(own):
+                        continue
+                    for j in range(n_receivers):
+                        theirs = horizontal[other, j]
+                        if not np.isfinite(theirs):
+                            continue
+                        heard = True
+                        dx = receivers[n, i, 0] - receivers[other, j, 0]
+                        dy = receivers[n, i, 1] - receivers[other, j, 1]
+                        noise = np.sqrt(sigma[n, i] ** 2 + sigma[other, j] ** 2)
+                        if not (np.sqrt(dx * dx + dy * dy) + z * noise - abs(own - theirs) >= 0.0):
+                            fits = False
+                            break
+                    if not fits:
+                        break
+                passes[n, slot, c] = heard and fits
+    return passes
