@@ -252,17 +252,20 @@ def _localise_triads(layout: Layout, echoes: EchoArrays, settings: Settings) -> 
 
 
 def classify_ping(layout: Layout, echoes: EchoArrays, hypotheses: Landmarks,
-                  settings: Settings = Settings()) -> Landmarks:
+                  settings: Settings = Settings(), ping=None) -> Landmarks:
     """One labelled landmark per echo row that has a valid hypothesis.
 
     The class comes from the evidence the layout gives: amplitude rules for
     groups with two transmitters (both rows of an echo, matched by arrival order),
-    geometric consistency for single-emitter groups.  The position is the
+    geometric consistency for single-emitter groups; evidence joins rows of one
+    ping only (``ping``, shape (N,) int, when several pings are stacked; default
+    all rows one ping).  The position is the
     hypothesis of the decided class, or the corner model's (Browne s7) while
     the class is UNKNOWN or its model is not enabled; the confidence is the
     deciding test's.
     """
-    decided, confidence = _evidence(layout, echoes, settings)
+    ping = np.zeros(echoes.n_echoes, dtype=np.int64) if ping is None else np.asarray(ping, dtype=np.int64)
+    decided, confidence = _evidence(layout, echoes, settings, ping)
     count = echoes.n_echoes
     index = {}
     for code in (UNKNOWN, PLANE, CORNER, EDGE):
@@ -294,14 +297,14 @@ def classify_ping(layout: Layout, echoes: EchoArrays, hypotheses: Landmarks,
     return replace(labelled, covariance=covariance)
 
 
-def _evidence(layout: Layout, echoes: EchoArrays, settings: Settings):
-    """Class decision and confidence per echo row, shapes (N,)."""
+def _evidence(layout: Layout, echoes: EchoArrays, settings: Settings, ping: np.ndarray):
+    """Class decision and confidence per echo row, shapes (N,); ``ping`` (N,) keeps pings apart."""
     decided = np.full(echoes.n_echoes, UNKNOWN, dtype=np.uint8)
     confidence = np.zeros(echoes.n_echoes)
     if echoes.n_echoes == 0:
         return decided, confidence
     if layout.group_transmitters.shape[1] == 2 and echoes.amplitude.shape[1] == 2:
-        first, second = _matched_rows(layout, echoes)
+        first, second = _matched_rows(layout, echoes, ping)
         # [[A_aa', A_ab'], [A_ba', A_bb']]: rows by transmitter, columns by receiver.
         amplitudes = np.stack([echoes.amplitude[first], echoes.amplitude[second]], axis=1)
         result = classify.classify_amplitudes(amplitudes, settings.sigma_amplitude)
@@ -310,20 +313,68 @@ def _evidence(layout: Layout, echoes: EchoArrays, settings: Settings):
             confidence[rows] = result.confidence
     elif layout.kind == "ring":
         result = classify.ring_consistency(layout, echoes.group, echoes.path_lengths(),
-                                           echoes.speed_of_sound * settings.sigma_tof, z=settings.consistency_z)
+                                           echoes.speed_of_sound * settings.sigma_tof, ping=ping,
+                                           z=settings.consistency_z)
         decided[:] = result.cls
         confidence[:] = np.where(result.cls == EDGE, result.confidence, 0.0)
     return decided, confidence
 
 
-def _matched_rows(layout: Layout, echoes: EchoArrays):
-    """Rows of the same echo after each of a group's two transmitters fired, by arrival order."""
+def _matched_rows(layout: Layout, echoes: EchoArrays, ping: np.ndarray):
+    """Rows of the same echo after each of a group's two transmitters fired, by arrival order, within a ping."""
     firsts, seconds = [], []
-    for group in np.unique(echoes.group):
+    slot = ping * layout.n_groups + echoes.group
+    for key in np.unique(slot):
+        group = key % layout.n_groups
         a, b = layout.group_transmitters[group]
-        rows_a = np.flatnonzero((echoes.group == group) & (echoes.transmitter == a))
-        rows_b = np.flatnonzero((echoes.group == group) & (echoes.transmitter == b))
+        rows_a = np.flatnonzero((slot == key) & (echoes.transmitter == a))
+        rows_b = np.flatnonzero((slot == key) & (echoes.transmitter == b))
         count = min(len(rows_a), len(rows_b))
         firsts.append(rows_a[:count])
         seconds.append(rows_b[:count])
     return np.concatenate(firsts).astype(np.int64), np.concatenate(seconds).astype(np.int64)
+
+
+def label_pings(layout: Layout, pings: list[EchoArrays], localiser: Settings = Settings(),
+                classifier: Settings = Settings()) -> list[tuple[Landmarks, Landmarks]]:
+    """:func:`localise_ping` then :func:`classify_ping` for many pings at once; per ping the same result.
+
+    For each ping of ``pings`` (screened echoes of ``layout``): its valid
+    hypotheses (with ``localiser`` settings) and its labelled landmarks (with
+    ``classifier`` settings), ``echo`` counting the ping's own rows -- exactly
+    what the two functions give for that ping alone, since a row's results
+    depend only on its own ping.  Consecutive pings with the same speed of sound
+    are stacked and go through each step in one call, so numpy's cost per call
+    is paid once per batch instead of once per ping (``sonar-ring process``).
+    """
+    results = []
+    start = 0
+    while start < len(pings):
+        stop = start + 1
+        while stop < len(pings) and pings[stop].speed_of_sound == pings[start].speed_of_sound:
+            stop += 1
+        batch = pings[start:stop]
+        sizes = np.array([p.n_echoes for p in batch])
+        offsets = np.concatenate([[0], np.cumsum(sizes)])
+        stacked = EchoArrays(batch[0].layout, batch[0].speed_of_sound,
+                             *(np.concatenate([getattr(p, name) for p in batch])
+                               for name in ("group", "transmitter", "tof", "amplitude", "phase_delay")))
+        hypotheses = localise_ping(layout, stacked, localiser)
+        hypotheses = hypotheses.select(hypotheses.valid)
+        labelled = classify_ping(layout, stacked, hypotheses, classifier,
+                                 ping=np.repeat(np.arange(len(batch)), sizes))
+        results += zip(_split(hypotheses, offsets), _split(labelled, offsets), strict=True)
+        start = stop
+    return results
+
+
+def _split(landmarks: Landmarks, offsets: np.ndarray) -> list[Landmarks]:
+    """Landmarks of stacked pings back per ping (rows ``offsets[i]:offsets[i + 1]``), ``echo`` per ping, in order."""
+    ping = np.searchsorted(offsets, landmarks.echo, side="right") - 1
+    order = np.argsort(ping, kind="stable")
+    bounds = np.searchsorted(ping[order], np.arange(len(offsets)))
+    parts = []
+    for index in range(len(offsets) - 1):
+        part = landmarks.select(order[bounds[index]:bounds[index + 1]])
+        parts.append(replace(part, echo=(part.echo - offsets[index]).astype(part.echo.dtype)))
+    return parts

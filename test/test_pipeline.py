@@ -110,6 +110,40 @@ def test_barshan_kuc_pair_is_decided_by_amplitudes():
     assert_array_equal(labelled.landmark_class[known], ping.truth_class[labelled.echo[known]])
 
 
+def assert_same_landmarks(found, expected):
+    for name in expected.__dataclass_fields__:
+        assert_array_equal(getattr(found, name), getattr(expected, name), err_msg=name)
+        assert getattr(found, name).dtype == getattr(expected, name).dtype, name
+
+
+@pytest.mark.parametrize("layout_name, scene_name", [
+    ("browne_ring", "single_pole"), ("browne_ring", "room"), ("barshan_kuc_pair", "barshan_kuc_bench"),
+    ("barshan_kuc_array", "barshan_kuc_bench"), ("kreczmer_triad", "room")])
+def test_batched_pings_give_each_ping_its_own_result_exactly(layout_name, scene_name):
+    layout, scene = load_layout(layout_name), load_scene(scene_name)
+    poses = scene.sensor_pose[None, :] + np.linspace(0, 0.3, 9)[:, None] * np.array([1.0, 0.5, 0.2])
+    pings = [p.echoes for p in Simulator(scene, layout).run(poses, np.arange(9) / 30.0, noise=Noise(tof=1e-7),
+                                                               rng=np.random.default_rng(4))]
+    pings[3] = EchoArrays(layout.name, pings[3].speed_of_sound, *(a[:0] for a in (
+        pings[3].group, pings[3].transmitter, pings[3].tof, pings[3].amplitude, pings[3].phase_delay)))
+    for index in (6, 7):  # a warmer stretch: stacked apart from the rest
+        pings[index] = EchoArrays(**{**pings[index].__dict__, "speed_of_sound": 349.0})
+    localiser = pipeline.Settings(models=("plane", "edge", "corner"), sigma_tof=3e-7)
+    classifier = pipeline.Settings(sigma_tof=1e-7)
+    batched = pipeline.label_pings(layout, pings, localiser, classifier)
+    assert len(batched) == len(pings)
+    decided = 0
+    for echoes, (hypotheses, labelled) in zip(pings, batched, strict=True):
+        alone = pipeline.localise_ping(layout, echoes, localiser)
+        alone = alone.select(alone.valid)
+        assert_same_landmarks(hypotheses, alone)
+        assert_same_landmarks(labelled, pipeline.classify_ping(layout, echoes, alone, classifier))
+        decided += np.count_nonzero(labelled.landmark_class != UNKNOWN)
+    assert sum(len(h) for h, _ in batched) > 0
+    if scene_name != "room":
+        assert decided > 0, "the comparison must cover decided landmarks too"
+
+
 def test_error_handling():
     with pytest.raises(ValueError, match="models must be a non-empty subset"):
         pipeline.Settings(models=("plane", "wall"))
