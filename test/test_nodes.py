@@ -17,7 +17,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from sonar_ring.ros.classifier import Classifier
 from sonar_ring.ros.convert import landmarks_from_msg
 from sonar_ring.ros.driver import Driver
-from sonar_ring.ros.graph import NODES
+from sonar_ring.ros.graph import NODES, compose
 from sonar_ring.ros.localiser import Localiser
 from sonar_ring.simulate import load_scene
 
@@ -63,6 +63,7 @@ def assert_markers_valid(marker_array):
 
 def test_graph_in_one_process_matches_ground_truth(ros):
     nodes = [cls() for cls in NODES]
+    compose(nodes)
     listener = Listener()
     executor = SingleThreadedExecutor()
     for node in [*nodes, listener.node]:

@@ -2,9 +2,10 @@
 
 The driver (simulator source, room scene) publishes 300 pings/s, ten times the
 Browne ring's 30 Hz, from its own process; localiser, classifier and mapper
-share one executor in this process, as the ``graph`` executable runs them.
-That is more than two cores compute (about 5 ms per ping in the three nodes),
-so the nodes must drop what they cannot take -- from their depth-5
+share one executor in this process, each with its own subscriptions (not
+composed as in the ``graph`` executable), so every ping crosses DDS queues.
+When they fall behind (three callbacks and message decoding per ping on a
+shared core), the nodes must drop what they cannot take -- from their depth-5
 subscription queues and the classifier's and mapper's bounded pending pings --
 and count it, instead of queueing without bound.
 

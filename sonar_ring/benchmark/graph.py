@@ -125,12 +125,12 @@ def run(quick: bool = False) -> dict:
         node = rclpy.create_node("graph_benchmark", context=context)
         sender = node.create_publisher(Echoes, "tof_in", qos_profile_sensor_data)
 
-        def on_markers(raw: bytes) -> None:
-            now = time.time_ns()
+        def on_markers(raw: bytes, info) -> None:
+            # The middleware's reception time: this process's executor delay is not the graph's latency.
             markers = deserialize_message(raw, MarkerArray).markers
             if markers:
                 stamp = markers[0].header.stamp
-                arrived.setdefault(stamp.sec * 10**9 + stamp.nanosec, now)
+                arrived.setdefault(stamp.sec * 10**9 + stamp.nanosec, info["received_timestamp"])
 
         def on_diagnostics(message) -> None:
             for status in message.status:
@@ -159,10 +159,10 @@ def run(quick: bool = False) -> dict:
             for index in range(count):
                 while (wait := start + index * period - time.perf_counter()) > 0:
                     executor.spin_once(timeout_sec=wait)
+                message = echoes_to_msg(echoes, Header(frame_id="sonar_ring"))
                 stamp = time.time_ns()
-                header = Header(frame_id="sonar_ring")
-                header.stamp.sec, header.stamp.nanosec = divmod(stamp, 10**9)
-                sender.publish(echoes_to_msg(echoes, header))
+                message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp, 10**9)
+                sender.publish(message)
                 stamps.append(stamp)
             settle = time.monotonic() + 0.5
             while time.monotonic() < settle:

@@ -15,13 +15,15 @@ from rclpy.qos import qos_profile_sensor_data
 from visualization_msgs.msg import MarkerArray
 
 from sonar_ring import classify, pipeline
+from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import load_layout
+from sonar_ring.landmarks import Landmarks
 from sonar_ring.msg import Echoes, LandmarkArray
 from sonar_ring.ros.convert import MessageError, landmarks_from_msg, landmarks_to_msg
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, check_echoes
 from sonar_ring.ros.localiser import settings_from
-from sonar_ring.ros.markers import landmark_markers
+from sonar_ring.ros.markers import landmark_markers, serialize_markers
 from sonar_ring.ros.node import SonarNode
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.run import spin
@@ -56,10 +58,11 @@ class Classifier(SonarNode):
         self._markers = self.create_publisher(MarkerArray, "markers", 10)
         self._gates = {kind: InputGate(self, self.health, topic, self.params)
                        for kind, topic in (("echoes", "echoes"), ("raw", "landmarks/raw"))}
-        self.create_subscription(Echoes, "echoes", lambda m, i: self._arrived("echoes", m, i),
-                                 qos_profile_sensor_data)
-        self.create_subscription(LandmarkArray, "landmarks/raw", lambda m, i: self._arrived("raw", m, i),
-                                 qos_profile_sensor_data)
+        self.ping_inputs = (
+            self.create_subscription(Echoes, "echoes", lambda m, i: self._arrived("echoes", m, i),
+                                     qos_profile_sensor_data),
+            self.create_subscription(LandmarkArray, "landmarks/raw", lambda m, i: self._arrived("raw", m, i),
+                                     qos_profile_sensor_data))
 
     def _on_change(self, changed: dict) -> None:
         self.settings = settings_from(self.params)
@@ -88,11 +91,23 @@ class Classifier(SonarNode):
         except MessageError as error:
             self.health.problem("malformed_message", str(error))
             return
+        self._label(echoes_msg.header, echoes, hypotheses, started)
+
+    def on_ping(self, echoes_msg: Echoes, echoes: EchoArrays, hypotheses: Landmarks) -> None:
+        """A ping from the localiser in this process: its echoes (message and screened arrays) and valid hypotheses."""
+        started = time.perf_counter()
+        self.health.received()
+        if self._gates["echoes"].admit(echoes_msg.header):
+            self._label(echoes_msg.header, echoes, hypotheses, started)
+
+    def _label(self, header, echoes: EchoArrays, hypotheses: Landmarks, started: float) -> None:
         labelled = pipeline.classify_ping(self.layout, echoes, hypotheses, self.settings)
-        self._landmarks.publish(landmarks_to_msg(labelled, echoes_msg.header))
-        self._markers.publish(landmark_markers(labelled, echoes_msg.header, "landmarks",
-                                               self.params["marker_lifetime"]))
-        self.health.processed(time.perf_counter() - started, published=2)
+        message = landmarks_to_msg(labelled, header)
+        self._landmarks.publish(message)
+        self._markers.publish(serialize_markers(landmark_markers(labelled, "landmarks", self.params["marker_lifetime"]),
+                                                header))
+        downstream = self.pass_on(message, labelled)
+        self.health.processed(time.perf_counter() - started - downstream, published=2)
 
 
 def main(args=None) -> None:

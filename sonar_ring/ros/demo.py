@@ -39,7 +39,7 @@ from sonar_ring.msg import LandmarkArray
 from sonar_ring.progress import Progress
 from sonar_ring.ros.bag import BagWriter, absolute, graph_topics
 from sonar_ring.ros.convert import landmarks_from_msg
-from sonar_ring.ros.graph import NODES
+from sonar_ring.ros.graph import NODES, compose
 from sonar_ring.ros.offline import describe
 from sonar_ring.ros.run import CONFIG_ERRORS
 
@@ -139,6 +139,7 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
     rclpy.init()
     try:
         nodes = [cls(parameter_overrides=overrides) for cls in NODES]
+        compose(nodes)
         driver, localiser, classifier, mapper = nodes
         total = pings or driver.pings_per_lap * laps
         listener = rclpy.create_node("demo_listener")

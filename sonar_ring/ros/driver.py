@@ -35,7 +35,7 @@ from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import FUTURE_TOLERANCE, InputGate, screened
 from sonar_ring.ros.node import SonarNode
 from sonar_ring.ros.params import Param, declare
-from sonar_ring.ros.ranges import publish_group_frames, range_messages, range_publishers
+from sonar_ring.ros.ranges import RangeOutput, publish_group_frames
 from sonar_ring.ros.run import spin
 from sonar_ring.simulate import Noise, Simulator, load_scene
 
@@ -86,7 +86,7 @@ class Driver(SonarNode):
         self.health = NodeHealth(self, hardware_id=f"{self.params['source']}:{self.layout.name}")
         self._echo_publisher = self.create_publisher(Echoes, "echoes", qos_profile_sensor_data)
         if self.params["publish_range"]:
-            self._range_publishers = range_publishers(self, self.layout)
+            self._ranges = RangeOutput(self, self.layout)
             self._frames_publisher = publish_group_frames(self, self.layout, self.params["frame_id"])
         self.pings_published = 0
         self.reader = None
@@ -130,10 +130,10 @@ class Driver(SonarNode):
         ping = self._simulator.ping(pose, noise=noise, rng=self._rng)
         header = self._header()
         self.health.received()
-        self._publish(ping.echoes, header)
-        self._odom_publisher.publish(odometry_message(pose, header))
+        self._odom_publisher.publish(odometry_message(pose, header))  # first: the mapper places the ping with it
         self._truth_publisher.publish(truth_message(ping, header))
-        self.health.processed(time.perf_counter() - started, published=1)
+        downstream = self._publish(ping.echoes, header)
+        self.health.processed(time.perf_counter() - started - downstream, published=1)
         self._pose_index += 1
         if self._pose_index == len(self._poses):
             self._pose_index = 0
@@ -150,8 +150,8 @@ class Driver(SonarNode):
             self.health.problem("malformed_message", str(error))
             return
         header = Header(stamp=msg.header.stamp, frame_id=self.params["frame_id"])
-        self._publish(echoes, header)
-        self.health.processed(time.perf_counter() - started)
+        downstream = self._publish(echoes, header)
+        self.health.processed(time.perf_counter() - started - downstream)
 
     def _start_hardware(self) -> None:
         from sonar_ring.transport import HardwareReader
@@ -193,8 +193,8 @@ class Driver(SonarNode):
                 continue
             self._last_frame = identity
             header = Header(stamp=stamp.to_msg(), frame_id=self.params["frame_id"])
-            self._publish(frame.echoes, header)
-            self.health.processed(time.perf_counter() - started)
+            downstream = self._publish(frame.echoes, header)
+            self.health.processed(time.perf_counter() - started - downstream)
         # The reader's counters take its lock, which it holds while decoding: read them with the frames,
         # or once a second when none come (a lost device), not at every 2 ms tick.
         if frames or time.monotonic() >= self._next_reader_report:
@@ -213,18 +213,23 @@ class Driver(SonarNode):
 
     # ------------------------------------------------------------------ output
 
-    def _publish(self, echoes: EchoArrays, header: Header) -> None:
-        """Screen a ping (:func:`sonar_ring.echoes.screen_ping`) and publish what is usable of it."""
+    def _publish(self, echoes: EchoArrays, header: Header) -> float:
+        """Screen a ping (:func:`sonar_ring.echoes.screen_ping`) and publish what is usable of it.
+
+        Returns the seconds the nodes that follow this one in this process took.
+        """
         kept = usable_echoes(echoes, self.layout, self.health, header,
                              self.params["speed_of_sound"] or DEFAULT_SPEED_OF_SOUND)
         if kept is None:
-            return
-        self._echo_publisher.publish(echoes_to_msg(kept, header))
+            return 0.0
+        message = echoes_to_msg(kept, header)
+        self._echo_publisher.publish(message)
         self.pings_published += 1
+        downstream = self.pass_on(message, kept)
+        # After the hand-off: the landmarks of a ping matter more than its ranges being first.
         if self.params["publish_range"]:
-            for publisher, message in zip(self._range_publishers, range_messages(self.layout, kept, header),
-                                          strict=True):
-                publisher.publish(message)
+            self._ranges.publish(kept, header)
+        return downstream
 
     def _header(self) -> Header:
         return Header(stamp=self.get_clock().now().to_msg(), frame_id=self.params["frame_id"])

@@ -1,8 +1,15 @@
 """graph: driver, localiser, classifier and mapper in one process and one executor.
 
-The same nodes as the four executables, without the DDS hops between processes
-(messages still go through rclpy's intra-process path of the middleware).
+The same nodes as the four executables, composed: each hands its ping straight
+to the next (:func:`compose`), as rclcpp's intra-process communication does,
+so a ping is one executor callback from the driver's input to the map.  Every
+topic is still published for RViz, recorders and your nodes; the nodes take
+their inputs only from each other, so feed this process through the driver's
+source (``source:=topic`` reads ``tof_in``) -- or run the four executables to
+take ``echoes`` or ``landmarks`` from elsewhere.  Odometry still comes over DDS.
 """
+
+import itertools
 
 from sonar_ring.ros.classifier import Classifier
 from sonar_ring.ros.driver import Driver
@@ -13,9 +20,15 @@ from sonar_ring.ros.run import spin
 NODES = (Driver, Localiser, Classifier, Mapper)
 
 
+def compose(nodes) -> None:
+    """Wire ``nodes`` (instances of :data:`NODES`, in that order) so each takes its pings from the one before."""
+    for upstream, node in itertools.pairwise(nodes):
+        node.follow(upstream)
+
+
 def main(args=None) -> None:
-    """Run the four nodes until Ctrl-C or shutdown."""
-    spin(*NODES, args=args)
+    """Run the four nodes, composed, until Ctrl-C or shutdown."""
+    spin(*NODES, args=args, setup=compose)
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ from rclpy.qos import qos_profile_sensor_data
 from rclpy.subscription import MessageInfo
 
 from sonar_ring import localise, pipeline
+from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import load_layout
 from sonar_ring.msg import Echoes, LandmarkArray
 from sonar_ring.ros.convert import landmarks_to_msg
@@ -73,7 +74,7 @@ class Localiser(SonarNode):
         self.health = NodeHealth(self, hardware_id=self.layout.name)
         self._publisher = self.create_publisher(LandmarkArray, "landmarks/raw", qos_profile_sensor_data)
         self._gate = InputGate(self, self.health, "echoes", self.params)
-        self.create_subscription(Echoes, "echoes", self._on_echoes, qos_profile_sensor_data)
+        self.ping_inputs = (self.create_subscription(Echoes, "echoes", self._on_echoes, qos_profile_sensor_data),)
 
     def _on_change(self, changed: dict) -> None:
         self.settings = settings_from(self.params)
@@ -84,14 +85,25 @@ class Localiser(SonarNode):
         if not self._gate.admit(msg.header, info):
             return
         echoes = check_echoes(msg, self.layout, self.health)
-        if echoes is None:
-            return
+        if echoes is not None:
+            self._localise(msg, echoes, started)
+
+    def on_ping(self, msg: Echoes, echoes: EchoArrays) -> None:
+        """A ping from the driver in this process: ``msg`` as published, ``echoes`` its screened arrays."""
+        started = time.perf_counter()
+        self.health.received()
+        if self._gate.admit(msg.header):
+            self._localise(msg, echoes, started)
+
+    def _localise(self, msg: Echoes, echoes: EchoArrays, started: float) -> None:
         hypotheses = pipeline.localise_ping(self.layout, echoes, self.settings)
         invalid = hypotheses.reason[~hypotheses.valid]
         for code, count in zip(*np.unique(invalid, return_counts=True), strict=True):
             self.health.note(f"invalid hypothesis: {localise.REASONS[int(code)]}", int(count))
-        self._publisher.publish(landmarks_to_msg(hypotheses.select(hypotheses.valid), msg.header))
-        self.health.processed(time.perf_counter() - started)
+        usable = hypotheses.select(hypotheses.valid)
+        self._publisher.publish(landmarks_to_msg(usable, msg.header))
+        downstream = self.pass_on(msg, echoes, usable)
+        self.health.processed(time.perf_counter() - started - downstream)
 
 
 def main(args=None) -> None:

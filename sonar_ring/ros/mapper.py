@@ -22,17 +22,19 @@ from collections import deque
 import numpy as np
 from nav_msgs.msg import Odometry
 from rclpy.qos import qos_profile_sensor_data
+from rclpy.serialization import serialize_message
 from rclpy.subscription import MessageInfo
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
+from sonar_ring.landmarks import Landmarks
 from sonar_ring.mapping import LandmarkMap, transform_landmarks
 from sonar_ring.msg import LandmarkArray
 from sonar_ring.ros.convert import MessageError, landmarks_from_msg, landmarks_to_msg
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, stamp_ns
-from sonar_ring.ros.markers import covariance_ellipses, landmark_markers
+from sonar_ring.ros.markers import covariance_ellipses, landmark_markers, serialize_markers
 from sonar_ring.ros.node import LATCHED, SonarNode
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.run import spin
@@ -136,17 +138,16 @@ def count_sightings(health, lost: dict) -> None:
         health.note(f"sightings {reason}", lost[reason])
 
 
-def map_messages(landmark_map: LandmarkMap, header: Header, min_observations: int):
-    """The map as published: ``map/landmarks``, ``map/markers`` and ``map/points`` messages, in that order.
+def map_messages(landmark_map: LandmarkMap, header: Header, min_observations: int) -> tuple[bytes, bytes, bytes]:
+    """The map as published, serialized: ``map/landmarks``, ``map/markers`` and ``map/points``, in that order.
 
     Landmarks seen at least ``min_observations`` times; ``header`` names the
     map frame and the stamp.
     """
     snapshot = landmark_map.snapshot(min_observations=min_observations)
-    markers = landmark_markers(snapshot, header, "map", lifetime=0.0)
-    markers.markers.append(covariance_ellipses(snapshot, header, "map"))
-    return (landmarks_to_msg(snapshot, header), markers,
-            point_cloud(landmark_map.points(min_observations=min_observations), header))
+    markers = [*landmark_markers(snapshot, "map", lifetime=0.0), covariance_ellipses(snapshot, "map")]
+    return (serialize_message(landmarks_to_msg(snapshot, header)), serialize_markers(markers, header),
+            serialize_message(point_cloud(landmark_map.points(min_observations=min_observations), header)))
 
 
 def point_cloud(points: np.ndarray, header: Header) -> PointCloud2:
@@ -177,7 +178,8 @@ class Mapper(SonarNode):
         self._landmarks_gate = InputGate(self, self.health, "landmarks", self.params)
         self._odometry_gate = InputGate(self, self.health, "odom", self.params, frame_param="odom_frame",
                                         on_clock_jump=self._forget_poses)
-        self.create_subscription(LandmarkArray, "landmarks", self._on_landmarks, qos_profile_sensor_data)
+        self.ping_inputs = (self.create_subscription(LandmarkArray, "landmarks", self._on_landmarks,
+                                                     qos_profile_sensor_data),)
         if self.params["use_odometry"]:
             self.create_subscription(Odometry, "odom", self._on_odometry, 50)
         self._timer = self.create_timer(1.0 / self.params["map_rate"], self.publish_map)
@@ -200,8 +202,8 @@ class Mapper(SonarNode):
         self._stamps.append(stamp)
         self._poses.append(np.array([pose.position.x, pose.position.y, yaw_of(pose.orientation)]))
         while self._pending and self._pose_at(self._pending[0][0]) is not None:
-            stamp, landmarks_msg = self._pending.popleft()
-            self._integrate(landmarks_msg, self._pose_at(stamp))
+            stamp, landmarks = self._pending.popleft()
+            self._integrate(landmarks, self._pose_at(stamp))
 
     def _pose_at(self, stamp: int) -> np.ndarray | None:
         """Robot pose at ``stamp`` (ns), interpolated; None while no later odometry exists."""
@@ -215,26 +217,35 @@ class Mapper(SonarNode):
         self.health.received()
         if not self._landmarks_gate.admit(msg.header, info):
             return
-        stamp = stamp_ns(msg.header)
-        if self.params["use_odometry"] and self._stamps and stamp < self._stamps[0]:
-            self.health.problem("pose_too_old", "ping older than the odometry history")
-            return
-        pose = self._pose_at(stamp)
-        if pose is None:
-            self._pending.append((stamp, msg))
-            if len(self._pending) > PENDING_LIMIT:
-                self._pending.popleft()
-                self.health.problem("no_odometry", "no odometry at or after the ping's stamp")
-            return
-        self._integrate(msg, pose)
-
-    def _integrate(self, msg: LandmarkArray, robot_pose: np.ndarray) -> None:
-        started = time.perf_counter()
         try:
             landmarks = landmarks_from_msg(msg)
         except MessageError as error:
             self.health.problem("malformed_message", str(error))
             return
+        self._place(stamp_ns(msg.header), landmarks)
+
+    def on_ping(self, msg: LandmarkArray, landmarks: Landmarks) -> None:
+        """A ping's labelled landmarks from the classifier in this process: the message and its arrays."""
+        self.health.received()
+        if self._landmarks_gate.admit(msg.header):
+            self._place(stamp_ns(msg.header), landmarks)
+
+    def _place(self, stamp: int, landmarks: Landmarks) -> None:
+        """Integrate a ping's landmarks at the robot pose of ``stamp`` (ns), or keep them until odometry comes."""
+        if self.params["use_odometry"] and self._stamps and stamp < self._stamps[0]:
+            self.health.problem("pose_too_old", "ping older than the odometry history")
+            return
+        pose = self._pose_at(stamp)
+        if pose is None:
+            self._pending.append((stamp, landmarks))
+            if len(self._pending) > PENDING_LIMIT:
+                self._pending.popleft()
+                self.health.problem("no_odometry", "no odometry at or after the ping's stamp")
+            return
+        self._integrate(landmarks, pose)
+
+    def _integrate(self, landmarks: Landmarks, robot_pose: np.ndarray) -> None:
+        started = time.perf_counter()
         count_sightings(self.health, integrate(self.map, landmarks, robot_pose, self.params["sensor_offset"]))
         self._changed = True
         self.health.processed(time.perf_counter() - started, published=0)

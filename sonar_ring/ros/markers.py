@@ -6,15 +6,19 @@ reflectors one POINTS marker each.  Colours are by class, alpha by confidence
 (per point where confidences differ, else the marker's colour);
 namespaces and ids are fixed, so each ping replaces the previous markers, and a
 lifetime makes them vanish when pings stop.
+
+The MarkerArray is written straight into its serialized (CDR) form from the
+arrays, and published as such: built from message objects, each point is a
+``geometry_msgs/Point`` made in Python, about 2 us apiece -- 0.4 ms for a ping
+of the ring and tens of milliseconds for a map with its covariance ellipses.
 """
 
 from __future__ import annotations
 
+import struct
+from dataclasses import dataclass
+
 import numpy as np
-from builtin_interfaces.msg import Duration
-from geometry_msgs.msg import Point
-from std_msgs.msg import ColorRGBA
-from visualization_msgs.msg import Marker, MarkerArray
 
 from sonar_ring.landmarks import CLASS_NAMES, CORNER, EDGE, PLANE, UNKNOWN, Landmarks, ellipse_outlines
 
@@ -29,28 +33,128 @@ CLASS_COLOURS = {
 MIN_ALPHA = 0.3
 """Alpha at zero confidence, so undecided landmarks still show."""
 
-
-def _duration(seconds: float) -> Duration:
-    whole = int(seconds)
-    return Duration(sec=whole, nanosec=int(round((seconds - whole) * 1e9)))
+LINE_LIST, POINTS, ADD = 5, 8, 0
+"""``visualization_msgs/Marker`` type and action constants used here."""
 
 
-def _colour(marker: Marker, landmark_class: int, confidence: np.ndarray, repeat: int) -> None:
-    """Colour by class, alpha by confidence: one marker colour when every landmark has the same alpha.
+@dataclass(frozen=True)
+class MarkerParts:
+    """The fields of one ``visualization_msgs/Marker`` that vary here; the rest keep their defaults.
 
-    A per-point colour list costs a message object per point, so it is built only
-    where alphas differ (decided landmarks); undecided ones all have zero confidence.
+    Attributes
+    ----------
+    ns : str
+        Namespace; the id is 0, so a new message replaces the previous one.
+    type : int
+        :data:`LINE_LIST` or :data:`POINTS`.
+    scale : tuple of float
+        ``scale.x, scale.y, scale.z``, m (line width; point width and height).
+    color : tuple of float
+        r, g, b, a in [0, 1].
+    points : ndarray, shape (P, 2)
+        x, y in the header's frame, m; z is 0.
+    colors : ndarray, shape (P, 4) or (0, 4)
+        Per-point r, g, b, a, or none (the marker's ``color`` applies).
+    lifetime : float
+        s before RViz removes it; 0 keeps it.
     """
+
+    ns: str
+    type: int
+    scale: tuple
+    color: tuple
+    points: np.ndarray
+    colors: np.ndarray
+    lifetime: float = 0.0
+
+    def __post_init__(self) -> None:
+        points, colors = np.shape(self.points), np.shape(self.colors)
+        if len(self.scale) != 3 or len(self.color) != 4:
+            raise ValueError(f"marker {self.ns!r}: scale needs 3 values and color 4, got {self.scale!r}, "
+                             f"{self.color!r}")
+        if len(points) != 2 or points[1] != 2 or colors not in ((points[0], 4), (0, 4)):
+            raise ValueError(f"marker {self.ns!r}: points must be (P, 2) and colors (P, 4) or (0, 4), got {points} "
+                             f"and {colors}")
+        if not (np.isfinite(self.lifetime) and self.lifetime >= 0):
+            raise ValueError(f"marker {self.ns!r}: lifetime must be finite and >= 0 s, got {self.lifetime!r}")
+
+
+class _Cdr:
+    """Little-endian CDR (the encoding rmw uses), alignment counted from after the 4-byte encapsulation header."""
+
+    def __init__(self) -> None:
+        self.buffer = bytearray(b"\x00\x01\x00\x00")
+
+    def align(self, size: int) -> None:
+        self.buffer += bytes(-(len(self.buffer) - 4) % size)
+
+    def pack(self, fmt: str, *values, align: int) -> None:
+        self.align(align)
+        self.buffer += struct.pack("<" + fmt, *values)
+
+    def string(self, text: str) -> None:
+        data = text.encode()
+        self.pack("I", len(data) + 1, align=4)
+        self.buffer += data + b"\x00"
+
+    def header(self, sec: int, nanosec: int, frame_id: str) -> None:
+        self.pack("iI", sec, nanosec, align=4)
+        self.string(frame_id)
+
+    def array(self, values: np.ndarray, align: int) -> None:
+        """A sequence: its length in elements (rows of ``values``), then the raw values."""
+        self.pack("I", len(values), align=4)
+        if len(values):
+            self.align(align)
+            self.buffer += np.ascontiguousarray(values).tobytes()
+
+
+def serialize_markers(markers: list[MarkerParts], header) -> bytes:
+    """A serialized ``visualization_msgs/MarkerArray`` of ``markers``, all with ``header`` (``std_msgs/Header``).
+
+    The message ``rclpy.serialization.serialize_message`` gives for the same
+    MarkerArray built from message objects: same length, same fields when
+    decoded (padding bytes are zero here; CDR leaves them unspecified).
+    Publishers take it as it is (``test/test_markers.py``).
+    """
+    cdr = _Cdr()
+    cdr.pack("I", len(markers), align=4)
+    for marker in markers:
+        cdr.header(header.stamp.sec, header.stamp.nanosec, header.frame_id)
+        cdr.string(marker.ns)
+        cdr.pack("iii", 0, marker.type, ADD, align=4)
+        cdr.pack("7d", 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, align=8)  # pose: origin, identity orientation
+        cdr.pack("3d", *marker.scale, align=8)
+        cdr.pack("4f", *marker.color, align=4)
+        whole = int(marker.lifetime)
+        cdr.pack("iI", whole, int(round((marker.lifetime - whole) * 1e9)), align=4)
+        cdr.pack("?", False, align=1)  # frame_locked
+        xyz = np.zeros((len(marker.points), 3))
+        xyz[:, :2] = marker.points
+        cdr.array(xyz, 8)
+        cdr.array(np.asarray(marker.colors, dtype=np.float32).reshape(-1, 4), 4)
+        cdr.string("")  # texture_resource
+        cdr.header(0, 0, "")  # texture: sensor_msgs/CompressedImage
+        cdr.string("")
+        cdr.array(np.empty(0, dtype=np.uint8), 1)
+        cdr.array(np.empty((0, 2), dtype=np.float32), 4)  # uv_coordinates
+        cdr.string("")  # text
+        cdr.string("")  # mesh_resource
+        cdr.string("")  # mesh_file: filename, data
+        cdr.array(np.empty(0, dtype=np.uint8), 1)
+        cdr.pack("?", False, align=1)  # mesh_use_embedded_materials
+    return bytes(cdr.buffer)
+
+
+def _coloured(landmark_class: int, confidence: np.ndarray, repeat: int) -> tuple[tuple, np.ndarray]:
+    """Colour by class, alpha by confidence: the marker's colour, and per-point colours where alphas differ."""
     r, g, b = CLASS_COLOURS[landmark_class]
     alpha = MIN_ALPHA + (1.0 - MIN_ALPHA) * np.clip(confidence, 0.0, 1.0)
-    uniform = alpha.size == 0 or bool(np.all(alpha == alpha[0]))
-    marker.color = ColorRGBA(r=r, g=g, b=b, a=float(alpha[0]) if alpha.size else 1.0)
-    if not uniform:
-        marker.colors = [ColorRGBA(r=r, g=g, b=b, a=float(a)) for a in np.repeat(alpha, repeat)]
-
-
-def _points(xy: np.ndarray) -> list[Point]:
-    return [Point(x=float(x), y=float(y)) for x, y in xy]
+    colour = (r, g, b, float(alpha[0]) if alpha.size else 1.0)
+    if alpha.size == 0 or bool(np.all(alpha == alpha[0])):
+        return colour, np.empty((0, 4), dtype=np.float32)
+    per_point = np.repeat(alpha, repeat)
+    return colour, np.column_stack([np.full((per_point.size, 3), (r, g, b)), per_point]).astype(np.float32)
 
 
 def plane_segments(landmarks: Landmarks, min_length: float) -> np.ndarray:
@@ -66,39 +170,28 @@ def plane_segments(landmarks: Landmarks, min_length: float) -> np.ndarray:
     return np.where((length >= min_length)[:, None, None], ends, short)
 
 
-def landmark_markers(landmarks: Landmarks, header, namespace: str, lifetime: float,
-                     point_size: float = 0.06, line_width: float = 0.03, min_plane_length: float = 0.25) -> MarkerArray:
+def landmark_markers(landmarks: Landmarks, namespace: str, lifetime: float, point_size: float = 0.06,
+                     line_width: float = 0.03, min_plane_length: float = 0.25) -> list[MarkerParts]:
     """One marker per class in ``namespace/<class>``; ``lifetime`` 0 keeps them forever."""
     markers = []
     for code, name in enumerate(CLASS_NAMES):
         chosen = landmarks.select(landmarks.valid & (landmarks.landmark_class == code))
-        marker = Marker(header=header, ns=f"{namespace}/{name}", id=0, action=Marker.ADD,
-                        lifetime=_duration(lifetime), frame_locked=False)
-        marker.pose.orientation.w = 1.0
         if code == PLANE:
-            marker.type = Marker.LINE_LIST
-            marker.scale.x = line_width
-            marker.points = _points(plane_segments(chosen, min_plane_length).reshape(-1, 2))
-            _colour(marker, code, chosen.confidence, 2)
+            colour, colours = _coloured(code, chosen.confidence, 2)
+            markers.append(MarkerParts(f"{namespace}/{name}", LINE_LIST, (line_width, 0.0, 0.0), colour,
+                                       plane_segments(chosen, min_plane_length).reshape(-1, 2), colours, lifetime))
         else:
-            marker.type = Marker.POINTS
-            marker.scale.x = marker.scale.y = point_size
-            marker.points = _points(chosen.position)
-            _colour(marker, code, chosen.confidence, 1)
-        markers.append(marker)
-    return MarkerArray(markers=markers)
+            colour, colours = _coloured(code, chosen.confidence, 1)
+            markers.append(MarkerParts(f"{namespace}/{name}", POINTS, (point_size, point_size, 0.0), colour,
+                                       chosen.position, colours, lifetime))
+    return markers
 
 
-def covariance_ellipses(landmarks: Landmarks, header, namespace: str, sigma: float = 2.0,
-                        sides: int = 16) -> Marker:
+def covariance_ellipses(landmarks: Landmarks, namespace: str, sigma: float = 2.0, sides: int = 16) -> MarkerParts:
     """A LINE_LIST of ``sigma``-sigma position ellipses, one per point landmark."""
     chosen = landmarks.select(landmarks.valid & (landmarks.landmark_class != PLANE)
                               & np.all(np.isfinite(landmarks.covariance), axis=(1, 2)))
     ring = ellipse_outlines(chosen.position, chosen.covariance, sigma, sides)  # (L, S+1, 2)
     pairs = np.stack([ring[:, :-1], ring[:, 1:]], axis=2).reshape(-1, 2)
-    marker = Marker(header=header, ns=f"{namespace}/covariance", id=0, type=Marker.LINE_LIST, action=Marker.ADD)
-    marker.pose.orientation.w = 1.0
-    marker.scale.x = 0.005
-    marker.color = ColorRGBA(r=0.9, g=0.9, b=0.2, a=0.8)
-    marker.points = _points(pairs)
-    return marker
+    return MarkerParts(f"{namespace}/covariance", LINE_LIST, (0.005, 0.0, 0.0), (0.9, 0.9, 0.2, 0.8), pairs,
+                       np.empty((0, 4), dtype=np.float32))

@@ -10,6 +10,9 @@ incompatible QoS; a handler passed explicitly is kept.
 
 from __future__ import annotations
 
+import time
+from collections.abc import Callable
+
 from rclpy.event_handler import PublisherEventCallbacks, SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
@@ -19,7 +22,36 @@ LATCHED = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability
 
 
 class SonarNode(Node):
-    """A :class:`rclpy.node.Node` whose publishers and subscriptions have no QoS event handlers by default."""
+    """A :class:`rclpy.node.Node` whose publishers and subscriptions have no QoS event handlers by default.
+
+    In one process the nodes can also hand each ping straight to the next one
+    (:meth:`follow`), as rclcpp's intra-process communication does: every topic
+    is still published, but the next node skips the middleware, the executor
+    and the message decoding.
+    """
+
+    handoff: Callable | None = None
+    """The next node's ``on_ping``, when it follows this one in this process."""
+    ping_inputs: tuple = ()
+    """The subscriptions that bring this node its pings; :meth:`follow` replaces them."""
+
+    def follow(self, upstream: SonarNode) -> None:
+        """Take pings from ``upstream`` in this process (its :meth:`pass_on`) instead of from :attr:`ping_inputs`."""
+        for subscription in self.ping_inputs:
+            self.destroy_subscription(subscription)
+        self.ping_inputs = ()
+        upstream.handoff = self.on_ping
+
+    def pass_on(self, *ping) -> float:
+        """Hand a ping to the node that follows this one, if any; return the seconds it took there.
+
+        Callers subtract them from their own latency on ``/diagnostics``.
+        """
+        if self.handoff is None:
+            return 0.0
+        started = time.perf_counter()
+        self.handoff(*ping)
+        return time.perf_counter() - started
 
     def create_publisher(self, *args, **kwargs):
         """:meth:`rclpy.node.Node.create_publisher` without default event handlers."""

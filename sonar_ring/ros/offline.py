@@ -7,16 +7,20 @@ Both call the functions the nodes call -- :func:`sonar_ring.ros.inputs.check_ech
 :mod:`sonar_ring.pipeline`, :mod:`sonar_ring.ros.convert`,
 :mod:`sonar_ring.ros.markers`, the mapper's :func:`~sonar_ring.ros.mapper.integrate`
 and :func:`~sonar_ring.ros.mapper.map_messages`, the driver's message builders
--- on rclpy messages serialized by rclpy, so each output message is the one the
-live graph publishes for the same input; rosbags only reads and writes the files.
+-- on rclpy messages serialized by rclpy (markers by
+:func:`~sonar_ring.ros.markers.serialize_markers`, as the nodes publish them), so
+each output message is the one the live graph publishes for the same input;
+rosbags only reads and writes the files.
 
 Bag time replaces the node clocks: a ping's outputs are written at its echoes'
 bag time with its echoes' header, and the map at ``map_rate`` ticks of bag time
 (the first one ``1 / map_rate`` after the first ping), when it changed.
 
 The localiser's and classifier's work on a ping needs nothing of other pings
-(:class:`PingStage`), so ``process`` hands it to worker processes; the input
-check, the mapper and the file I/O stay in order in the main process.
+(:class:`PingStage`), so ``process`` runs it on batches of pings at once
+(:func:`sonar_ring.pipeline.label_pings`) and hands the batches to worker
+processes; the input check, the mapper and the file I/O stay in order in the
+main process.
 """
 
 from __future__ import annotations
@@ -45,7 +49,7 @@ from sonar_ring.ros.bag import TOPIC, BagError, BagReader, BagWriter, absolute, 
 from sonar_ring.ros.convert import echoes_to_msg, landmarks_to_msg
 from sonar_ring.ros.driver import DEFAULT_SPEED_OF_SOUND, odometry_message, truth_message, usable_echoes
 from sonar_ring.ros.inputs import InputGate, check_echoes, stamp_ns
-from sonar_ring.ros.markers import landmark_markers
+from sonar_ring.ros.markers import landmark_markers, serialize_markers
 from sonar_ring.ros.params import file_values
 from sonar_ring.ros.ranges import range_messages
 from sonar_ring.simulate import Noise, Simulator, load_scene
@@ -185,20 +189,30 @@ class PingStage:
         return cls(layout, localiser.settings_from(values["localiser"]), localiser.settings_from(values["classifier"]),
                    values["classifier"]["marker_lifetime"])
 
-    def __call__(self, msg: Echoes) -> PingOutput:
-        """Check, localise, classify and draw one Echoes message, as the two nodes do."""
-        tally = Tally()
-        echoes = check_echoes(msg, self.layout, tally)
-        if echoes is None:
-            return PingOutput(dict(tally.problems), dict(tally.notes))
+    def run(self, messages: list[Echoes]) -> list[PingOutput]:
+        """Check, localise, classify and draw Echoes messages, as the two nodes do, one output per message.
+
+        The checked pings go through :func:`sonar_ring.pipeline.label_pings`
+        together, which gives each ping what the nodes give it alone.
+        """
+        tallies = [Tally() for _ in messages]
+        checked = [check_echoes(msg, self.layout, tally) for msg, tally in zip(messages, tallies, strict=True)]
+        usable = [index for index, echoes in enumerate(checked) if echoes is not None]
         # The messages carry the arrays' own dtypes, so the nodes' message round trips are lossless and skipped.
-        hypotheses = pipeline.localise_ping(self.layout, echoes, self.localiser_settings)
-        hypotheses = hypotheses.select(hypotheses.valid)
-        labelled = pipeline.classify_ping(self.layout, echoes, hypotheses, self.classifier_settings)
-        messages = (landmarks_to_msg(hypotheses, msg.header), landmarks_to_msg(labelled, msg.header),
-                    landmark_markers(labelled, msg.header, "landmarks", self.marker_lifetime))
-        return PingOutput(dict(tally.problems), dict(tally.notes), tuple(serialize_message(m) for m in messages),
-                          labelled)
+        labels = dict(zip(usable, pipeline.label_pings(self.layout, [checked[i] for i in usable],
+                                                       self.localiser_settings, self.classifier_settings),
+                          strict=True))
+        outputs = []
+        for index, (msg, tally) in enumerate(zip(messages, tallies, strict=True)):
+            if index not in labels:
+                outputs.append(PingOutput(dict(tally.problems), dict(tally.notes)))
+                continue
+            hypotheses, labelled = labels[index]
+            data = (serialize_message(landmarks_to_msg(hypotheses, msg.header)),
+                    serialize_message(landmarks_to_msg(labelled, msg.header)),
+                    serialize_markers(landmark_markers(labelled, "landmarks", self.marker_lifetime), msg.header))
+            outputs.append(PingOutput(dict(tally.problems), dict(tally.notes), data, labelled))
+        return outputs
 
 
 _worker_stage: PingStage | None = None
@@ -211,24 +225,27 @@ def _start_worker(stage: PingStage) -> None:
 
 
 def _work(batch: list[bytes]) -> list[PingOutput]:
-    return [_worker_stage(deserialize_message(data, Echoes)) for data in batch]
+    return _worker_stage.run([deserialize_message(data, Echoes) for data in batch])
 
 
-def ordered_map(stage: PingStage, items, jobs: int, batch: int = 16):
-    """``(item, stage(message))`` for ``(message, data, item)`` in ``items``, in order, with ``jobs`` processes.
+def ordered_map(stage: PingStage, items, jobs: int, batch: int = 64):
+    """``(item, output)`` for ``(message, data, item)`` in ``items``, in order: the stage's output for ``message``.
 
-    ``jobs`` 1 runs the stage here.  Otherwise forked workers take batches of
-    ``batch`` serialized messages (``data``); at most ``2 * jobs`` batches are
-    in flight, so a long bag is streamed, not loaded.
+    The stage runs on ``batch`` messages at a time (:meth:`PingStage.run`).
+    ``jobs`` counts this process, which reads, maps and writes and is the
+    busiest: ``jobs`` 1 runs the stage here, more hand the batches to ``jobs - 1``
+    forked workers as serialized messages (``data``).  At most ``2 * jobs``
+    batches are in flight, so a long bag is streamed, not loaded.
     """
+    chunks = iter(lambda: list(itertools.islice(items, batch)), [])
     if jobs <= 1:
-        for message, _, item in items:
-            yield item, stage(message)
+        for chunk in chunks:
+            yield from zip([item for _, _, item in chunk], stage.run([message for message, _, _ in chunk]),
+                           strict=True)
         return
     context = multiprocessing.get_context("fork")
-    with ProcessPoolExecutor(jobs, mp_context=context, initializer=_start_worker, initargs=(stage,)) as pool:
+    with ProcessPoolExecutor(jobs - 1, mp_context=context, initializer=_start_worker, initargs=(stage,)) as pool:
         pending = deque()
-        chunks = iter(lambda: list(itertools.islice(items, batch)), [])
         for chunk in itertools.chain(chunks, [None]):
             if chunk is not None:
                 pending.append(([item for _, _, item in chunk], pool.submit(_work, [data for _, data, _ in chunk])))
@@ -333,8 +350,8 @@ class OfflineGraph:
         header = Header(frame_id=self._mapper["odom_frame"])
         header.stamp.sec, header.stamp.nanosec = divmod(time_ns, 10**9)
         messages = mapper.map_messages(self.map, header, self._mapper["min_observations"])
-        for name, message in zip(("map/landmarks", "map/markers", "map/points"), messages, strict=True):
-            self._writer.write(self._connections[name], time_ns, serialize_message(message))
+        for name, data in zip(("map/landmarks", "map/markers", "map/points"), messages, strict=True):
+            self._writer.write(self._connections[name], time_ns, data)
         self._map_changed = False
 
     def map_per_class(self) -> np.ndarray:

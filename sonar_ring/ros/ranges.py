@@ -2,7 +2,10 @@
 
 A ping gives one message on each ``range/group_NN`` (Nav2's range layer takes
 a list of topics, one sensor each; 48 messages at once on one topic would
-overflow a sensor-data subscription's queue of 5).
+overflow a sensor-data subscription's queue of 5) that has a subscriber: the
+driver looks for subscribers once a second (:class:`RangeOutput`), as lazy
+publishers of image_transport do, because 48 messages per ping cost about
+1.5 ms when nobody listens.
 
 ``sensor_msgs/Range`` describes a cone along +x of its frame (REP 117), so each
 receiver group gets a frame ``<frame_id>/group_NN`` at the centre of its
@@ -16,6 +19,7 @@ from elsewhere (e.g. the robot's URDF, with these poses).
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 from geometry_msgs.msg import TransformStamped
@@ -29,8 +33,8 @@ from sonar_ring.ros.node import LATCHED, SonarNode
 
 MIN_RANGE = 0.02
 """m: nearer echoes are reported as -inf (too close, REP 117)."""
-
-
+LISTENERS_PERIOD = 1.0
+"""s between looks for each range topic's subscribers; a new subscriber waits at most this long."""
 
 def range_topic(group: int) -> str:
     """Relative topic of group ``group``'s Range messages: one topic per sensor, as Nav2's range layer expects."""
@@ -45,6 +49,36 @@ def range_publishers(node: SonarNode, layout: Layout) -> list:
     """
     return [node.create_publisher(Range, range_topic(group), qos_profile_sensor_data)
             for group in range(layout.n_groups)]
+
+
+class RangeOutput:
+    """The Range publishers of a node (:func:`range_publishers`); each ping goes out on the topics someone reads.
+
+    Parameters
+    ----------
+    node : SonarNode
+        The publishing node.
+    layout : Layout
+        Its sensor: one topic per group.
+    """
+
+    def __init__(self, node: SonarNode, layout: Layout) -> None:
+        self._layout = layout
+        self._publishers = range_publishers(node, layout)
+        self._listened: list[int] = []
+        self._next_look = -math.inf
+
+    def publish(self, echoes: EchoArrays, header) -> None:
+        """Publish a ping's :func:`range_messages` on the topics with subscribers."""
+        now = time.monotonic()
+        if now >= self._next_look:
+            self._listened = [group for group, publisher in enumerate(self._publishers)
+                              if publisher.get_subscription_count()]
+            self._next_look = now + LISTENERS_PERIOD
+        if self._listened:
+            for group, message in zip(self._listened, range_messages(self._layout, echoes, header, self._listened),
+                                      strict=True):
+                self._publishers[group].publish(message)
 
 
 def group_frame(frame_id: str, group: int) -> str:
@@ -86,8 +120,10 @@ def publish_group_frames(node: Node, layout: Layout, frame_id: str):
 
 
 
-def range_messages(layout: Layout, echoes: EchoArrays, header) -> list[Range]:
-    """One REP 117 Range per group of ``layout`` for a ping, framed :func:`group_frame` of ``header.frame_id``.
+def range_messages(layout: Layout, echoes: EchoArrays, header, groups=None) -> list[Range]:
+    """One REP 117 Range per group of ``layout`` (or of ``groups``, in that order) for a ping.
+
+    Each is framed :func:`group_frame` of ``header.frame_id``.
 
     Each group's range is its nearest echo's half path ``c * min(tof) / 2`` (m);
     ``+inf`` when the group heard nothing, ``-inf`` when the echo is nearer than
@@ -102,7 +138,8 @@ def range_messages(layout: Layout, echoes: EchoArrays, header) -> list[Range]:
     nearest[nearest < MIN_RANGE] = -np.inf
     field_of_view = 2.0 * float(layout.beam_half_angle)
     messages = []
-    for group, value in enumerate(nearest.tolist()):
+    for group in range(layout.n_groups) if groups is None else groups:
+        value = float(nearest[group])
         message = Range(radiation_type=Range.ULTRASOUND, field_of_view=field_of_view, min_range=MIN_RANGE,
                         max_range=float(layout.max_range), range=value)
         message.header.stamp = header.stamp

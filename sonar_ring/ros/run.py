@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import rclpy
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.logging import get_logger
@@ -15,11 +17,12 @@ CONFIG_ERRORS = (LayoutError, SceneError, DeviceError, ParameterError)
 """What a node refuses to start with: a bad layout, scene, device address or parameter."""
 
 
-def spin(*node_classes, args=None) -> None:
+def spin(*node_classes, args=None, setup: Callable[[list], None] | None = None) -> None:
     """Create the nodes and spin them in one executor until Ctrl-C or shutdown.
 
     One class is the ``main()`` of a node executable; several make the
-    single-process graph (components sharing one executor).  A configuration
+    single-process graph (components sharing one executor), which ``setup``
+    (called with the nodes) may wire together.  A configuration
     error (:data:`CONFIG_ERRORS`) is logged as one line naming the file or
     parameter, the field and the expected value, and the process exits with
     status 1, without a traceback.
@@ -31,6 +34,8 @@ def spin(*node_classes, args=None) -> None:
         for cls in node_classes:
             starting = cls.__name__.lower()
             nodes.append(cls())
+        if setup is not None:
+            setup(nodes)
         executor = SingleThreadedExecutor()
         for node in nodes:
             executor.add_node(node)

@@ -1,0 +1,118 @@
+"""RViz markers written straight into CDR: the message rclpy serializes for the same MarkerArray.
+
+CDR leaves the padding bytes unspecified (rclpy's are whatever the buffer held), so
+the check is: same length, and the same message when either is decoded.
+"""
+
+import numpy as np
+import pytest
+from builtin_interfaces.msg import Duration
+from geometry_msgs.msg import Point
+from numpy.testing import assert_allclose
+from rclpy.serialization import deserialize_message, serialize_message
+from std_msgs.msg import ColorRGBA, Header
+from visualization_msgs.msg import Marker, MarkerArray
+
+from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, make_landmarks
+from sonar_ring.ros.markers import (
+    LINE_LIST,
+    MIN_ALPHA,
+    POINTS,
+    MarkerParts,
+    covariance_ellipses,
+    landmark_markers,
+    serialize_markers,
+)
+
+pytestmark = pytest.mark.ros
+
+
+def reference_message(parts: list[MarkerParts], header: Header) -> MarkerArray:
+    """The same markers built from message objects, as rclpy users do."""
+    markers = []
+    for part in parts:
+        whole = int(part.lifetime)
+        marker = Marker(header=header, ns=part.ns, id=0, type=part.type, action=Marker.ADD,
+                        lifetime=Duration(sec=whole, nanosec=int(round((part.lifetime - whole) * 1e9))))
+        marker.pose.orientation.w = 1.0
+        marker.scale.x, marker.scale.y, marker.scale.z = (float(v) for v in part.scale)
+        marker.color = ColorRGBA(r=part.color[0], g=part.color[1], b=part.color[2], a=part.color[3])
+        marker.points = [Point(x=float(x), y=float(y)) for x, y in part.points]
+        marker.colors = [ColorRGBA(r=float(r), g=float(g), b=float(b), a=float(a)) for r, g, b, a in part.colors]
+        markers.append(marker)
+    return MarkerArray(markers=markers)
+
+
+def assert_same_as_rclpy(parts, message_header):
+    ours = serialize_markers(parts, message_header)
+    theirs = serialize_message(reference_message(parts, message_header))
+    assert len(ours) == len(theirs)
+    assert deserialize_message(ours, MarkerArray) == deserialize_message(theirs, MarkerArray)
+    return ours
+
+
+def header(frame_id="sonar_ring") -> Header:
+    message = Header(frame_id=frame_id)
+    message.stamp.sec, message.stamp.nanosec = 1_700_000_123, 456_789_012
+    return message
+
+
+def some_landmarks():
+    rng = np.random.default_rng(3)
+    count = 23
+    classes = np.array([UNKNOWN, PLANE, CORNER, EDGE])[rng.integers(0, 4, count)]
+    covariance = np.einsum("nij,nkj->nik", *(2 * [rng.normal(0, 0.01, (count, 2, 2))]))
+    normal = rng.normal(size=(count, 2))
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    return make_landmarks(classes, rng.uniform(-3, 3, (count, 2)), normal=normal, covariance=covariance,
+                          confidence=np.where(classes == EDGE, rng.uniform(0, 1, count), 0.0),
+                          segment=rng.uniform(-3, 3, (count, 2, 2)), valid=rng.random(count) > 0.1)
+
+
+def test_ping_markers_serialize_exactly_as_rclpy_does():
+    parts = landmark_markers(some_landmarks(), "landmarks", lifetime=0.5)
+    assert [p.type for p in parts] == [POINTS, LINE_LIST, POINTS, POINTS]  # unknown, plane, corner, edge
+    assert any(len(p.colors) for p in parts)  # the edges' confidences differ: per-point colours
+    data = assert_same_as_rclpy(parts, header())
+    decoded = deserialize_message(data, MarkerArray)
+    assert [m.ns for m in decoded.markers] == ["landmarks/unknown", "landmarks/plane", "landmarks/corner",
+                                               "landmarks/edge"]
+    assert decoded.markers[0].lifetime.nanosec == 500_000_000
+    edge = decoded.markers[3]
+    assert len(edge.colors) == len(edge.points) > 0
+    assert all(MIN_ALPHA <= c.a <= 1.0 for c in edge.colors)
+
+
+def test_map_markers_with_ellipses_and_empty_markers_serialize_exactly():
+    landmarks = some_landmarks()
+    parts = [*landmark_markers(landmarks, "map", lifetime=0.0), covariance_ellipses(landmarks, "map")]
+    assert len(parts[-1].points) == 2 * 16 * np.sum(landmarks.valid & (landmarks.landmark_class != PLANE))
+    for frame in ("odom", "", "ödom/ünïcode"):
+        assert_same_as_rclpy(parts, header(frame))
+    nothing = landmark_markers(landmarks.select(np.zeros(len(landmarks), dtype=bool)), "map", lifetime=1.25)
+    assert all(len(p.points) == 0 for p in nothing)
+    assert_same_as_rclpy(nothing, header())
+    assert_same_as_rclpy([], header())
+
+
+def test_points_keep_their_float64_positions():
+    landmarks = some_landmarks()
+    parts = landmark_markers(landmarks, "landmarks", lifetime=0.0)
+    decoded = deserialize_message(serialize_markers(parts, header()), MarkerArray)
+    corners = landmarks.position[landmarks.valid & (landmarks.landmark_class == CORNER)]
+    assert_allclose([(p.x, p.y, p.z) for p in decoded.markers[2].points], np.column_stack([corners, 0 * corners[:, 0]]),
+                    rtol=0, atol=0)
+
+
+def test_error_handling():
+    fine = {"ns": "x", "type": POINTS, "scale": (0.1, 0.1, 0.0), "color": (1.0, 1.0, 1.0, 1.0),
+            "points": np.zeros((2, 2)), "colors": np.empty((0, 4))}
+    MarkerParts(**fine)
+    for change, message in [({"scale": (0.1, 0.1)}, "scale needs 3 values"),
+                            ({"color": (1.0, 0.0, 0.0)}, "color 4"),
+                            ({"points": np.zeros((2, 3))}, "points must be"),
+                            ({"colors": np.zeros((1, 4))}, "colors (P, 4)"),
+                            ({"lifetime": -1.0}, "lifetime must be"),
+                            ({"lifetime": float("nan")}, "lifetime must be")]:
+        with pytest.raises(ValueError, match=message.replace("(", r"\(").replace(")", r"\)")):
+            MarkerParts(**{**fine, **change})
