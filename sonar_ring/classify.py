@@ -34,7 +34,6 @@ from __future__ import annotations
 import functools
 from dataclasses import dataclass
 
-import numba
 import numpy as np
 
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN
@@ -651,11 +650,22 @@ def _far_field_image(centroid, outward, receivers, paths, usable):
     return centroid + mean_path[:, None] * direction
 
 
-_KERNEL = dict(cache=True, error_model="numpy", nogil=True)
-"""How the per-echo loops are compiled: cached beside the module (or in the user's cache when that is
-read-only), IEEE division (inf/NaN, as numpy) instead of ZeroDivisionError.  With a handful of receivers
-per echo, numpy's cost per call, not arithmetic, dominated these loops (classification was 2.3 ms for a
-144-echo ping, 0.3 ms compiled); each echo's result does not depend on the others in the batch."""
+@functools.cache
+def _kernels():
+    """:func:`_fit` and :func:`_gate` compiled with numba, at their first use.
+
+    With a handful of receivers per echo, numpy's cost per call, not arithmetic,
+    dominated these loops (classification took 2.3 ms for a 144-echo ping, 0.95 ms
+    with them compiled).  The machine code is cached beside the module (or in the
+    user's cache where that is read-only); IEEE division (inf/NaN, as numpy)
+    replaces ZeroDivisionError.  Compiled on first use, not at import: numba costs
+    about 0.2 s and 100 MiB, which a process that never classifies (the localiser)
+    need not pay.
+    """
+    import numba
+
+    compile_kernel = numba.njit(cache=True, error_model="numpy", nogil=True)
+    return compile_kernel(_fit), compile_kernel(_gate)
 
 
 def _gauss_newton(start, receivers, paths, weight, transmitter):
@@ -669,13 +679,14 @@ def _gauss_newton(start, receivers, paths, weight, transmitter):
     """
     edge = transmitter is not None
     emitter = np.ascontiguousarray(transmitter if edge else start, dtype=float)
-    return _fit(np.ascontiguousarray(start, dtype=float), np.ascontiguousarray(receivers, dtype=float),
+    fit, _ = _kernels()
+    return fit(np.ascontiguousarray(start, dtype=float), np.ascontiguousarray(receivers, dtype=float),
                 np.ascontiguousarray(paths, dtype=float), np.ascontiguousarray(weight, dtype=float), emitter, edge,
                 _GAUSS_NEWTON_STEPS, _CONVERGED)
 
 
-@numba.njit(**_KERNEL)
-def _fit(start, receivers, paths, weight, emitter, edge, steps, converged):  # pragma: no cover (compiled)
+def _fit(start, receivers, paths, weight, emitter, edge, steps, converged):
+    """Each echo's Gauss-Newton fit (see :func:`_gauss_newton`); compiled by :func:`_kernels`."""
     n_echoes, n_receivers = paths.shape
     fitted = np.empty((n_echoes, 2))
     chi2 = np.empty(n_echoes)
@@ -877,14 +888,17 @@ def _gated_matches(ping, group, horizontal, sigma, receivers, slots, z):
     width = max(int(count.max(initial=0)), 1)  # one column even when empty, so argmax works
     candidate = order[np.minimum(first[..., None] + np.arange(width), max(n_echoes - 1, 0))]
     exists = (np.arange(width) < count[..., None]) & (candidate != np.arange(n_echoes)[:, None, None])
-    passes = _gate(candidate, exists, np.ascontiguousarray(horizontal, dtype=float),
+    _, gate = _kernels()
+    passes = gate(candidate, exists, np.ascontiguousarray(horizontal, dtype=float),
                    np.ascontiguousarray(sigma, dtype=float), np.ascontiguousarray(receivers, dtype=float), float(z))
     return candidate, passes
 
 
-@numba.njit(**_KERNEL)
-def _gate(candidate, exists, horizontal, sigma, receivers, z):  # pragma: no cover (compiled)
-    """``exists`` and the triangle-inequality gate over every pair of receivers heard by both echoes."""
+def _gate(candidate, exists, horizontal, sigma, receivers, z):
+    """``exists`` and the triangle-inequality gate over every pair of receivers heard by both echoes.
+
+    Compiled by :func:`_kernels`.
+    """
     n_echoes, n_slots, width = candidate.shape
     n_receivers = horizontal.shape[1]
     passes = np.zeros(candidate.shape, dtype=np.bool_)
