@@ -1,12 +1,13 @@
 """Graph benchmark: ping -> markers latency and the highest sustained ping rate of the running nodes.
 
 The four nodes run as the ``graph`` executable does (one process, one executor,
-``source:=topic``, fixed pose) in a child process; this process plays the
-sensor.  Each ping -- 48 pairs of the Browne ring, 3 echoes per pair -- goes to
+composed so a ping is one callback; ``source:=topic``, fixed pose) in a child
+process; this process plays the sensor.  Each ping -- 48 pairs of the Browne ring, 3 echoes per pair -- goes to
 the driver's ``tof_in`` stamped with the wall clock when it is sent; a ping's
-latency is the time from that stamp until its markers (which carry the same
-stamp) arrive here, so it includes the DDS hops, the driver (checks, Range per
-group), localiser, classifier and the marker message.  Needs ROS 2 (rclpy and
+latency is the time from that stamp until the middleware here received its
+markers (which carry the same stamp), so it includes both DDS hops, the
+graph's executor, the driver's checks, localiser, classifier and the marker
+message, but not this process's own executor.  Needs ROS 2 (rclpy and
 the built ``sonar_ring`` messages).
 """
 
