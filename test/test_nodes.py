@@ -19,6 +19,8 @@ from sonar_ring.ros.convert import landmarks_from_msg
 from sonar_ring.ros.driver import Driver
 from sonar_ring.ros.graph import NODES, compose
 from sonar_ring.ros.localiser import Localiser
+from sonar_ring.ros.mapper import Mapper
+from sonar_ring.ros.params import ParameterError
 from sonar_ring.simulate import load_scene
 
 pytestmark = pytest.mark.ros
@@ -85,6 +87,15 @@ def test_graph_in_one_process_matches_ground_truth(ros):
     nearest = np.min(np.linalg.norm(points[:, None, :] - true_points[None, :, :], axis=-1), axis=1)
     assert points.size and np.median(nearest) < 0.05
     for node in [*nodes, listener.node]:
+        node.destroy_node()
+
+
+def test_composing_nodes_of_different_layouts_is_refused(ros):
+    nodes = [Driver(), Localiser(parameter_overrides=[Parameter("layout", value="barshan_kuc_pair")]), Classifier(),
+             Mapper()]
+    with pytest.raises(ParameterError, match="share one layout"):
+        compose(nodes)
+    for node in nodes:
         node.destroy_node()
 
 

@@ -18,6 +18,7 @@ from std_msgs.msg import Header
 
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import load_layout
+from sonar_ring.ros import ranges
 from sonar_ring.ros.driver import Driver
 from sonar_ring.ros.node import LATCHED
 from sonar_ring.ros.ranges import MIN_RANGE, group_frame, group_transforms, range_messages, range_topic
@@ -100,6 +101,31 @@ def test_driver_publishes_one_range_per_group_and_ping(ros):
     finite = [m.range for m in ping if math.isfinite(m.range)]
     assert finite and all(MIN_RANGE <= r <= RING.max_range for r in finite)  # the wall, in front of some pairs
     assert any(m.range == math.inf for m in ping)  # pairs facing away heard nothing
+
+
+def test_range_topics_without_subscribers_get_nothing_and_one_gets_its_own(ros, monkeypatch):
+    built = []
+
+    def counting(layout, echoes, header, groups=None):
+        built.append(list(groups))
+        return range_messages(layout, echoes, header, groups)
+
+    monkeypatch.setattr(ranges, "range_messages", counting)
+    monkeypatch.setattr(ranges, "LISTENERS_PERIOD", 0.05)
+    namespace = "/lazy_ranges"  # apart from the subscribers earlier tests may leave until garbage collection
+    driver = Driver(namespace=namespace, parameter_overrides=[Parameter("scene", value="single_wall"),
+                                                              Parameter("ping_rate", value=50.0)])
+    executor = SingleThreadedExecutor()
+    executor.add_node(driver)
+    spin_until(executor, lambda: driver.pings_published >= 5)
+    assert built == [], "no subscriber: no Range built"
+    listener = rclpy.create_node("one_range_listener")
+    received = []
+    listener.create_subscription(Range, f"{namespace}/{range_topic(7)}", received.append, qos_profile_sensor_data)
+    executor.add_node(listener)
+    spin_until(executor, lambda: len(received) >= 3)
+    assert len(received) >= 3 and {m.header.frame_id for m in received} == {group_frame("sonar_ring", 7)}
+    assert built and all(groups == [7] for groups in built)
 
 
 @pytest.mark.skipif(importlib.util.find_spec("tf2_msgs") is None,

@@ -15,13 +15,22 @@ from sonar_ring.ros.classifier import Classifier
 from sonar_ring.ros.driver import Driver
 from sonar_ring.ros.localiser import Localiser
 from sonar_ring.ros.mapper import Mapper
+from sonar_ring.ros.params import ParameterError
 from sonar_ring.ros.run import spin
 
 NODES = (Driver, Localiser, Classifier, Mapper)
 
 
 def compose(nodes) -> None:
-    """Wire ``nodes`` (instances of :data:`NODES`, in that order) so each takes its pings from the one before."""
+    """Wire ``nodes`` (instances of :data:`NODES`, in that order) so each takes its pings from the one before.
+
+    Raises :class:`~sonar_ring.ros.params.ParameterError` when the driver,
+    localiser and classifier were given different layouts: handed over
+    directly, a ping is not checked against the next node's layout again.
+    """
+    layouts = {node.get_name(): node.layout.name for node in nodes if hasattr(node, "layout")}
+    if len(set(layouts.values())) > 1:
+        raise ParameterError(f"layout: the nodes of one process must share one layout, got {layouts}")
     for upstream, node in itertools.pairwise(nodes):
         node.follow(upstream)
 
