@@ -130,8 +130,8 @@ def confidence_from_margin(margin):
     """Confidence in [0, 1] from a test margin in standard deviations: ``2 Phi(m) - 1``.
 
     ``erf(m / sqrt(2))``, the probability that a standard normal deviate lies within
-    ``+-m``; evaluated with Abramowitz & Stegun 7.1.26 (absolute error < 2e-7) so the
-    core needs numpy only.  Margins <= 0 or NaN give 0.
+    ``+-m``; evaluated with Abramowitz & Stegun 7.1.26 (absolute error < 2e-7),
+    vectorised in numpy.  Margins <= 0 or NaN give 0.
 
     Parameters
     ----------
@@ -519,7 +519,7 @@ MAX_ECHOES_PER_GROUP = 32
 """Echoes of one group in one ping beyond which :func:`ring_consistency` leaves that group out."""
 
 _CONVERGED = 1e-13
-"""Steps below this (m) for every echo end the fit early: far below the TOF noise, near the rounding of
+"""A step below this (m) ends an echo's fit early: far below the TOF noise, near the rounding of
 positions at sensor ranges."""
 
 
@@ -527,7 +527,7 @@ def geometric_consistency(transmitter, receivers, paths, sigma_path, z=CONSISTEN
                           facing=None) -> ConsistencyResult:
     """EDGE versus specular (PLANE/CORNER) from one echo seen by three or more receivers.
 
-    Two models are fitted by weighted least squares (vectorised Gauss-Newton) to the
+    Two models are fitted by weighted least squares (Gauss-Newton, per echo) to the
     horizontal path lengths ``d_n`` of every echo:
 
     * specular (plane or corner): one virtual image ``T'`` for all receivers,

@@ -344,14 +344,15 @@ def label_pings(layout: Layout, pings: list[EchoArrays], localiser: Settings = S
     ``classifier`` settings), ``echo`` counting the ping's own rows -- exactly
     what the two functions give for that ping alone, since a row's results
     depend only on its own ping.  Consecutive pings with the same speed of sound
-    are stacked and go through each step in one call, so numpy's cost per call
+    (and the same amplitude and phase-delay columns) are stacked and go through
+    each step in one call, so numpy's cost per call
     is paid once per batch instead of once per ping (``sonar-ring process``).
     """
     results = []
     start = 0
     while start < len(pings):
         stop = start + 1
-        while stop < len(pings) and pings[stop].speed_of_sound == pings[start].speed_of_sound:
+        while stop < len(pings) and _stackable(pings[start], pings[stop]):
             stop += 1
         batch = pings[start:stop]
         sizes = np.array([p.n_echoes for p in batch])
@@ -366,6 +367,15 @@ def label_pings(layout: Layout, pings: list[EchoArrays], localiser: Settings = S
         results += zip(_split(hypotheses, offsets), _split(labelled, offsets), strict=True)
         start = stop
     return results
+
+
+def _stackable(first: EchoArrays, other: EchoArrays) -> bool:
+    """Whether ``other`` stacks with ``first``: one speed of sound, the same amplitude and phase-delay columns.
+
+    An empty ping decoded from a message has no columns at all.
+    """
+    return (other.speed_of_sound == first.speed_of_sound and other.amplitude.shape[1] == first.amplitude.shape[1]
+            and other.phase_delay.shape[1] == first.phase_delay.shape[1])
 
 
 def _split(landmarks: Landmarks, offsets: np.ndarray) -> list[Landmarks]:

@@ -15,7 +15,7 @@ from sonar_ring.msg import LandmarkArray
 from visualization_msgs.msg import Marker, MarkerArray
 
 from sonar_ring.ros.classifier import Classifier
-from sonar_ring.ros.convert import landmarks_from_msg
+from sonar_ring.ros.convert import echoes_from_msg, landmarks_from_msg
 from sonar_ring.ros.driver import Driver
 from sonar_ring.ros.graph import NODES, compose
 from sonar_ring.ros.localiser import Localiser
@@ -88,6 +88,25 @@ def test_graph_in_one_process_matches_ground_truth(ros):
     assert points.size and np.median(nearest) < 0.05
     for node in [*nodes, listener.node]:
         node.destroy_node()
+
+
+def test_driver_hands_on_the_arrays_its_message_carries(ros):
+    """Composed nodes see what separate ones decode (float32 amplitudes), so both give the same landmarks."""
+    driver = Driver(parameter_overrides=[Parameter("layout", value="barshan_kuc_pair"),
+                                         Parameter("scene", value="barshan_kuc_bench"),
+                                         Parameter("ping_rate", value=50.0)])
+    handed = []
+    driver.handoff = lambda message, echoes: handed.append((message, echoes))
+    executor = SingleThreadedExecutor()
+    executor.add_node(driver)
+    assert spin_until(executor, lambda: len(handed) >= 3, timeout=10)
+    for message, echoes in handed:
+        decoded = echoes_from_msg(message)
+        assert echoes.n_echoes > 0 and echoes.amplitude.dtype == np.float32
+        for name in ("group", "transmitter", "tof", "amplitude", "phase_delay"):
+            assert np.array_equal(getattr(echoes, name), getattr(decoded, name), equal_nan=True), name
+            assert getattr(echoes, name).dtype == getattr(decoded, name).dtype, name
+    driver.destroy_node()
 
 
 def test_composing_nodes_of_different_layouts_is_refused(ros):

@@ -130,7 +130,8 @@ class Driver(SonarNode):
         ping = self._simulator.ping(pose, noise=noise, rng=self._rng)
         header = self._header()
         self.health.received()
-        self._odom_publisher.publish(odometry_message(pose, header))  # first: the mapper places the ping with it
+        # First: a mapper in another process may have the pose when the ping's landmarks come (composed, they wait).
+        self._odom_publisher.publish(odometry_message(pose, header))
         self._truth_publisher.publish(truth_message(ping, header))
         downstream = self._publish(ping.echoes, header)
         self.health.processed(time.perf_counter() - started - downstream, published=1)
@@ -225,7 +226,9 @@ class Driver(SonarNode):
         message = echoes_to_msg(kept, header)
         self._echo_publisher.publish(message)
         self.pings_published += 1
-        downstream = self.pass_on(message, kept)
+        # The message's own arrays (float32 amplitudes, ...): what the next node would decode, so composed and
+        # separate nodes, and `sonar-ring process`, give the same landmarks.
+        downstream = self.pass_on(message, echoes_from_msg(message))
         # After the hand-off: the landmarks of a ping matter more than its ranges being first.
         if self.params["publish_range"]:
             self._ranges.publish(kept, header)

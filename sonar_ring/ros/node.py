@@ -2,9 +2,9 @@
 
 rclpy gives each publisher and subscription handlers that log incompatible QoS
 or types; each is a waitable that the executor visits on every wait.  The four
-nodes hold 40 of them, and in one executor (the ``graph`` and the demo) they
-made every wait 0.53 ms instead of 0.31 ms, about 1 ms per ping over its five
-callbacks.  The other end of a topic (RViz, your node) still reports an
+nodes held 40 of them, and in one executor they made every wait 0.53 ms
+instead of 0.31 ms, about 1 ms per ping over the five callbacks a ping took
+before the nodes were composed (:meth:`SonarNode.follow`).  The other end of a topic (RViz, your node) still reports an
 incompatible QoS; a handler passed explicitly is kept.
 """
 

@@ -36,6 +36,7 @@ MIN_RANGE = 0.02
 LISTENERS_PERIOD = 1.0
 """s between looks for each range topic's subscribers; a new subscriber waits at most this long."""
 
+
 def range_topic(group: int) -> str:
     """Relative topic of group ``group``'s Range messages: one topic per sensor, as Nav2's range layer expects."""
     return f"range/group_{group:02d}"

@@ -35,6 +35,7 @@ def spin(*node_classes, args=None, setup: Callable[[list], None] | None = None) 
             starting = cls.__name__.lower()
             nodes.append(cls())
         if setup is not None:
+            starting = "sonar_ring"
             setup(nodes)
         executor = SingleThreadedExecutor()
         for node in nodes:
