@@ -15,9 +15,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, make_landmarks
 from sonar_ring.ros.markers import (
-    LINE_LIST,
     MIN_ALPHA,
-    POINTS,
     MarkerParts,
     covariance_ellipses,
     landmark_markers,
@@ -71,7 +69,8 @@ def some_landmarks():
 
 def test_ping_markers_serialize_exactly_as_rclpy_does():
     parts = landmark_markers(some_landmarks(), "landmarks", lifetime=0.5)
-    assert [p.type for p in parts] == [POINTS, LINE_LIST, POINTS, POINTS]  # unknown, plane, corner, edge
+    # unknown, plane, corner, edge
+    assert [p.type for p in parts] == [Marker.POINTS, Marker.LINE_LIST, Marker.POINTS, Marker.POINTS]
     assert any(len(p.colors) for p in parts)  # the edges' confidences differ: per-point colours
     data = assert_same_as_rclpy(parts, header())
     decoded = deserialize_message(data, MarkerArray)
@@ -105,7 +104,7 @@ def test_points_keep_their_float64_positions():
 
 
 def test_error_handling():
-    fine = {"ns": "x", "type": POINTS, "scale": (0.1, 0.1, 0.0), "color": (1.0, 1.0, 1.0, 1.0),
+    fine = {"ns": "x", "type": Marker.POINTS, "scale": (0.1, 0.1, 0.0), "color": (1.0, 1.0, 1.0, 1.0),
             "points": np.zeros((2, 2)), "colors": np.empty((0, 4))}
     MarkerParts(**fine)
     for change, message in [({"scale": (0.1, 0.1)}, "scale needs 3 values"),

@@ -19,6 +19,7 @@ import struct
 from dataclasses import dataclass
 
 import numpy as np
+from visualization_msgs.msg import Marker
 
 from sonar_ring.landmarks import CLASS_NAMES, CORNER, EDGE, PLANE, UNKNOWN, Landmarks, ellipse_outlines
 
@@ -33,9 +34,6 @@ CLASS_COLOURS = {
 MIN_ALPHA = 0.3
 """Alpha at zero confidence, so undecided landmarks still show."""
 
-LINE_LIST, POINTS, ADD = 5, 8, 0
-"""``visualization_msgs/Marker`` type and action constants used here."""
-
 
 @dataclass(frozen=True)
 class MarkerParts:
@@ -46,7 +44,7 @@ class MarkerParts:
     ns : str
         Namespace; the id is 0, so a new message replaces the previous one.
     type : int
-        :data:`LINE_LIST` or :data:`POINTS`.
+        ``Marker.LINE_LIST`` or ``Marker.POINTS``.
     scale : tuple of float
         ``scale.x, scale.y, scale.z``, m (line width; point width and height).
     color : tuple of float
@@ -122,7 +120,7 @@ def serialize_markers(markers: list[MarkerParts], header) -> bytes:
     for marker in markers:
         cdr.header(header.stamp.sec, header.stamp.nanosec, header.frame_id)
         cdr.string(marker.ns)
-        cdr.pack("iii", 0, marker.type, ADD, align=4)
+        cdr.pack("iii", 0, marker.type, Marker.ADD, align=4)
         cdr.pack("7d", 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, align=8)  # pose: origin, identity orientation
         cdr.pack("3d", *marker.scale, align=8)
         cdr.pack("4f", *marker.color, align=4)
@@ -178,11 +176,11 @@ def landmark_markers(landmarks: Landmarks, namespace: str, lifetime: float, poin
         chosen = landmarks.select(landmarks.valid & (landmarks.landmark_class == code))
         if code == PLANE:
             colour, colours = _coloured(code, chosen.confidence, 2)
-            markers.append(MarkerParts(f"{namespace}/{name}", LINE_LIST, (line_width, 0.0, 0.0), colour,
+            markers.append(MarkerParts(f"{namespace}/{name}", Marker.LINE_LIST, (line_width, 0.0, 0.0), colour,
                                        plane_segments(chosen, min_plane_length).reshape(-1, 2), colours, lifetime))
         else:
             colour, colours = _coloured(code, chosen.confidence, 1)
-            markers.append(MarkerParts(f"{namespace}/{name}", POINTS, (point_size, point_size, 0.0), colour,
+            markers.append(MarkerParts(f"{namespace}/{name}", Marker.POINTS, (point_size, point_size, 0.0), colour,
                                        chosen.position, colours, lifetime))
     return markers
 
@@ -193,5 +191,5 @@ def covariance_ellipses(landmarks: Landmarks, namespace: str, sigma: float = 2.0
                               & np.all(np.isfinite(landmarks.covariance), axis=(1, 2)))
     ring = ellipse_outlines(chosen.position, chosen.covariance, sigma, sides)  # (L, S+1, 2)
     pairs = np.stack([ring[:, :-1], ring[:, 1:]], axis=2).reshape(-1, 2)
-    return MarkerParts(f"{namespace}/covariance", LINE_LIST, (0.005, 0.0, 0.0), (0.9, 0.9, 0.2, 0.8), pairs,
+    return MarkerParts(f"{namespace}/covariance", Marker.LINE_LIST, (0.005, 0.0, 0.0), (0.9, 0.9, 0.2, 0.8), pairs,
                        np.empty((0, 4), dtype=np.float32))
