@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sonar_ring.compiled import kernel
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN
 from sonar_ring.localise import horizontal_path
 
@@ -650,22 +651,21 @@ def _far_field_image(centroid, outward, receivers, paths, usable):
     return centroid + mean_path[:, None] * direction
 
 
-@functools.cache
-def _kernels():
-    """:func:`_fit` and :func:`_gate` compiled with numba, at their first use.
+def load_kernels() -> None:
+    """Load the compiled consistency kernels now instead of at the first classification.
 
-    With a handful of receivers per echo, numpy's cost per call, not arithmetic,
-    dominated these loops (classification took 2.3 ms for a 144-echo ping, 0.95 ms
-    with them compiled).  The machine code is cached beside the module (or in the
-    user's cache where that is read-only); IEEE division (inf/NaN, as numpy)
-    replaces ZeroDivisionError.  Compiled on first use, not at import: numba costs
-    about 0.2 s and 100 MiB, which a process that never classifies (the localiser)
-    need not pay.
+    Loading takes about 0.3 s (numba's start and the cached machine code); a process
+    that classifies on a deadline pays it at start: the classifier node, so its first
+    ping is not late, and the workers of ``sonar-ring process``, while the main
+    process opens the bag.  Runs each kernel once through the functions that call
+    it, so the argument types are the production ones.
     """
-    import numba
-
-    compile_kernel = numba.njit(cache=True, error_model="numpy", nogil=True)
-    return compile_kernel(_fit), compile_kernel(_gate)
+    receivers = np.array([[[0.0, 0.02], [0.0, -0.02]]])
+    paths = np.ones((1, 2))
+    for transmitter in (None, np.zeros((1, 2))):
+        _gauss_newton(np.ones((1, 2)), receivers, paths, paths, transmitter)
+    one = np.zeros(1, dtype=int)
+    _gated_matches(one, one, paths, paths, receivers, np.zeros((1, 1), dtype=int), CONSISTENCY_Z)
 
 
 def _gauss_newton(start, receivers, paths, weight, transmitter):
@@ -679,14 +679,14 @@ def _gauss_newton(start, receivers, paths, weight, transmitter):
     """
     edge = transmitter is not None
     emitter = np.ascontiguousarray(transmitter if edge else start, dtype=float)
-    fit, _ = _kernels()
-    return fit(np.ascontiguousarray(start, dtype=float), np.ascontiguousarray(receivers, dtype=float),
+    return _fit(np.ascontiguousarray(start, dtype=float), np.ascontiguousarray(receivers, dtype=float),
                 np.ascontiguousarray(paths, dtype=float), np.ascontiguousarray(weight, dtype=float), emitter, edge,
                 _GAUSS_NEWTON_STEPS, _CONVERGED)
 
 
+@kernel
 def _fit(start, receivers, paths, weight, emitter, edge, steps, converged):
-    """Each echo's Gauss-Newton fit (see :func:`_gauss_newton`); compiled by :func:`_kernels`."""
+    """Each echo's Gauss-Newton fit (see :func:`_gauss_newton`)."""
     n_echoes, n_receivers = paths.shape
     fitted = np.empty((n_echoes, 2))
     chi2 = np.empty(n_echoes)
@@ -888,17 +888,14 @@ def _gated_matches(ping, group, horizontal, sigma, receivers, slots, z):
     width = max(int(count.max(initial=0)), 1)  # one column even when empty, so argmax works
     candidate = order[np.minimum(first[..., None] + np.arange(width), max(n_echoes - 1, 0))]
     exists = (np.arange(width) < count[..., None]) & (candidate != np.arange(n_echoes)[:, None, None])
-    _, gate = _kernels()
-    passes = gate(candidate, exists, np.ascontiguousarray(horizontal, dtype=float),
+    passes = _gate(candidate, exists, np.ascontiguousarray(horizontal, dtype=float),
                    np.ascontiguousarray(sigma, dtype=float), np.ascontiguousarray(receivers, dtype=float), float(z))
     return candidate, passes
 
 
+@kernel
 def _gate(candidate, exists, horizontal, sigma, receivers, z):
-    """``exists`` and the triangle-inequality gate over every pair of receivers heard by both echoes.
-
-    Compiled by :func:`_kernels`.
-    """
+    """``exists`` and the triangle-inequality gate over every pair of receivers heard by both echoes."""
     n_echoes, n_slots, width = candidate.shape
     n_receivers = horizontal.shape[1]
     passes = np.zeros(candidate.shape, dtype=np.bool_)
