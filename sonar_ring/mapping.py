@@ -122,7 +122,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, Landmarks
+from sonar_ring.compiled import kernel
+from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, Landmarks, make_landmarks
 
 CHI2_2DOF_99 = 9.2103
 """99 % point of chi-square with 2 degrees of freedom; also ``2 ln 100``."""
@@ -175,14 +176,16 @@ def _determinant(matrix):
     return matrix[..., 0, 0] * matrix[..., 1, 1] - matrix[..., 0, 1] * matrix[..., 1, 0]
 
 
+@kernel
 def _inverse(matrix):
-    """Inverse of (..., 2, 2) matrices in closed form."""
-    det = _determinant(matrix)
-    out = np.empty_like(matrix)
-    out[..., 0, 0] = matrix[..., 1, 1] / det
-    out[..., 1, 1] = matrix[..., 0, 0] / det
-    out[..., 0, 1] = -matrix[..., 0, 1] / det
-    out[..., 1, 0] = -matrix[..., 1, 0] / det
+    """Inverse of (K, 2, 2) matrices in closed form."""
+    out = np.empty(matrix.shape)
+    for k in range(matrix.shape[0]):
+        det = matrix[k, 0, 0] * matrix[k, 1, 1] - matrix[k, 0, 1] * matrix[k, 1, 0]
+        out[k, 0, 0] = matrix[k, 1, 1] / det
+        out[k, 1, 1] = matrix[k, 0, 0] / det
+        out[k, 0, 1] = -matrix[k, 0, 1] / det
+        out[k, 1, 0] = -matrix[k, 1, 0] / det
     return out
 
 
@@ -208,36 +211,61 @@ def _quadratic(vector, matrix):
     return _dot(vector, _apply(matrix, vector))
 
 
+@kernel
 def _sandwich(jacobian, matrix):
-    """``J M J^T`` for (..., 2, 2) arrays of one shape, ``M`` symmetric.
-
-    Element-wise, because numpy's stacked matmul is slow for 2 x 2 matrices.
-    """
-    a, b, c, d = jacobian[..., 0, 0], jacobian[..., 0, 1], jacobian[..., 1, 0], jacobian[..., 1, 1]
-    xx, xy, yy = matrix[..., 0, 0], matrix[..., 0, 1], matrix[..., 1, 1]
+    """``J M J^T`` for (K, 2, 2) arrays ``J`` and symmetric ``M``; exactly symmetric."""
     out = np.empty(matrix.shape)
-    out[..., 0, 0] = a * a * xx + 2.0 * a * b * xy + b * b * yy
-    out[..., 0, 1] = out[..., 1, 0] = a * c * xx + (a * d + b * c) * xy + b * d * yy
-    out[..., 1, 1] = c * c * xx + 2.0 * c * d * xy + d * d * yy
+    for k in range(matrix.shape[0]):
+        a, b, c, d = jacobian[k, 0, 0], jacobian[k, 0, 1], jacobian[k, 1, 0], jacobian[k, 1, 1]
+        xx, xy, yy = matrix[k, 0, 0], matrix[k, 0, 1], matrix[k, 1, 1]
+        out[k, 0, 0] = a * a * xx + 2.0 * a * b * xy + b * b * yy
+        out[k, 0, 1] = out[k, 1, 0] = a * c * xx + (a * d + b * c) * xy + b * d * yy
+        out[k, 1, 1] = c * c * xx + 2.0 * c * d * xy + d * d * yy
     return out
 
 
-def _pairs_within(query, points, radius: float):
+@kernel
+def _pairs_within(query, points, radius):
     """Index pairs ``(i, j)`` with ``|query[i] - points[j]| <= radius``, by a sweep along x.
 
     Sorting ``points`` (M, 2) by x limits the distance tests to the strip
     ``|dx| <= radius`` of each query point (N, 2), which for a map spread over a
-    room is a small fraction of all N x M pairs.
+    room is a small fraction of all N x M pairs.  Pairs come by ``i``, then by
+    the points' x (stable).
     """
-    order = np.argsort(points[:, 0], kind="stable")
-    low = np.searchsorted(points[order, 0], query[:, 0] - radius, side="left")
-    span = np.searchsorted(points[order, 0], query[:, 0] + radius, side="right") - low
-    row = np.repeat(np.arange(query.shape[0]), span)
-    start = np.repeat(low - (np.cumsum(span) - span), span)
-    column = order[start + np.arange(row.size)]
-    gap = query[row] - points[column]
-    near = gap[:, 0] ** 2 + gap[:, 1] ** 2 <= radius * radius
-    return row[near], column[near]
+    order = np.argsort(points[:, 0], kind="mergesort")
+    sorted_x = points[order, 0]
+    low = np.searchsorted(sorted_x, query[:, 0] - radius, side="left")
+    high = np.searchsorted(sorted_x, query[:, 0] + radius, side="right")
+    rows = np.empty(int(np.sum(high - low)), dtype=np.int64)
+    columns = np.empty(rows.size, dtype=np.int64)
+    count = 0
+    for i in range(query.shape[0]):
+        for j in order[low[i]:high[i]]:
+            gap_x, gap_y = query[i, 0] - points[j, 0], query[i, 1] - points[j, 1]
+            if gap_x ** 2 + gap_y ** 2 <= radius * radius:
+                rows[count], columns[count] = i, j
+                count += 1
+    return rows[:count], columns[:count]
+
+
+@kernel
+def _gated_scores(innovation, covariance, observations, distance, with_distance, gate):
+    """:meth:`LandmarkMap._score` of innovations (K, 2) with covariances (K, 2, 2): ``d^2`` and scores (K,)."""
+    count = innovation.shape[0]
+    d2 = np.empty(count)
+    score = np.empty(count)
+    for k in range(count):
+        x, y = innovation[k, 0], innovation[k, 1]
+        determinant = covariance[k, 0, 0] * covariance[k, 1, 1] - covariance[k, 0, 1] * covariance[k, 1, 0]
+        d2[k] = (covariance[k, 1, 1] * x * x - 2.0 * covariance[k, 0, 1] * x * y
+                 + covariance[k, 0, 0] * y * y) / determinant
+        score[k] = d2[k] + np.log(determinant) - 2.0 * np.log(observations[k])
+        if with_distance:
+            score[k] += 2.0 * np.log(distance[k])
+        if not d2[k] <= gate:
+            score[k] = np.inf
+    return d2, score
 
 
 def _chi2_quantile(dof, z: float):
@@ -389,11 +417,13 @@ class MapCounts:
 # --------------------------------------------------------------------------- state
 
 @dataclass(frozen=True, eq=False)
-class _Sightings:
-    """The usable landmarks of one ping in ``odom``, with their lines of sight.
+class Sightings:
+    """The usable landmarks of one ping in ``odom``, with their lines of sight (:meth:`LandmarkMap.screen`).
 
     Attributes
     ----------
+    offered, invalid, not_finite, degenerate : int
+        Landmarks screened, and those left out as in :class:`MapCounts`.
     landmark_class : ndarray of uint8, shape (N,)
     position : ndarray, shape (N, 2)
         ``G``, m.
@@ -421,22 +451,17 @@ class _Sightings:
     confidence: np.ndarray
     group: np.ndarray
     sensor: np.ndarray
+    offered: int
+    invalid: int
+    not_finite: int
+    degenerate: int
 
     def line(self, rows, anchor):
         """Line observations ``(theta, delta)`` of sightings ``rows`` about ``anchor`` (K, 2).
 
         Returns the values (K, 2) and their covariances ``J C J^T`` (K, 2, 2).
         """
-        normal = self.normal[rows]
-        tangent = _left(normal)
-        offset = self.position[rows] - anchor
-        distance = self.distance[rows]
-        jacobian = np.empty((rows.size, 2, 2))
-        jacobian[:, 0, :] = -tangent / distance[:, None]
-        jacobian[:, 1, :] = normal - (_dot(tangent, offset) / distance)[:, None] * tangent
-        value = np.empty((rows.size, 2))
-        value[:, 0] = np.arctan2(normal[:, 1], normal[:, 0])
-        value[:, 1] = _dot(normal, offset)
+        value, jacobian = _line_of_sight(self.normal[rows], self.position[rows], anchor, self.distance[rows])
         return value, _sandwich(jacobian, self.covariance[rows])
 
     def line_innovation(self, rows, anchor, line):
@@ -449,6 +474,93 @@ class _Sightings:
         innovation = value - line
         innovation[:, 0] = _wrap(innovation[:, 0])
         return innovation, covariance
+
+
+@kernel
+def _line_of_sight(normal, position, anchor, distance):
+    """Line coordinates ``(theta, delta)`` (K, 2) of sightings about ``anchor`` (K, 2), and their Jacobian.
+
+    ``J`` (K, 2, 2) is the derivative by the sighting's point (see the module
+    docstring); ``normal``, ``position`` (K, 2) and ``distance`` (K,) of the sightings.
+    """
+    count = normal.shape[0]
+    value = np.empty((count, 2))
+    jacobian = np.empty((count, 2, 2))
+    for k in range(count):
+        normal_x, normal_y = normal[k, 0], normal[k, 1]
+        tangent_x, tangent_y = -normal_y, normal_x
+        offset_x, offset_y = position[k, 0] - anchor[k, 0], position[k, 1] - anchor[k, 1]
+        along = (tangent_x * offset_x + tangent_y * offset_y) / distance[k]
+        jacobian[k, 0, 0], jacobian[k, 0, 1] = -tangent_x / distance[k], -tangent_y / distance[k]
+        jacobian[k, 1, 0], jacobian[k, 1, 1] = normal_x - along * tangent_x, normal_y - along * tangent_y
+        value[k, 0] = np.arctan2(normal_y, normal_x)
+        value[k, 1] = normal_x * offset_x + normal_y * offset_y
+    return value, jacobian
+
+
+@kernel
+def _screen_rows(landmark_class, valid, position, covariance, segment, normal, sensor_x, sensor_y, sighting_variance):
+    """:meth:`LandmarkMap._screen` of L landmarks in ``odom`` seen from ``(sensor_x, sensor_y)``.
+
+    A landmark is usable when valid, finite and within :data:`MAX_COORDINATE`
+    (position, segment, covariance, a plane's normal; the covariance's entries
+    within its square), and sound: a known class, a positive definite
+    covariance, away from the sensor and, for a plane, a normal of about unit
+    length.  Returns the usable rows (K,), their symmetrised covariances plus
+    ``sighting_variance I`` and inverses (K, 2, 2), their line normals towards
+    the sensor (a plane's own, else the line of sight) (K, 2) and distances
+    (K,), and the counts of invalid, not finite and degenerate landmarks (3,).
+    """
+    count = landmark_class.shape[0]
+    usable = np.zeros(count, dtype=np.bool_)
+    counts = np.zeros(3, dtype=np.int64)
+    symmetric = np.empty((count, 3))
+    for k in range(count):
+        if not valid[k]:
+            counts[0] += 1
+            continue
+        plane = landmark_class[k] == PLANE
+        xx, xy, yy = covariance[k, 0, 0], 0.5 * (covariance[k, 0, 1] + covariance[k, 1, 0]), covariance[k, 1, 1]
+        symmetric[k, 0], symmetric[k, 1], symmetric[k, 2] = xx, xy, yy
+        finite = (abs(xx) <= MAX_COORDINATE ** 2 and abs(xy) <= MAX_COORDINATE ** 2
+                  and abs(yy) <= MAX_COORDINATE ** 2)
+        for axis in range(2):
+            finite = (finite and abs(position[k, axis]) <= MAX_COORDINATE and abs(segment[k, 0, axis]) <= MAX_COORDINATE
+                      and abs(segment[k, 1, axis]) <= MAX_COORDINATE and (np.isfinite(normal[k, axis]) or not plane))
+        if not finite:
+            counts[1] += 1
+            continue
+        distance = np.hypot(sensor_x - position[k, 0], sensor_y - position[k, 1])
+        if not (landmark_class[k] <= EDGE and xx > 0 and xx * yy - xy * xy > 0 and distance > _MIN_RANGE
+                and (np.hypot(normal[k, 0], normal[k, 1]) > 0.5 or not plane)):
+            counts[2] += 1
+            continue
+        usable[k] = True
+    keep = np.flatnonzero(usable)
+    kept_covariance = np.empty((keep.size, 2, 2))
+    information = np.empty((keep.size, 2, 2))
+    line_normal = np.empty((keep.size, 2))
+    distances = np.empty(keep.size)
+    for row in range(keep.size):
+        k = keep[row]
+        xx, xy, yy = symmetric[k, 0] + sighting_variance, symmetric[k, 1], symmetric[k, 2] + sighting_variance
+        kept_covariance[row, 0, 0], kept_covariance[row, 0, 1] = xx, xy
+        kept_covariance[row, 1, 0], kept_covariance[row, 1, 1] = xy, yy
+        det = xx * yy - xy * xy
+        information[row, 0, 0], information[row, 1, 1] = yy / det, xx / det
+        information[row, 0, 1] = information[row, 1, 0] = -xy / det
+        distance = np.hypot(sensor_x - position[k, 0], sensor_y - position[k, 1])
+        sight_x, sight_y = (sensor_x - position[k, 0]) / distance, (sensor_y - position[k, 1]) / distance
+        if landmark_class[k] == PLANE:
+            length = np.hypot(normal[k, 0], normal[k, 1])
+            given_x, given_y = normal[k, 0] / length, normal[k, 1] / length
+            # Upstream conventions differ on the sign of a plane's normal; the wall faces the sensor.
+            flip = -1.0 if given_x * sight_x + given_y * sight_y < 0 else 1.0
+            line_normal[row, 0], line_normal[row, 1] = given_x * flip, given_y * flip
+        else:
+            line_normal[row, 0], line_normal[row, 1] = sight_x, sight_y
+        distances[row] = distance
+    return keep, kept_covariance, information, line_normal, distances, counts
 
 
 class _Points:
@@ -515,20 +627,27 @@ class _Walls:
         ``theta`` with slope ``t . (a - a') = -s_mid``; the information transforms
         with that Jacobian.
         """
-        theta = self.line[rows, 0]
-        normal = np.empty((rows.size, 2))
-        normal[:, 0], normal[:, 1] = np.cos(theta), np.sin(theta)
-        tangent = _left(normal)
-        middle = 0.5 * (self.extent[rows, 0] + self.extent[rows, 1])
-        inverse_jacobian = np.zeros((rows.size, 2, 2))
-        inverse_jacobian[:, 0, 0] = inverse_jacobian[:, 1, 1] = 1.0
-        inverse_jacobian[:, 1, 0] = middle
-        self.information[rows] = _sandwich(np.swapaxes(inverse_jacobian, 1, 2), self.information[rows])
-        self.anchor[rows] += self.line[rows, 1:2] * normal + middle[:, None] * tangent
-        self.line[rows, 1] = 0.0
-        self.extent[rows] -= middle[:, None]
-        self.normal[rows] = normal
-        self.tangent[rows] = tangent
+        _recentre(self.anchor, self.line, self.information, self.normal, self.tangent, self.extent, rows)
+
+
+@kernel
+def _recentre(anchor, line, information, normal, tangent, extent, rows):
+    """:meth:`_Walls.recentre` of the walls ``rows``, in place."""
+    for row in rows:
+        theta = line[row, 0]
+        normal_x, normal_y = np.cos(theta), np.sin(theta)
+        middle = 0.5 * (extent[row, 0] + extent[row, 1])
+        # J^-T Lambda J^-1 with J^-1 = [[1, 0], [middle, 1]], written out.
+        xx, xy, yy = information[row, 0, 0], information[row, 0, 1], information[row, 1, 1]
+        information[row, 0, 0] = xx + 2.0 * middle * xy + middle * middle * yy
+        information[row, 0, 1] = information[row, 1, 0] = xy + middle * yy
+        anchor[row, 0] += line[row, 1] * normal_x + middle * -normal_y
+        anchor[row, 1] += line[row, 1] * normal_y + middle * normal_x
+        line[row, 1] = 0.0
+        extent[row, 0] -= middle
+        extent[row, 1] -= middle
+        normal[row, 0], normal[row, 1] = normal_x, normal_y
+        tangent[row, 0], tangent[row, 1] = -normal_y, normal_x
 
 
 class _Groups:
@@ -576,22 +695,41 @@ def _information_update(mean, information, chi2, groups: _Groups, innovation, we
     Arrays ``mean`` (M, 2), ``information`` (M, 2, 2), ``chi2`` (M,) are updated in
     place at the slots of ``groups`` with innovations (K, 2) and weights (K, 2, 2).
     """
-    rows, total = groups.rows, groups.total
-    weighted = _apply(weight, innovation)
-    updated = information[rows]
-    updated[:, 0, 0] += total(weight[:, 0, 0])
-    off_diagonal = total(0.5 * (weight[:, 0, 1] + weight[:, 1, 0]))
-    updated[:, 0, 1] += off_diagonal
-    updated[:, 1, 0] += off_diagonal
-    updated[:, 1, 1] += total(weight[:, 1, 1])
-    pull = np.empty((rows.size, 2))
-    pull[:, 0] = total(weighted[:, 0])
-    pull[:, 1] = total(weighted[:, 1])
-    step = _apply(_inverse(updated), pull)
-    mean[rows] += step
-    information[rows] = updated
-    if chi2 is not None:
-        chi2[rows] += total(_dot(innovation, weighted)) - _dot(pull, step)
+    _fuse_information(mean, information, np.zeros(0) if chi2 is None else chi2, chi2 is not None, groups.slots,
+                      groups.rows, np.ascontiguousarray(innovation, dtype=float),
+                      np.ascontiguousarray(weight, dtype=float))
+
+
+@kernel
+def _fuse_information(mean, information, chi2, with_chi2, slots, rows, innovation, weight):
+    """:func:`_information_update`; ``rows`` are the distinct ``slots``, ascending."""
+    # Per row: sums of W (00, symmetric 01, 11), of W nu (x, y) and of nu^T W nu.
+    sums = np.zeros((rows.size, 6))
+    for k in range(slots.size):
+        row = np.searchsorted(rows, slots[k])
+        w00, w01, w10, w11 = weight[k, 0, 0], weight[k, 0, 1], weight[k, 1, 0], weight[k, 1, 1]
+        pull_x = w00 * innovation[k, 0] + w01 * innovation[k, 1]
+        pull_y = w10 * innovation[k, 0] + w11 * innovation[k, 1]
+        sums[row, 0] += w00
+        sums[row, 1] += 0.5 * (w01 + w10)
+        sums[row, 2] += w11
+        sums[row, 3] += pull_x
+        sums[row, 4] += pull_y
+        sums[row, 5] += innovation[k, 0] * pull_x + innovation[k, 1] * pull_y
+    for row in range(rows.size):
+        m = rows[row]
+        a = information[m, 0, 0] + sums[row, 0]
+        b = information[m, 0, 1] + sums[row, 1]
+        c = information[m, 1, 0] + sums[row, 1]
+        d = information[m, 1, 1] + sums[row, 2]
+        det = a * d - b * c
+        step_x = d / det * sums[row, 3] + -b / det * sums[row, 4]
+        step_y = -c / det * sums[row, 3] + a / det * sums[row, 4]
+        mean[m, 0] += step_x
+        mean[m, 1] += step_y
+        information[m, 0, 0], information[m, 0, 1], information[m, 1, 0], information[m, 1, 1] = a, b, c, d
+        if with_chi2:
+            chi2[m] += sums[row, 5] - (sums[row, 3] * step_x + sums[row, 4] * step_y)
 
 
 # --------------------------------------------------------------------------- the map
@@ -697,7 +835,7 @@ class LandmarkMap:
     # ------------------------------------------------------------------ update
 
     def update(self, landmarks: Landmarks, sensor_pose) -> None:
-        """Add one ping's landmarks, already in ``odom``.
+        """Add one ping's landmarks, already in ``odom``: :meth:`screen`, then :meth:`add`.
 
         Parameters
         ----------
@@ -715,15 +853,33 @@ class LandmarkMap:
             If ``landmarks`` is not a :class:`Landmarks` with consistent shapes or
             ``sensor_pose`` is not three numbers.  Bad data is counted, never raised.
         """
-        _check_landmarks(landmarks, "LandmarkMap.update")
-        pose = _pose(sensor_pose, "LandmarkMap.update")
+        self.add(self.screen(landmarks, sensor_pose))
+
+    def screen(self, landmarks: Landmarks, sensor_pose) -> Sightings | None:
+        """The usable landmarks of one ping as sightings, the others counted by kind; None for a bad pose.
+
+        Uses the map's settings, never its entries, so any map with the same
+        settings gives the same sightings: ``sonar-ring process`` screens pings in
+        its workers, and only :meth:`add` goes in order.  Parameters and errors
+        as :meth:`update`.
+        """
+        _check_landmarks(landmarks, "LandmarkMap.screen")
+        pose = _pose(sensor_pose, "LandmarkMap.screen")
         if not (np.all(np.isfinite(pose)) and np.all(np.abs(pose[:2]) <= MAX_COORDINATE)):
+            return None
+        return self._screen(landmarks, pose[:2])
+
+    def add(self, sightings: Sightings | None) -> None:
+        """Associate and fuse one ping's sightings (:meth:`screen`); None counts a rejected ping."""
+        if sightings is None:
             self._counts.rejected_pings += 1
             return
         self._ping += 1
         self._counts.pings += 1
-        self._counts.sightings += len(landmarks)
-        sightings = self._screen(landmarks, pose[:2])
+        self._counts.sightings += sightings.offered
+        self._counts.invalid += sightings.invalid
+        self._counts.not_finite += sightings.not_finite
+        self._counts.degenerate += sightings.degenerate
         if sightings.landmark_class.size == 0:
             return
         target = self._associate(sightings)
@@ -739,49 +895,29 @@ class LandmarkMap:
         made_walls = self._resolve(touched_points)
         self._merge_walls(np.unique(np.concatenate([new_walls, grown_walls, made_walls])))
 
-    def _screen(self, landmarks: Landmarks, sensor: np.ndarray) -> _Sightings:
+    def _screen(self, landmarks: Landmarks, sensor: np.ndarray) -> Sightings:
         """The usable landmarks, with the unusable ones counted by kind."""
-        landmark_class = np.asarray(landmarks.landmark_class).astype(np.int64)
-        valid = np.asarray(landmarks.valid, bool)
-        position = np.asarray(landmarks.position, float)
-        covariance = np.asarray(landmarks.covariance, float)
-        segment = np.asarray(landmarks.segment, float)
-        normal = np.asarray(landmarks.normal, float)
-        plane = landmark_class == PLANE
-        # Rows holding NaN, inf or huge values overflow on the way to being rejected.
-        with np.errstate(invalid="ignore", over="ignore"):
-            covariance = 0.5 * (covariance + np.swapaxes(covariance, 1, 2))
-            # One test for all fields: a sum holding NaN or inf is not finite.
-            total = position.sum(axis=1) + covariance.sum(axis=(1, 2)) + segment.sum(axis=(1, 2))
-            in_range = ((np.abs(position).max(axis=1, initial=0) <= MAX_COORDINATE)
-                        & (np.abs(segment).max(axis=(1, 2), initial=0) <= MAX_COORDINATE)
-                        & (np.abs(covariance).max(axis=(1, 2), initial=0) <= MAX_COORDINATE ** 2))
-            finite = np.isfinite(total + np.where(plane, normal.sum(axis=1), 0.0)) & in_range
-            normal_length = np.hypot(normal[:, 0], normal[:, 1])
-            distance = np.hypot(sensor[0] - position[:, 0], sensor[1] - position[:, 1])
-            sound = ((landmark_class <= EDGE) & (covariance[:, 0, 0] > 0) & (_determinant(covariance) > 0)
-                     & (distance > _MIN_RANGE) & ((normal_length > 0.5) | ~plane))
-        self._counts.invalid += int(np.count_nonzero(~valid))
-        self._counts.not_finite += int(np.count_nonzero(valid & ~finite))
-        self._counts.degenerate += int(np.count_nonzero(valid & finite & ~sound))
-        keep = np.flatnonzero(valid & finite & sound)
-        position, distance, plane = position[keep], distance[keep], plane[keep]
-        covariance = covariance[keep] + self.sighting_sigma ** 2 * np.eye(2)
-        line_of_sight = (sensor - position) / distance[:, None]
-        given = normal[keep] / np.where(plane, normal_length[keep], 1.0)[:, None]
-        # Upstream conventions differ on the sign of a plane's normal; the wall faces the sensor.
-        given *= np.where(_dot(given, line_of_sight) < 0, -1.0, 1.0)[:, None]
-        return _Sightings(
-            landmark_class=landmark_class[keep].astype(np.uint8),
-            position=position,
+        position = np.ascontiguousarray(landmarks.position, dtype=float)
+        segment = np.ascontiguousarray(landmarks.segment, dtype=float)
+        keep, covariance, information, normal, distance, counts = _screen_rows(
+            np.ascontiguousarray(landmarks.landmark_class), np.ascontiguousarray(landmarks.valid, dtype=bool),
+            position, np.ascontiguousarray(landmarks.covariance, dtype=float), segment,
+            np.ascontiguousarray(landmarks.normal, dtype=float), sensor[0], sensor[1], self.sighting_sigma ** 2)
+        return Sightings(
+            landmark_class=landmarks.landmark_class[keep].astype(np.uint8),
+            position=position[keep],
             covariance=covariance,
-            information=_inverse(covariance),
-            normal=np.where(plane[:, None], given, line_of_sight),
+            information=information,
+            normal=normal,
             distance=distance,
             segment=segment[keep],
             confidence=np.asarray(landmarks.confidence, float)[keep],
             group=np.asarray(landmarks.group)[keep].astype(np.uint16),
             sensor=sensor,
+            offered=len(landmarks),
+            invalid=int(counts[0]),
+            not_finite=int(counts[1]),
+            degenerate=int(counts[2]),
         )
 
     # ------------------------------------------------------------------ association
@@ -812,14 +948,10 @@ class LandmarkMap:
         ``1 / r``, so ``+ 2 ln r`` puts their scores on the point scale.  The score is
         inf where the gate is not passed.
         """
-        determinant = _determinant(covariance)
-        d2 = _mahalanobis2(innovation, covariance, determinant)
-        score = d2 + np.log(determinant) - 2.0 * np.log(observations)
-        if distance is not None:
-            score += 2.0 * np.log(distance)
-        return d2, np.where(d2 <= self.gate, score, np.inf)
+        return _gated_scores(np.ascontiguousarray(innovation), np.ascontiguousarray(covariance), observations,
+                             np.zeros(0) if distance is None else distance, distance is not None, self.gate)
 
-    def _point_distances(self, s: _Sightings, rows, slots):
+    def _point_distances(self, s: Sightings, rows, slots):
         """Gate distances and scores (K,) of sightings ``rows`` against points ``slots``.
 
         ``d^2`` is the smaller over the models the classes allow (inf if none), the
@@ -843,7 +975,7 @@ class LandmarkMap:
             score[as_line] = np.minimum(score[as_line], line_score)
         return d2, score
 
-    def _associate(self, s: _Sightings) -> np.ndarray:
+    def _associate(self, s: Sightings) -> np.ndarray:
         """Best entry for each sighting, all sightings against the whole map at once.
 
         Returns, per sighting, a point slot, ``max_points +`` a wall slot, -1 (start a
@@ -887,7 +1019,9 @@ class LandmarkMap:
             row, candidate, score = row[inside], candidate[inside], score[inside]
             order = np.lexsort((candidate, score, row))
             row, candidate = row[order], candidate[order]
-            first = np.flatnonzero(np.diff(row, prepend=-1))
+            first = np.ones(row.size, dtype=bool)
+            first[1:] = row[1:] != row[:-1]
+            first = np.flatnonzero(first)
             target[row[first]] = candidate[first]
         return target
 
@@ -897,7 +1031,7 @@ class LandmarkMap:
 
     # ------------------------------------------------------------------ new entries
 
-    def _start_entries(self, s: _Sightings, target):
+    def _start_entries(self, s: Sightings, target):
         """Cluster the unmatched sightings of the ping and start one entry per cluster.
 
         Returns the completed targets (-1 where dropped for want of room), a mask of
@@ -944,7 +1078,7 @@ class LandmarkMap:
             free = np.sort(np.concatenate([free, victims]))
         return free[:count]
 
-    def _start_points(self, s: _Sightings, rows) -> np.ndarray:
+    def _start_points(self, s: Sightings, rows) -> np.ndarray:
         """New points from sightings ``rows``; their slots, -1 where the table is full."""
         slots = self._allocate(self._points, rows.size)
         out = np.full(rows.size, -1)
@@ -980,7 +1114,7 @@ class LandmarkMap:
         p.confidence_count[slots] = classified
         return out
 
-    def _start_walls(self, s: _Sightings, rows) -> np.ndarray:
+    def _start_walls(self, s: Sightings, rows) -> np.ndarray:
         """New walls from plane sightings ``rows``; their slots, -1 where the table is full."""
         slots = self._allocate(self._walls, rows.size)
         out = np.full(rows.size, -1)
@@ -1005,7 +1139,7 @@ class LandmarkMap:
 
     # ------------------------------------------------------------------ fusion
 
-    def _fuse_points(self, s: _Sightings, rows, target):
+    def _fuse_points(self, s: Sightings, rows, target):
         """Merge sightings ``rows`` into their points; the slots of all points stored to this ping."""
         stored = target[(target >= 0) & (target < self.max_points)]
         if rows.size == 0:
@@ -1038,13 +1172,13 @@ class LandmarkMap:
             p.confidence_count[groups.rows] += groups.total(classified.astype(float))
         return np.unique(stored)
 
-    def _fuse_plane_hypotheses(self, s: _Sightings, rows, slots) -> None:
+    def _fuse_plane_hypotheses(self, s: Sightings, rows, slots) -> None:
         """Fuse sightings ``rows`` into the plane hypotheses, extents and baselines of ``slots``."""
         p = self._points
         innovation, covariance = s.line_innovation(rows, p.anchor[slots], p.line[slots])
         _information_update(p.line, p.line_information, p.line_chi2, _Groups(slots, self.max_points), innovation,
                             _inverse(covariance))
-        p.line[:, 0] = _wrap(p.line[:, 0])
+        p.line[slots, 0] = _wrap(p.line[slots, 0])
         across = p.across[slots]
         along = _dot(s.segment[rows] - p.anchor[slots][:, None, :], across[:, None, :])
         np.minimum.at(p.extent[:, 0], slots, along.min(axis=1))
@@ -1056,7 +1190,7 @@ class LandmarkMap:
         for column, values in enumerate((weight, weight * sensor_along, weight * sensor_along ** 2)):
             np.add.at(p.motion[:, column], slots, values)
 
-    def _fuse_walls(self, s: _Sightings, rows, target):
+    def _fuse_walls(self, s: Sightings, rows, target):
         """Merge sightings ``rows`` into their walls; the walls whose segment grew."""
         if rows.size == 0:
             return np.empty(0, np.int64)
@@ -1066,7 +1200,7 @@ class LandmarkMap:
         innovation, covariance = s.line_innovation(rows, w.anchor[slots], w.line[slots])
         along = _dot(s.segment[rows] - w.anchor[slots][:, None, :], w.tangent[slots][:, None, :])
         _information_update(w.line, w.information, None, groups, innovation, _inverse(covariance))
-        w.line[:, 0] = _wrap(w.line[:, 0])
+        w.line[groups.rows, 0] = _wrap(w.line[groups.rows, 0])
         before = w.extent[groups.rows]
         np.minimum.at(w.extent[:, 0], slots, along.min(axis=1))
         np.maximum.at(w.extent[:, 1], slots, along.max(axis=1))
@@ -1275,3 +1409,22 @@ class LandmarkMap:
         along_walls = ends[wall, 0] + fraction * (ends[wall, 1] - ends[wall, 0])
         points = np.flatnonzero(p.active & (p.observations >= min_observations))
         return np.concatenate([along_walls.reshape(-1, 2), p.mean[points]])
+
+
+def load_kernels() -> None:
+    """Load the map's compiled kernels now instead of at the first update.
+
+    Loading takes about 0.5 s (numba's start and the cached machine code of each
+    kernel); a process that maps on a deadline pays it at start.  A scratch map
+    sees a wall, a corner and an unknown reflector from three poses, which takes
+    every kernel's path with the production argument types.
+    """
+    scratch = LandmarkMap()
+    spread = np.array([[-0.02, 0.0], [0.02, 0.0]])
+    for x in (0.0, 0.2, 0.4):
+        position = np.array([[x, 1.0], [1.5, -1.2], [-1.0, 0.5]])
+        scratch.update(make_landmarks(np.array([PLANE, CORNER, UNKNOWN]), position,
+                                      normal=np.array([[0.0, 1.0], [0.0, 0.0], [0.0, 0.0]]),
+                                      covariance=np.tile(1e-4 * np.eye(2), (3, 1, 1)),
+                                      segment=position[:, None, :] + spread, confidence=np.array([0.9, 0.9, 0.0])),
+                       (x, 0.0, 0.0))

@@ -29,7 +29,7 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
 from sonar_ring.landmarks import Landmarks
-from sonar_ring.mapping import LandmarkMap, transform_landmarks
+from sonar_ring.mapping import LandmarkMap, Sightings, load_kernels, transform_landmarks
 from sonar_ring.msg import LandmarkArray
 from sonar_ring.ros.convert import MessageError, landmarks_from_msg, landmarks_to_msg
 from sonar_ring.ros.diagnostics import NodeHealth
@@ -119,9 +119,22 @@ def integrate(landmark_map: LandmarkMap, landmarks, robot_pose: np.ndarray, sens
     Returns the sightings refused or left out in this update, by
     :data:`SIGHTING_PROBLEMS` and :data:`SIGHTING_NOTES` reason.
     """
+    return add_sightings(landmark_map, sightings_at(landmark_map, landmarks, robot_pose, sensor_offset))
+
+
+def sightings_at(landmark_map: LandmarkMap, landmarks, robot_pose: np.ndarray, sensor_offset) -> Sightings | None:
+    """The first half of :func:`integrate`: the ping's landmarks in ``odom``, screened with the map's settings.
+
+    Needs nothing of the map's entries, so ``sonar-ring process`` runs it in its workers.
+    """
     sensor_pose = compose(robot_pose, np.asarray(sensor_offset, dtype=float))
+    return landmark_map.screen(transform_landmarks(landmarks, sensor_pose), sensor_pose)
+
+
+def add_sightings(landmark_map: LandmarkMap, sightings: Sightings | None) -> dict:
+    """The second half of :func:`integrate`, in ping order; what was left out, by reason."""
     before = landmark_map.counts
-    landmark_map.update(transform_landmarks(landmarks, sensor_pose), sensor_pose)
+    landmark_map.add(sightings)
     after = landmark_map.counts
     return {reason: getattr(after, reason) - getattr(before, reason) for reason in SIGHTING_PROBLEMS + SIGHTING_NOTES}
 
@@ -167,6 +180,7 @@ class Mapper(SonarNode):
         super().__init__("mapper", **kwargs)
         self.params = declare(self, PARAMS)
         self.map = new_map(self.params)
+        load_kernels()  # now, or the first ping would wait ~0.5 s for them
         self.health = NodeHealth(self, hardware_id="map")
         self._stamps: list[int] = []
         self._poses: deque = deque(maxlen=POSE_HISTORY)
