@@ -81,8 +81,13 @@ class Landmarks:
         return np.hypot(self.position[:, 0], self.position[:, 1])
 
     def select(self, index) -> Landmarks:
-        """The landmarks picked by a boolean mask or an index array."""
-        return Landmarks(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+        """The landmarks picked by a boolean mask (shape (L,)) or an index array."""
+        index = np.asarray(index)
+        if index.dtype == bool:
+            if index.shape != (len(self),):
+                raise IndexError(f"Landmarks.select: a mask of shape {index.shape} for {len(self)} landmarks")
+            index = np.flatnonzero(index)  # once, not once per field
+        return Landmarks(*(getattr(self, name)[index] for name in _FIELDS))
 
     def with_class(self, landmark_class, confidence) -> Landmarks:
         """A copy with new classes and confidences (shapes (L,))."""
@@ -100,7 +105,11 @@ class Landmarks:
         parts = list(parts)
         if not parts:
             return Landmarks.empty()
-        return Landmarks(**{f.name: np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Landmarks)})
+        return Landmarks(*(np.concatenate([getattr(p, name) for p in parts]) for name in _FIELDS))
+
+
+_FIELDS = tuple(f.name for f in fields(Landmarks))
+"""The field names of :class:`Landmarks`, in order."""
 
 
 def make_landmarks(landmark_class, position, *, normal=None, covariance=None, confidence=None, segment=None,

@@ -121,27 +121,35 @@ def serialize_markers(markers: list[MarkerParts], header) -> bytes:
         cdr.header(header.stamp.sec, header.stamp.nanosec, header.frame_id)
         cdr.string(marker.ns)
         cdr.pack("iii", 0, marker.type, Marker.ADD, align=4)
-        cdr.pack("7d", 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, align=8)  # pose: origin, identity orientation
-        cdr.pack("3d", *marker.scale, align=8)
-        cdr.pack("4f", *marker.color, align=4)
+        # pose (origin, identity orientation) and scale; color, lifetime and frame_locked
+        cdr.pack("10d", 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, *marker.scale, align=8)
         whole = int(marker.lifetime)
-        cdr.pack("iI", whole, int(round((marker.lifetime - whole) * 1e9)), align=4)
-        cdr.pack("?", False, align=1)  # frame_locked
+        cdr.pack("4fiI?", *marker.color, whole, int(round((marker.lifetime - whole) * 1e9)), False, align=4)
         xyz = np.zeros((len(marker.points), 3))
         xyz[:, :2] = marker.points
         cdr.array(xyz, 8)
         cdr.array(np.asarray(marker.colors, dtype=np.float32).reshape(-1, 4), 4)
-        cdr.string("")  # texture_resource
-        cdr.header(0, 0, "")  # texture: sensor_msgs/CompressedImage
-        cdr.string("")
-        cdr.array(np.empty(0, dtype=np.uint8), 1)
-        cdr.array(np.empty((0, 2), dtype=np.float32), 4)  # uv_coordinates
-        cdr.string("")  # text
-        cdr.string("")  # mesh_resource
-        cdr.string("")  # mesh_file: filename, data
-        cdr.array(np.empty(0, dtype=np.uint8), 1)
-        cdr.pack("?", False, align=1)  # mesh_use_embedded_materials
+        cdr.buffer += _MARKER_TAIL
     return bytes(cdr.buffer)
+
+
+def _marker_tail() -> bytes:
+    """The fields after ``colors``, all empty: the same bytes for every marker (``colors`` ends 4-aligned)."""
+    cdr = _Cdr()
+    cdr.string("")  # texture_resource
+    cdr.header(0, 0, "")  # texture: sensor_msgs/CompressedImage
+    cdr.string("")
+    cdr.array(np.empty(0, dtype=np.uint8), 1)
+    cdr.array(np.empty((0, 2), dtype=np.float32), 4)  # uv_coordinates
+    cdr.string("")  # text
+    cdr.string("")  # mesh_resource
+    cdr.string("")  # mesh_file: filename, data
+    cdr.array(np.empty(0, dtype=np.uint8), 1)
+    cdr.pack("?", False, align=1)  # mesh_use_embedded_materials
+    return bytes(cdr.buffer[4:])
+
+
+_MARKER_TAIL = _marker_tail()
 
 
 def _coloured(landmark_class: int, confidence: np.ndarray, repeat: int) -> tuple[tuple, np.ndarray]:
@@ -173,15 +181,16 @@ def landmark_markers(landmarks: Landmarks, namespace: str, lifetime: float, poin
     """One marker per class in ``namespace/<class>``; ``lifetime`` 0 keeps them forever."""
     markers = []
     for code, name in enumerate(CLASS_NAMES):
-        chosen = landmarks.select(landmarks.valid & (landmarks.landmark_class == code))
+        rows = np.flatnonzero(landmarks.valid & (landmarks.landmark_class == code))
         if code == PLANE:
-            colour, colours = _coloured(code, chosen.confidence, 2)
+            colour, colours = _coloured(code, landmarks.confidence[rows], 2)
             markers.append(MarkerParts(f"{namespace}/{name}", Marker.LINE_LIST, (line_width, 0.0, 0.0), colour,
-                                       plane_segments(chosen, min_plane_length).reshape(-1, 2), colours, lifetime))
+                                       plane_segments(landmarks.select(rows), min_plane_length).reshape(-1, 2),
+                                       colours, lifetime))
         else:
-            colour, colours = _coloured(code, chosen.confidence, 1)
+            colour, colours = _coloured(code, landmarks.confidence[rows], 1)
             markers.append(MarkerParts(f"{namespace}/{name}", Marker.POINTS, (point_size, point_size, 0.0), colour,
-                                       chosen.position, colours, lifetime))
+                                       landmarks.position[rows], colours, lifetime))
     return markers
 
 
