@@ -28,5 +28,5 @@ setup(
         "plot": ["matplotlib>=3.7"],
         "bag": ["rosbags>=0.10"],
     },
-    entry_points={"console_scripts": ["sonar-ring = sonar_ring.cli:main"]},
+    entry_points={"console_scripts": ["sonar-ring = sonar_ring.cli:run"]},
 )

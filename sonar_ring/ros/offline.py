@@ -25,6 +25,7 @@ main process.
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import multiprocessing
 import os
@@ -39,9 +40,10 @@ from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import Header
 
-from sonar_ring import pipeline
+from sonar_ring import classify, mapping, pipeline
 from sonar_ring.geometry import Layout, LayoutError, config_path, load_layout
 from sonar_ring.landmarks import CLASS_NAMES, Landmarks
+from sonar_ring.mapping import LandmarkMap, Sightings
 from sonar_ring.msg import Echoes
 from sonar_ring.progress import Progress
 from sonar_ring.ros import classifier, localiser, mapper
@@ -161,36 +163,47 @@ class PingOutput:
         Serialized ``landmarks/raw``, ``landmarks`` and ``markers`` messages;
         empty when the ping was refused.
     landmarks : Landmarks or None
-        The labelled landmarks (sensor frame), for the mapper.
+        The labelled landmarks (sensor frame).
+    sightings : Sightings or None
+        Those landmarks screened for the mapper at the ping's pose
+        (:func:`~sonar_ring.ros.mapper.sightings_at`); None without a pose.
     """
 
     problems: dict
     notes: dict
     messages: tuple = ()
     landmarks: Landmarks | None = None
+    sightings: Sightings | None = None
 
 
 @dataclass(frozen=True)
 class PingStage:
-    """The localiser's and the classifier's work on one ping: it needs nothing of other pings.
+    """The localiser's and the classifier's work on one ping, and the mapper's screening: none needs other pings.
 
     So it can run in worker processes (:func:`ordered_map`); a ping's output
-    does not depend on where it ran.
+    does not depend on where it ran.  ``screening`` is a map with the mapper's
+    settings; only its settings are used.
     """
 
     layout: Layout
     localiser_settings: pipeline.Settings
     classifier_settings: pipeline.Settings
     marker_lifetime: float
+    screening: LandmarkMap
+    sensor_offset: tuple
 
     @classmethod
     def from_values(cls, layout: Layout, values: dict) -> PingStage:
-        """The stage of the localiser and classifier parameter values ``values`` (by node name)."""
+        """The stage of the localiser, classifier and mapper parameter values ``values`` (by node name)."""
         return cls(layout, localiser.settings_from(values["localiser"]), localiser.settings_from(values["classifier"]),
-                   values["classifier"]["marker_lifetime"])
+                   values["classifier"]["marker_lifetime"], mapper.new_map(values["mapper"]),
+                   tuple(values["mapper"]["sensor_offset"]))
 
-    def run(self, messages: list[Echoes]) -> list[PingOutput]:
+    def run(self, messages: list[Echoes], poses: list) -> list[PingOutput]:
         """Check, localise, classify and draw Echoes messages, as the two nodes do, one output per message.
+
+        ``poses`` holds each message's robot pose (x, y, yaw) in ``odom``, or None
+        where the mapper has none; with one the output carries its sightings.
 
         The checked pings go through :func:`sonar_ring.pipeline.label_pings`
         together, which gives each ping what the nodes give it alone.
@@ -211,7 +224,9 @@ class PingStage:
             data = (serialize_message(landmarks_to_msg(hypotheses, msg.header)),
                     serialize_message(landmarks_to_msg(labelled, msg.header)),
                     serialize_markers(landmark_markers(labelled, "landmarks", self.marker_lifetime), msg.header))
-            outputs.append(PingOutput(dict(tally.problems), dict(tally.notes), data, labelled))
+            sightings = None if poses[index] is None else mapper.sightings_at(self.screening, labelled, poses[index],
+                                                                              self.sensor_offset)
+            outputs.append(PingOutput(dict(tally.problems), dict(tally.notes), data, labelled, sightings))
         return outputs
 
 
@@ -222,36 +237,57 @@ _worker_stage: PingStage | None = None
 def _start_worker(stage: PingStage) -> None:
     global _worker_stage
     _worker_stage = stage
+    if stage.layout.kind == "ring":
+        classify.load_kernels()
 
 
-def _work(batch: list[bytes]) -> list[PingOutput]:
-    return _worker_stage.run([deserialize_message(data, Echoes) for data in batch])
+def _work(batch: list[bytes], poses: list) -> list[PingOutput]:
+    return _worker_stage.run([deserialize_message(data, Echoes) for data in batch], poses)
 
 
-def ordered_map(stage: PingStage, items, jobs: int, batch: int = 64):
-    """``(item, output)`` for ``(message, data, item)`` in ``items``, in order: the stage's output for ``message``.
+@contextlib.contextmanager
+def stage_workers(stage: PingStage, jobs: int):
+    """``jobs - 1`` forked processes that run ``stage`` (a process pool), or None when ``jobs`` is 1.
 
-    The stage runs on ``batch`` messages at a time (:meth:`PingStage.run`).
-    ``jobs`` counts this process, which reads, maps and writes and is the
-    busiest: ``jobs`` 1 runs the stage here, more hand the batches to ``jobs - 1``
-    forked workers as serialized messages (``data``).  At most ``2 * jobs``
-    batches are in flight, so a long bag is streamed, not loaded.
+    The workers start at once and load the ring classifier's compiled kernels
+    (about 0.3 s) while this process opens the bag and reads the odometry, so
+    the first batch does not wait for them.
     """
-    chunks = iter(lambda: list(itertools.islice(items, batch)), [])
     if jobs <= 1:
-        for chunk in chunks:
-            yield from zip([item for _, _, item in chunk], stage.run([message for message, _, _ in chunk]),
-                           strict=True)
+        yield None
         return
     context = multiprocessing.get_context("fork")
     with ProcessPoolExecutor(jobs - 1, mp_context=context, initializer=_start_worker, initargs=(stage,)) as pool:
-        pending = deque()
-        for chunk in itertools.chain(chunks, [None]):
-            if chunk is not None:
-                pending.append(([item for _, _, item in chunk], pool.submit(_work, [data for _, data, _ in chunk])))
-            while pending and (chunk is None or len(pending) >= 2 * jobs):
-                chunk_items, future = pending.popleft()
-                yield from zip(chunk_items, future.result(), strict=True)
+        pool.submit(int)  # the pool forks its workers at the first task
+        yield pool
+
+
+def ordered_map(stage: PingStage, items, workers: ProcessPoolExecutor | None, jobs: int, batch: int = 64):
+    """``(item, output)`` for ``(message, data, pose, item)`` in ``items``, in order: the stage's output.
+
+    The output is that of ``message`` with the robot at ``pose`` (:meth:`PingStage.run`).
+
+    The stage runs on ``batch`` messages at a time (:meth:`PingStage.run`).
+    Without ``workers`` it runs here; with them (:func:`stage_workers`) the
+    batches go to the workers (``jobs - 1`` of them) as serialized messages
+    (``data``), while this process, which reads, maps and writes and is the
+    busiest, goes on.  At most ``2 * jobs`` batches are in flight, so a long bag
+    is streamed, not loaded.
+    """
+    chunks = iter(lambda: list(itertools.islice(items, batch)), [])
+    if workers is None:
+        for chunk in chunks:
+            outputs = stage.run([message for message, *_ in chunk], [pose for *_, pose, _ in chunk])
+            yield from zip([item for *_, item in chunk], outputs, strict=True)
+        return
+    pending = deque()
+    for chunk in itertools.chain(chunks, [None]):
+        if chunk is not None:
+            pending.append(([item for *_, item in chunk],
+                            workers.submit(_work, [data for _, data, *_ in chunk], [pose for *_, pose, _ in chunk])))
+        while pending and (chunk is None or len(pending) >= 2 * jobs):
+            chunk_items, future = pending.popleft()
+            yield from zip(chunk_items, future.result(), strict=True)
 
 
 class OfflineGraph:
@@ -312,10 +348,11 @@ class OfflineGraph:
         for name, data in zip(("landmarks/raw", "landmarks", "markers"), output.messages, strict=True):
             self._writer.write(self._connections[name], time_ns, data)
         self.per_class += np.bincount(output.landmarks.landmark_class, minlength=len(CLASS_NAMES))
-        pose = self._robot_pose(stamp_ns(header))
-        if pose is not None:
-            mapper.count_sightings(self._tally, mapper.integrate(self.map, output.landmarks, pose,
-                                                                 self._mapper["sensor_offset"]))
+        pose, problem = self._robot_pose(stamp_ns(header))
+        if pose is None:
+            self._tally.problem(*problem)
+        else:
+            mapper.count_sightings(self._tally, mapper.add_sightings(self.map, output.sightings))
             self._map_changed = True
 
     def finish(self) -> None:
@@ -323,17 +360,19 @@ class OfflineGraph:
         if self._map_changed and self._next_map is not None:
             self._write_map(self._next_map)
 
-    def _robot_pose(self, stamp: int) -> np.ndarray | None:
+    def robot_pose(self, header) -> np.ndarray | None:
+        """The robot pose (x, y, yaw) in ``odom`` at a message's stamp, or None where the mapper has none."""
+        return self._robot_pose(stamp_ns(header))[0]
+
+    def _robot_pose(self, stamp: int):
+        """``(pose, None)``, or ``(None, (reason, detail))`` when the odometry does not cover ``stamp``."""
         if self._odometry is None:
-            return np.asarray(self._mapper["fixed_pose"], dtype=float)
+            return np.asarray(self._mapper["fixed_pose"], dtype=float), None
         stamps, poses = self._odometry
         if not stamps or stamp < stamps[0]:
-            self._tally.problem("pose_too_old", "ping before the first odometry")
-            return None
+            return None, ("pose_too_old", "ping before the first odometry")
         pose = mapper.pose_at(stamps, poses, stamp)
-        if pose is None:
-            self._tally.problem("no_odometry", "no odometry at or after the ping's stamp")
-        return pose
+        return (pose, None) if pose is not None else (None, ("no_odometry", "no odometry at or after the ping's stamp"))
 
     def _maps_until(self, time_ns: int) -> None:
         """Write the map at the ticks up to ``time_ns`` (the last one that saw a change)."""
@@ -477,7 +516,10 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
             params_file = config_path("params", sensor.name)
         report.params_file = str(params_file or "defaults")
         values = node_values(params_file)
-        with BagWriter(out_path, storage) as writer:
+        stage = PingStage.from_values(sensor, values)
+        jobs = jobs or len(os.sched_getaffinity(0))
+        with stage_workers(stage, jobs) as workers, BagWriter(out_path, storage) as writer:
+            mapping.load_kernels()  # while the workers load theirs
             graphs = {}
             for name, namespace in zip(chosen, namespaces, strict=True):
                 odometry = None
@@ -494,13 +536,11 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
                     graph = graphs[connection.topic]
                     message = graph.admit(time_ns, data)
                     if message is not None:
-                        yield message, data, (graph, time_ns, message.header)
+                        yield message, data, graph.robot_pose(message.header), (graph, time_ns, message.header)
                     if bar:
                         bar.update(len(times))
 
-            stage = PingStage.from_values(sensor, values)
-            jobs = jobs or len(os.sched_getaffinity(0))
-            for (graph, time_ns, header), output in ordered_map(stage, admitted(), jobs):
+            for (graph, time_ns, header), output in ordered_map(stage, admitted(), workers, jobs):
                 graph.take(time_ns, header, output)
             if bar:
                 bar.close()
