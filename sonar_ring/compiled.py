@@ -3,11 +3,14 @@
 A ping holds tens to hundreds of echoes, each with a handful of receivers, and the
 map holds 2 x 2 matrices per entry: there numpy spends its time starting each
 operation, not computing (about 1 us per call on arrays of 30 elements).  The few
-loops that dominate a ping are plain Python over arrays, compiled by
-:func:`kernel` at their first call:
+loops that dominate a ping are plain Python over arrays, marked :func:`kernel`
+and compiled from the first call of any kernel on:
 
 * numba is imported then, not when the core is imported (about 0.2 s and 100 MiB a
   process that never calls a kernel need not pay);
+* every kernel becomes its numba dispatcher, under its own name in its module,
+  so kernels call each other (across modules too) as compiled code and Python
+  callers reach the machine code without a wrapper;
 * the machine code is cached beside the module (or in the user's cache where that
   is read-only), so later processes load it in tens of milliseconds;
 * ``error_model="numpy"``: division follows IEEE (inf and NaN, as numpy) instead of
@@ -20,19 +23,38 @@ readable and is what the tests exercise, compiled.
 from __future__ import annotations
 
 import functools
+import sys
+
+_KERNELS: dict[str, list] = {}
+"""The kernel functions of each module, by module name, in definition order."""
+_DISPATCHERS: dict[tuple, object] = {}
+"""The numba dispatcher of each kernel compiled so far, by (module name, function name)."""
 
 
 def kernel(function):
-    """``function`` compiled with numba (nopython, cached, IEEE division) at its first call."""
-    compiled = None
+    """Mark ``function`` (module level) for numba: compiled (nopython, cached, IEEE division) at first use."""
+    _KERNELS.setdefault(function.__module__, []).append(function)
 
     @functools.wraps(function)
-    def call(*args):
-        nonlocal compiled
-        if compiled is None:
-            import numba
+    def first_call(*args):
+        return _compile()[function.__module__, function.__name__](*args)
 
-            compiled = numba.njit(cache=True, error_model="numpy", nogil=True)(function)
-        return compiled(*args)
+    return first_call
 
-    return call
+
+def _compile() -> dict:
+    """Every kernel of every imported module as a numba dispatcher, put in its module under its name.
+
+    All at once, so a kernel may call kernels of other modules; numba compiles
+    (or loads) each one at its own first call.  Kernels of modules imported later
+    join at the next first call.
+    """
+    import numba
+
+    jit = numba.njit(cache=True, error_model="numpy", nogil=True)
+    for module_name, functions in _KERNELS.items():
+        for function in functions:
+            if (module_name, function.__name__) not in _DISPATCHERS:
+                dispatcher = _DISPATCHERS[module_name, function.__name__] = jit(function)
+                setattr(sys.modules[module_name], function.__name__, dispatcher)
+    return _DISPATCHERS

@@ -60,9 +60,12 @@ ulps of the inputs; the edge quadratic is solved in the cancellation-free
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from sonar_ring.compiled import kernel
 
 OK = 0
 NOT_FINITE = 1
@@ -286,68 +289,196 @@ def _receivers(rx1: np.ndarray, rx2: np.ndarray) -> _Receivers:
     return _Receivers(0.5 * (rx1 + rx2), u, n, separation)
 
 
-@dataclass(frozen=True)
-class _Inputs:
-    """Validated inputs of one solve, what every model derives from them, and the input checks' reasons.
+def _flat_inputs(caller, tx, rx1, rx2, d1, d2):
+    """Validate types and shapes; the inputs broadcast to their common shape, flattened, and that shape.
 
-    ``reason`` holds the codes of the checks every model shares (NOT_FINITE,
-    DEGENERATE receivers, NEGATIVE); a model copies it before adding its own.
-    ``too_short`` marks paths shorter than the direct one, ``apart`` paths whose
-    difference exceeds the baseline (both checked by the models in their order).
+    Returns ``shape`` and ``tx``, ``rx1``, ``rx2`` (N, 2), ``d1``, ``d2`` (N,), C-contiguous float64.
     """
-
-    tx: np.ndarray
-    rx1: np.ndarray
-    rx2: np.ndarray
-    d1: np.ndarray
-    d2: np.ndarray
-    frame: _Receivers
-    difference: np.ndarray
-    total: np.ndarray
-    reason: np.ndarray
-    apart: np.ndarray
-    too_short: np.ndarray
-
-
-def _prepare(caller, tx, rx1, rx2, d1, d2) -> _Inputs:
-    """Validate types and shapes once for any number of models of the same echoes."""
     tx = _points("tx", tx, caller)
     rx1 = _points("rx1", rx1, caller)
     rx2 = _points("rx2", rx2, caller)
     d1 = _real_array("d1", d1, caller)
     d2 = _real_array("d2", d2, caller)
     shape = _shape(caller, tx=tx, rx1=rx1, rx2=rx2, d1=d1, d2=d2)
-    frame = _receivers(rx1, rx2)
-    reason = np.zeros(shape, dtype=np.int8)
-    geometry_finite = _bounded(tx).all(-1) & _bounded(rx1).all(-1) & _bounded(rx2).all(-1)
-    _flag(reason, ~(geometry_finite & _bounded(d1) & _bounded(d2)), NOT_FINITE)
-    _flag(reason, ~(frame.separation > 0), DEGENERATE)
-    _flag(reason, ~((d1 > 0) & (d2 > 0)), NEGATIVE)
-    difference = d2 - d1  # exact for nearby values (Sterbenz), so no cancellation downstream
-    separation = frame.separation
-    return _Inputs(
-        tx, rx1, rx2, d1, d2, frame, difference, d1 + d2, reason,
-        apart=(separation + difference < 0) | (separation - difference < 0),
+    count = math.prod(shape)
+
+    def flat(array, core):
+        return np.ascontiguousarray(np.broadcast_to(array, shape + core).reshape((count,) + core))
+
+    return shape, flat(tx, (2,)), flat(rx1, (2,)), flat(rx2, (2,)), flat(d1, ()), flat(d2, ())
+
+
+_SOLVERS = ("virtual_image", "plane", "corner", "edge", "on_axis")
+"""The models :func:`_solve` computes, in the order of its ``wanted`` flags and outputs."""
+
+
+@kernel
+def _solve(tx, rx1, rx2, d1, d2, wanted):
+    """The models of :data:`_SOLVERS` flagged in ``wanted`` (5,) for N entries: one loop, each entry alone.
+
+    Inputs as :func:`_flat_inputs` gives them.  Returns ``reason`` (5, N) int8,
+    ``position`` (5, N, 2), and the plane's ``normal`` (N, 2) and
+    ``reflection_points`` (N, 2, 2); NaN wherever the entry is not valid (and for
+    models not wanted).  An entry carries the code of the first check it fails,
+    in the order of the module docstring.
+    """
+    count = d1.size
+    reason = np.zeros((5, count), dtype=np.int8)
+    position = np.full((5, count, 2), np.nan)
+    normal = np.full((count, 2), np.nan)
+    reflection = np.full((count, 2, 2), np.nan)
+    for k in range(count):
+        tx_x, tx_y, r1_x, r1_y, r2_x, r2_y = tx[k, 0], tx[k, 1], rx1[k, 0], rx1[k, 1], rx2[k, 0], rx2[k, 1]
+        a, b = d1[k], d2[k]
+        # The receivers' frame: mid-point c, baseline direction u (R1 to R2), front n (u turned
+        # counter-clockwise, which is R1 - R2 turned clockwise).
+        base_x, base_y = r2_x - r1_x, r2_y - r1_y
+        separation = np.sqrt(base_x * base_x + base_y * base_y)
+        u_x, u_y = base_x / separation, base_y / separation
+        n_x, n_y = -u_y, u_x
+        c_x, c_y = 0.5 * (r1_x + r2_x), 0.5 * (r1_y + r2_y)
+        common = OK
+        if not (abs(tx_x) <= MAX_LENGTH and abs(tx_y) <= MAX_LENGTH and abs(r1_x) <= MAX_LENGTH
+                and abs(r1_y) <= MAX_LENGTH and abs(r2_x) <= MAX_LENGTH and abs(r2_y) <= MAX_LENGTH
+                and abs(a) <= MAX_LENGTH and abs(b) <= MAX_LENGTH):
+            common = NOT_FINITE
+        elif not separation > 0:
+            common = DEGENERATE
+        elif not (a > 0 and b > 0):
+            common = NEGATIVE
+        difference = b - a  # exact for nearby values (Sterbenz), so no cancellation downstream
+        total = a + b
+        apart = separation + difference < 0 or separation - difference < 0
         # A reflected path is never shorter than the direct one (triangle inequality).
-        too_short=(d1 < _norm(rx1 - tx)) | (d2 < _norm(rx2 - tx)),
-    )
+        to_r1_x, to_r1_y, to_r2_x, to_r2_y = r1_x - tx_x, r1_y - tx_y, r2_x - tx_x, r2_y - tx_y
+        too_short = (a < np.sqrt(to_r1_x * to_r1_x + to_r1_y * to_r1_y)
+                     or b < np.sqrt(to_r2_x * to_r2_x + to_r2_y * to_r2_y))
+
+        if wanted[0] or wanted[1] or wanted[2]:
+            image_reason = common
+            if image_reason == OK and (apart or total < separation):
+                image_reason = NO_INTERSECTION
+            if image_reason == OK and too_short:
+                image_reason = TOO_SHORT
+            along = -difference * total / (2.0 * separation)
+            # Heron: the height over the baseline is 2 * area / D, every factor formed from inputs directly.
+            heron = (separation + difference) * (separation - difference) * (total - separation) * (
+                total + separation)
+            height = np.sqrt(heron) / (2.0 * separation)
+            image_x = c_x + along * u_x + height * n_x
+            image_y = c_y + along * u_y + height * n_y
+            reason[0, k] = image_reason
+            if image_reason == OK:
+                position[0, k, 0], position[0, k, 1] = image_x, image_y
+            # Plane: the perpendicular bisector of T T'.
+            axis_x, axis_y = image_x - tx_x, image_y - tx_y
+            length = np.sqrt(axis_x * axis_x + axis_y * axis_y)
+            plane_reason = image_reason
+            if plane_reason == OK and not length > 0:
+                plane_reason = DEGENERATE
+            reason[1, k] = plane_reason
+            if plane_reason == OK:
+                normal_x, normal_y = axis_x / length, axis_y / length
+                normal[k, 0], normal[k, 1] = normal_x, normal_y
+                position[1, k, 0], position[1, k, 1] = tx_x + 0.5 * axis_x, tx_y + 0.5 * axis_y
+                for receiver in range(2):
+                    r_x, r_y = (r1_x, r1_y) if receiver == 0 else (r2_x, r2_y)
+                    # Distance of the receiver from the plane over that of T' from it: where R_n T' crosses.
+                    depth = 0.5 * length - ((r_x - tx_x) * normal_x + (r_y - tx_y) * normal_y)
+                    fraction = depth / (depth + 0.5 * length)
+                    reflection[k, receiver, 0] = r_x + fraction * (image_x - r_x)
+                    reflection[k, receiver, 1] = r_y + fraction * (image_y - r_y)
+            # Corner: G = (T + T') / 2, in front of the receivers.
+            corner_x, corner_y = 0.5 * (tx_x + image_x), 0.5 * (tx_y + image_y)
+            corner_reason = image_reason
+            if corner_reason == OK and not (corner_x - c_x) * n_x + (corner_y - c_y) * n_y > 0:
+                corner_reason = BEHIND
+            reason[2, k] = corner_reason
+            if corner_reason == OK:
+                position[2, k, 0], position[2, k, 1] = corner_x, corner_y
+
+        if wanted[3]:
+            edge_reason = common
+            if edge_reason == OK and apart:
+                edge_reason = NO_INTERSECTION
+            if edge_reason == OK and too_short:
+                edge_reason = TOO_SHORT
+            offset_x, offset_y = tx_x - c_x, tx_y - c_y
+            t_u = offset_x * u_x + offset_y * u_y
+            t_n = offset_x * n_x + offset_y * n_y
+            # Difference of the receivers' circles: p_u = (d1 - d2)(d1 + d2 - 2k) / (2D) = beta0 + beta1 k.
+            beta1 = difference / separation
+            beta0 = -difference * total / (2.0 * separation)
+            # Their mean minus the transmitter's circle: 2 t_n p_n = mu0 - mu1 k.
+            mu0 = 0.5 * (a * a + b * b) - 0.25 * separation * separation + t_u * t_u + t_n * t_n - 2.0 * beta0 * t_u
+            mu1 = total + 2.0 * beta1 * t_u
+            # Hence k = nu0 + nu1 p_n and p_u = pi0 + pi1 p_n.
+            nu0 = mu0 / mu1
+            nu1 = -2.0 * t_n / mu1
+            pi1 = beta1 * nu1
+            # R1's circle (p_u + D/2)^2 + p_n^2 = (d1 - k)^2 as qa p_n^2 + qb p_n + qc = 0, from its values at p_n = 0.
+            from_r1 = difference * (2.0 * nu0 - total) / (2.0 * separation) + 0.5 * separation
+            radius = a - nu0
+            qa = (1.0 - nu1) * (1.0 + nu1) + pi1 * pi1
+            qb = 2.0 * (from_r1 * pi1 + radius * nu1)
+            qc = (from_r1 - radius) * (from_r1 + radius)
+            discriminant = qb * qb - 4.0 * qa * qc
+            half = -0.5 * (qb + np.copysign(np.sqrt(discriminant), qb))
+            shortest = np.minimum(a, b)
+            # The two roots, candidate normal offsets p_n; the squared circles admit k < 0 or d_n - k < 0,
+            # only k in [0, min d_n] is an edge, and it must be ahead.
+            first, second = half / qa, qc / half
+            k_first, k_second = nu0 + nu1 * first, nu0 + nu1 * second
+            first_ahead = np.isfinite(first) and k_first >= 0 and k_first <= shortest and first > 0
+            second_ahead = np.isfinite(second) and k_second >= 0 and k_second <= shortest and second > 0
+            if edge_reason == OK and not mu1 > 0:
+                edge_reason = DEGENERATE
+            if edge_reason == OK and not discriminant >= 0:
+                edge_reason = NO_INTERSECTION
+            if edge_reason == OK and not (first_ahead or second_ahead):
+                edge_reason = BEHIND
+            if edge_reason == OK and first_ahead and second_ahead:
+                edge_reason = AMBIGUOUS
+            reason[3, k] = edge_reason
+            if edge_reason == OK:
+                normal_offset, path_k = (first, k_first) if first_ahead else (second, k_second)
+                along = difference * (2.0 * path_k - total) / (2.0 * separation)
+                position[3, k, 0] = c_x + along * u_x + normal_offset * n_x
+                position[3, k, 1] = c_y + along * u_y + normal_offset * n_y
+
+        if wanted[4]:
+            on_axis_reason = common
+            mean = 0.5 * total
+            offset_x, offset_y = c_x - tx_x, c_y - tx_y
+            direct = np.sqrt(offset_x * offset_x + offset_y * offset_y)
+            if on_axis_reason == OK and mean < direct:
+                on_axis_reason = TOO_SHORT
+            # |offset + r n|^2 = (mean - r)^2 is linear in r.
+            denominator = 2.0 * (mean + (offset_x * n_x + offset_y * n_y))
+            distance = (mean - direct) * (mean + direct) / denominator
+            if on_axis_reason == OK and not denominator > 0:
+                on_axis_reason = DEGENERATE
+            reason[4, k] = on_axis_reason
+            if on_axis_reason == OK:
+                position[4, k, 0], position[4, k, 1] = c_x + distance * n_x, c_y + distance * n_y
+    return reason, position, normal, reflection
 
 
-# --------------------------------------------------------------------------- virtual image
-
-def _image(inputs: _Inputs):
-    """The virtual image (..., 2) and its reason codes (a fresh array)."""
-    frame, difference, total = inputs.frame, inputs.difference, inputs.total
-    separation = frame.separation
-    reason = inputs.reason.copy()
-    _flag(reason, inputs.apart | (total < separation), NO_INTERSECTION)
-    _flag(reason, inputs.too_short, TOO_SHORT)
-    along = -difference * total / (2.0 * separation)
-    # Heron: the height over the baseline is 2 * area / D, every factor formed from inputs directly.
-    heron = (separation + difference) * (separation - difference) * (total - separation) * (total + separation)
-    height = np.sqrt(heron) / (2.0 * separation)
-    image = frame.centre + along[..., None] * frame.u + height[..., None] * frame.n
-    return reason, image
+def _solved(caller, models, tx, rx1, rx2, d1, d2) -> dict:
+    """The estimates of ``models`` (names of :data:`_SOLVERS`) for inputs of any broadcast shape, by name, in order."""
+    shape, *inputs = _flat_inputs(caller, tx, rx1, rx2, d1, d2)
+    reason, position, normal, reflection = _solve(*inputs, np.array([name in models for name in _SOLVERS]))
+    estimates = {}
+    for name in models:
+        index = _SOLVERS.index(name)
+        codes = reason[index].reshape(shape)
+        point = position[index].reshape(shape + (2,))
+        if name == "plane":
+            estimates[name] = PlaneEstimate(point, codes == OK, codes, name, normal.reshape(shape + (2,)),
+                                            reflection.reshape(shape + (2, 2)))
+        else:
+            estimates[name] = PointEstimate(point, codes == OK, codes, name)
+    return estimates
 
 
 @_quiet
@@ -372,9 +503,7 @@ def virtual_image(tx, rx1, rx2, d1, d2) -> PointEstimate:
         ``position`` (..., 2) of ``T'``; reasons NOT_FINITE, DEGENERATE,
         NEGATIVE, NO_INTERSECTION, TOO_SHORT.
     """
-    reason, image = _image(_prepare("virtual_image", tx, rx1, rx2, d1, d2))
-    valid, (image,) = _finish(reason, (image, 1))
-    return PointEstimate(image, valid, reason, "virtual_image")
+    return _solved("virtual_image", ("virtual_image",), tx, rx1, rx2, d1, d2)["virtual_image"]
 
 
 @_quiet
@@ -398,25 +527,7 @@ def plane(tx, rx1, rx2, d1, d2) -> PlaneEstimate:
         away from the sensor, ``reflection_points`` (..., 2, 2).  Reasons as
         :func:`virtual_image`, plus DEGENERATE where ``T' = T``.
     """
-    inputs = _prepare("plane", tx, rx1, rx2, d1, d2)
-    return _plane(inputs, *_image(inputs))
-
-
-def _plane(inputs: _Inputs, reason: np.ndarray, image: np.ndarray) -> PlaneEstimate:
-    tx = inputs.tx
-    axis = image - tx
-    length = _norm(axis)
-    _flag(reason, ~(length > 0), DEGENERATE)
-    normal = axis / length[..., None]
-    points = np.empty(reason.shape + (2, 2))
-    for n, receiver in enumerate((inputs.rx1, inputs.rx2)):
-        # Distance of the receiver from the plane over that of T' from it: where R_n T' crosses.
-        depth = 0.5 * length - _dot(receiver - tx, normal)
-        fraction = depth / (depth + 0.5 * length)
-        points[..., n, :] = receiver + fraction[..., None] * (image - receiver)
-    foot = tx + 0.5 * axis
-    valid, (foot, normal, points) = _finish(reason, (foot, 1), (normal, 1), (points, 2))
-    return PlaneEstimate(foot, valid, reason, "plane", normal, points)
+    return _solved("plane", ("plane",), tx, rx1, rx2, d1, d2)["plane"]
 
 
 @_quiet
@@ -439,15 +550,7 @@ def corner(tx, rx1, rx2, d1, d2) -> PointEstimate:
         ``position`` (..., 2); reasons as :func:`virtual_image`, plus BEHIND
         where ``G`` is not in front of the receivers.
     """
-    inputs = _prepare("corner", tx, rx1, rx2, d1, d2)
-    return _corner(inputs, *_image(inputs))
-
-
-def _corner(inputs: _Inputs, reason: np.ndarray, image: np.ndarray) -> PointEstimate:
-    point = 0.5 * (inputs.tx + image)
-    _flag(reason, ~(_dot(point - inputs.frame.centre, inputs.frame.n) > 0), BEHIND)
-    valid, (point,) = _finish(reason, (point, 1))
-    return PointEstimate(point, valid, reason, "corner")
+    return _solved("corner", ("corner",), tx, rx1, rx2, d1, d2)["corner"]
 
 
 # --------------------------------------------------------------------------- edge
@@ -490,54 +593,7 @@ def edge(tx, rx1, rx2, d1, d2) -> PointEstimate:
         (two solutions in front -- only for transmitters in front of the
         receivers).
     """
-    return _edge(_prepare("edge", tx, rx1, rx2, d1, d2))
-
-
-def _edge(inputs: _Inputs) -> PointEstimate:
-    frame, d1, d2, difference, total = inputs.frame, inputs.d1, inputs.d2, inputs.difference, inputs.total
-    separation = frame.separation
-    reason = inputs.reason.copy()
-    _flag(reason, inputs.apart, NO_INTERSECTION)
-    _flag(reason, inputs.too_short, TOO_SHORT)
-    offset = inputs.tx - frame.centre
-    t_u = _dot(offset, frame.u)
-    t_n = _dot(offset, frame.n)
-    # Difference of the receivers' circles: p_u = (d1 - d2)(d1 + d2 - 2k) / (2D) = beta0 + beta1 k.
-    beta1 = difference / separation
-    beta0 = -difference * total / (2.0 * separation)
-    # Their mean minus the transmitter's circle: 2 t_n p_n = mu0 - mu1 k.
-    mu0 = 0.5 * (d1 * d1 + d2 * d2) - 0.25 * separation * separation + t_u * t_u + t_n * t_n - 2.0 * beta0 * t_u
-    mu1 = total + 2.0 * beta1 * t_u
-    # Hence k = nu0 + nu1 p_n and p_u = pi0 + pi1 p_n.
-    nu0 = mu0 / mu1
-    nu1 = -2.0 * t_n / mu1
-    pi1 = beta1 * nu1
-    # R1's circle (p_u + D/2)^2 + p_n^2 = (d1 - k)^2 as a p_n^2 + b p_n + c = 0, from its values at p_n = 0.
-    from_r1 = difference * (2.0 * nu0 - total) / (2.0 * separation) + 0.5 * separation
-    radius = d1 - nu0
-    a = (1.0 - nu1) * (1.0 + nu1) + pi1 * pi1
-    b = 2.0 * (from_r1 * pi1 + radius * nu1)
-    c = (from_r1 - radius) * (from_r1 + radius)
-    discriminant = b * b - 4.0 * a * c
-    half = -0.5 * (b + np.copysign(np.sqrt(discriminant), b))
-    shortest = np.minimum(d1, d2)
-    candidates = []
-    for offset_n in (half / a, c / half):  # the two roots: candidate normal offsets p_n
-        k = nu0 + nu1 * offset_n
-        # the squared circles admit k < 0 or d_n - k < 0; only k in [0, min d_n] is an edge, and it must be ahead
-        ahead = np.isfinite(offset_n) & (k >= 0) & (k <= shortest) & (offset_n > 0)
-        candidates.append((offset_n, k, ahead))
-    (first, k_first, first_ahead), (second, k_second, second_ahead) = candidates
-    _flag(reason, ~(mu1 > 0), DEGENERATE)
-    _flag(reason, ~(discriminant >= 0), NO_INTERSECTION)
-    _flag(reason, ~(first_ahead | second_ahead), BEHIND)
-    _flag(reason, first_ahead & second_ahead, AMBIGUOUS)
-    normal_offset = np.where(first_ahead, first, second)
-    k = np.where(first_ahead, k_first, k_second)
-    along = difference * (2.0 * k - total) / (2.0 * separation)
-    point = frame.centre + along[..., None] * frame.u + normal_offset[..., None] * frame.n
-    valid, (point,) = _finish(reason, (point, 1))
-    return PointEstimate(point, valid, reason, "edge")
+    return _solved("edge", ("edge",), tx, rx1, rx2, d1, d2)["edge"]
 
 
 # --------------------------------------------------------------------------- baselines and helpers
@@ -565,19 +621,7 @@ def on_axis(tx, rx1, rx2, d1, d2) -> PointEstimate:
         ``position`` (..., 2); reasons NOT_FINITE, DEGENERATE, NEGATIVE,
         TOO_SHORT (mean path shorter than ``|T - M|``).
     """
-    inputs = _prepare("on_axis", tx, rx1, rx2, d1, d2)
-    frame, reason = inputs.frame, inputs.reason
-    mean = 0.5 * inputs.total
-    offset = frame.centre - inputs.tx
-    direct = _norm(offset)
-    _flag(reason, mean < direct, TOO_SHORT)
-    # |offset + r n|^2 = (mean - r)^2 is linear in r.
-    denominator = 2.0 * (mean + _dot(offset, frame.n))
-    distance = (mean - direct) * (mean + direct) / denominator
-    _flag(reason, ~(denominator > 0), DEGENERATE)
-    point = frame.centre + distance[..., None] * frame.n
-    valid, (point,) = _finish(reason, (point, 1))
-    return PointEstimate(point, valid, reason, "on_axis")
+    return _solved("on_axis", ("on_axis",), tx, rx1, rx2, d1, d2)["on_axis"]
 
 
 MODELS = {"plane": plane, "corner": corner, "edge": edge}
@@ -608,12 +652,7 @@ def hypotheses(tx, rx1, rx2, d1, d2, models=tuple(MODELS)) -> dict:
     unknown = set(models) - set(MODELS)
     if unknown:
         raise ValueError(f"hypotheses: unknown models {sorted(unknown)}, choose from {sorted(MODELS)}")
-    inputs = _prepare("hypotheses", tx, rx1, rx2, d1, d2)
-    reason, image = _image(inputs) if {"plane", "corner"} & set(models) else (None, None)
-    solvers = {"plane": lambda: _plane(inputs, reason.copy(), image),
-               "corner": lambda: _corner(inputs, reason.copy(), image),
-               "edge": lambda: _edge(inputs)}
-    return {name: solvers[name]() for name in models}
+    return _solved("hypotheses", tuple(models), tx, rx1, rx2, d1, d2)
 
 
 @_quiet

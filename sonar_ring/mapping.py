@@ -172,10 +172,6 @@ def _left(vector):
     return out
 
 
-def _determinant(matrix):
-    return matrix[..., 0, 0] * matrix[..., 1, 1] - matrix[..., 0, 1] * matrix[..., 1, 0]
-
-
 @kernel
 def _inverse(matrix):
     """Inverse of (K, 2, 2) matrices in closed form."""
@@ -197,13 +193,16 @@ def _apply(matrix, vector):
     return out
 
 
-def _mahalanobis2(vector, covariance, determinant=None):
-    """``vector^T covariance^-1 vector`` for (..., 2) and (..., 2, 2), without forming the inverse."""
-    if determinant is None:
-        determinant = _determinant(covariance)
-    x, y = vector[..., 0], vector[..., 1]
-    return (covariance[..., 1, 1] * x * x - 2.0 * covariance[..., 0, 1] * x * y
-            + covariance[..., 0, 0] * y * y) / determinant
+@kernel
+def _mahalanobis2(vector, covariance):
+    """``v^T C^-1 v`` for vectors (K, 2) and covariances (K, 2, 2), without forming the inverse; shape (K,)."""
+    out = np.empty(vector.shape[0])
+    for k in range(vector.shape[0]):
+        x, y = vector[k, 0], vector[k, 1]
+        determinant = covariance[k, 0, 0] * covariance[k, 1, 1] - covariance[k, 0, 1] * covariance[k, 1, 0]
+        out[k] = (covariance[k, 1, 1] * x * x - 2.0 * covariance[k, 0, 1] * x * y
+                  + covariance[k, 0, 0] * y * y) / determinant
+    return out
 
 
 def _quadratic(vector, matrix):
@@ -252,14 +251,10 @@ def _pairs_within(query, points, radius):
 @kernel
 def _gated_scores(innovation, covariance, observations, distance, with_distance, gate):
     """:meth:`LandmarkMap._score` of innovations (K, 2) with covariances (K, 2, 2): ``d^2`` and scores (K,)."""
-    count = innovation.shape[0]
-    d2 = np.empty(count)
-    score = np.empty(count)
-    for k in range(count):
-        x, y = innovation[k, 0], innovation[k, 1]
+    d2 = _mahalanobis2(innovation, covariance)
+    score = np.empty(d2.size)
+    for k in range(d2.size):
         determinant = covariance[k, 0, 0] * covariance[k, 1, 1] - covariance[k, 0, 1] * covariance[k, 1, 0]
-        d2[k] = (covariance[k, 1, 1] * x * x - 2.0 * covariance[k, 0, 1] * x * y
-                 + covariance[k, 0, 0] * y * y) / determinant
         score[k] = d2[k] + np.log(determinant) - 2.0 * np.log(observations[k])
         if with_distance:
             score[k] += 2.0 * np.log(distance[k])
@@ -275,20 +270,49 @@ def _chi2_quantile(dof, z: float):
     return dof * (1.0 - k + z * np.sqrt(k)) ** 3
 
 
-def _line_floor(extent, sigma: float):
+@kernel
+def _line_floor(extent, sigma):
     """Covariance (K, 2, 2) of ``(theta, delta)`` from an error ``sigma`` at each end of a segment.
 
     The segment runs from ``s1`` to ``s2`` (``extent`` (K, 2), m along the line from
     its anchor); independent offsets ``u1``, ``u2`` across it at the ends move the
     line by ``theta = -(u2 - u1) / L`` and ``delta = (u1 s2 - u2 s1) / L``.
     """
-    first, second = extent[:, 0], extent[:, 1]
-    length2 = np.maximum(second - first, _MIN_EXTENT) ** 2
     out = np.empty((extent.shape[0], 2, 2))
-    out[:, 0, 0] = 2.0 / length2
-    out[:, 0, 1] = out[:, 1, 0] = (first + second) / length2
-    out[:, 1, 1] = (first ** 2 + second ** 2) / length2
-    return sigma ** 2 * out
+    for k in range(extent.shape[0]):
+        first, second = extent[k, 0], extent[k, 1]
+        length2 = np.maximum(second - first, _MIN_EXTENT) ** 2
+        out[k, 0, 0] = sigma ** 2 * (2.0 / length2)
+        out[k, 0, 1] = out[k, 1, 0] = sigma ** 2 * ((first + second) / length2)
+        out[k, 1, 1] = sigma ** 2 * ((first ** 2 + second ** 2) / length2)
+    return out
+
+
+@kernel
+def _match_walls(keep, other, anchor, line, information, normal, tangent, extent, map_sigma):
+    """:meth:`LandmarkMap._wall_matches` of walls ``other`` against walls ``keep`` (K,), from the wall table."""
+    count = keep.size
+    innovation = np.empty((count, 2))
+    jacobian = np.zeros((count, 2, 2))
+    along = np.empty((count, 2))
+    gap = np.empty(count)
+    for k in range(count):
+        a, b = keep[k], other[k]
+        lever_x, lever_y = anchor[b, 0] - anchor[a, 0], anchor[b, 1] - anchor[a, 1]
+        innovation[k, 0] = (line[b, 0] - line[a, 0] + np.pi) % (2.0 * np.pi) - np.pi
+        innovation[k, 1] = line[b, 1] + (normal[b, 0] * lever_x + normal[b, 1] * lever_y) - line[a, 1]
+        jacobian[k, 0, 0] = jacobian[k, 1, 1] = 1.0
+        jacobian[k, 1, 0] = tangent[b, 0] * lever_x + tangent[b, 1] * lever_y
+        for end in range(2):
+            end_x = anchor[b, 0] + extent[b, end] * tangent[b, 0]
+            end_y = anchor[b, 1] + extent[b, end] * tangent[b, 1]
+            along[k, end] = (end_x - anchor[a, 0]) * tangent[a, 0] + (end_y - anchor[a, 1]) * tangent[a, 1]
+        gap[k] = np.maximum(np.minimum(along[k, 0], along[k, 1]) - extent[a, 1],
+                            extent[a, 0] - np.maximum(along[k, 0], along[k, 1]))
+    covariance = _sandwich(jacobian, _inverse(information[other]))
+    floors = (_inverse(information[keep]) + _line_floor(extent[keep], map_sigma)
+              + _sandwich(jacobian, _line_floor(extent[other], map_sigma)))
+    return _mahalanobis2(innovation, floors + covariance), gap, innovation, covariance, along
 
 
 def _pose(pose, caller: str) -> np.ndarray:
@@ -1278,19 +1302,8 @@ class LandmarkMap:
         without floor (for fusion), and ``other``'s end points along ``keep`` (K, 2).
         """
         w = self._walls
-        lever = w.anchor[other] - w.anchor[keep]
-        innovation = np.empty((keep.size, 2))
-        innovation[:, 0] = _wrap(w.line[other, 0] - w.line[keep, 0])
-        innovation[:, 1] = w.line[other, 1] + _dot(w.normal[other], lever) - w.line[keep, 1]
-        jacobian = np.zeros((keep.size, 2, 2))
-        jacobian[:, 0, 0] = jacobian[:, 1, 1] = 1.0
-        jacobian[:, 1, 0] = _dot(w.tangent[other], lever)
-        covariance = _sandwich(jacobian, _inverse(w.information[other]))
-        floors = self._wall_covariance(keep) + _sandwich(jacobian, _line_floor(w.extent[other], self.map_sigma))
-        d2 = _mahalanobis2(innovation, floors + covariance)
-        along = _dot(w.end_points(other) - w.anchor[keep][:, None, :], w.tangent[keep][:, None, :])
-        gap = np.maximum(along.min(axis=1) - w.extent[keep, 1], w.extent[keep, 0] - along.max(axis=1))
-        return d2, gap, innovation, covariance, along
+        return _match_walls(keep, other, w.anchor, w.line, w.information, w.normal, w.tangent, w.extent,
+                            self.map_sigma)
 
     def _merge_walls(self, slots) -> None:
         """Let walls ``slots`` absorb every wall that matches them (gate, gap), until none does."""
