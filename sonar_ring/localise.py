@@ -655,6 +655,15 @@ def hypotheses(tx, rx1, rx2, d1, d2, models=tuple(MODELS)) -> dict:
     return _solved("hypotheses", tuple(models), tx, rx1, rx2, d1, d2)
 
 
+def load_kernels() -> None:
+    """Load the compiled solver now instead of at the first solve.
+
+    Loading takes about 0.5 s (numba's start and the cached machine code); a
+    process that localises on a deadline pays it at start.
+    """
+    hypotheses([0.0, 0.0], [0.0, 0.02], [0.0, -0.02], 1.0, 1.0)
+
+
 @_quiet
 def horizontal_path(d, dz) -> ScalarEstimate:
     """Exact horizontal path length ``sqrt(d^2 - dz^2)`` for vertically extruded reflectors.

@@ -71,6 +71,8 @@ class Localiser(SonarNode):
         self.params = declare(self, PARAMS, self._on_change)
         self.layout = load_layout(self.params["layout"])
         self.settings = settings_from(self.params)
+        if self.layout.kind != "triad":
+            localise.load_kernels()  # now, or the first ping would wait ~0.5 s for them
         self.health = NodeHealth(self, hardware_id=self.layout.name)
         self._publisher = self.create_publisher(LandmarkArray, "landmarks/raw", qos_profile_sensor_data)
         self._gate = InputGate(self, self.health, "echoes", self.params)

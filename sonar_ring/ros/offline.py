@@ -40,7 +40,7 @@ from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import Header
 
-from sonar_ring import classify, mapping, pipeline
+from sonar_ring import classify, localise, mapping, pipeline
 from sonar_ring.geometry import Layout, LayoutError, config_path, load_layout
 from sonar_ring.landmarks import CLASS_NAMES, Landmarks
 from sonar_ring.mapping import LandmarkMap, Sightings
@@ -237,6 +237,8 @@ _worker_stage: PingStage | None = None
 def _start_worker(stage: PingStage) -> None:
     global _worker_stage
     _worker_stage = stage
+    if stage.layout.kind != "triad":
+        localise.load_kernels()
     if stage.layout.kind == "ring":
         classify.load_kernels()
 
@@ -249,8 +251,8 @@ def _work(batch: list[bytes], poses: list) -> list[PingOutput]:
 def stage_workers(stage: PingStage, jobs: int):
     """``jobs - 1`` forked processes that run ``stage`` (a process pool), or None when ``jobs`` is 1.
 
-    The workers start at once and load the ring classifier's compiled kernels
-    (about 0.3 s) while this process opens the bag and reads the odometry, so
+    The workers start at once and load the localiser's and classifier's compiled
+    kernels (about 0.5 s) while this process opens the bag and reads the odometry, so
     the first batch does not wait for them.
     """
     if jobs <= 1:
