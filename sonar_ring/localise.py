@@ -308,13 +308,13 @@ def _flat_inputs(caller, tx, rx1, rx2, d1, d2):
     return shape, flat(tx, (2,)), flat(rx1, (2,)), flat(rx2, (2,)), flat(d1, ()), flat(d2, ())
 
 
-_SOLVERS = ("virtual_image", "plane", "corner", "edge", "on_axis")
-"""The models :func:`_solve` computes, in the order of its ``wanted`` flags and outputs."""
+SOLVERS = ("virtual_image", "plane", "corner", "edge", "on_axis")
+"""The models :func:`solve_rows` computes, in the order of its ``wanted`` flags and outputs."""
 
 
 @kernel
-def _solve(tx, rx1, rx2, d1, d2, wanted):
-    """The models of :data:`_SOLVERS` flagged in ``wanted`` (5,) for N entries: one loop, each entry alone.
+def solve_rows(tx, rx1, rx2, d1, d2, wanted):
+    """The models of :data:`SOLVERS` flagged in ``wanted`` (5,) for N entries: one loop, each entry alone.
 
     Inputs as :func:`_flat_inputs` gives them.  Returns ``reason`` (5, N) int8,
     ``position`` (5, N, 2), and the plane's ``normal`` (N, 2) and
@@ -465,12 +465,12 @@ def _solve(tx, rx1, rx2, d1, d2, wanted):
 
 
 def _solved(caller, models, tx, rx1, rx2, d1, d2) -> dict:
-    """The estimates of ``models`` (names of :data:`_SOLVERS`) for inputs of any broadcast shape, by name, in order."""
+    """The estimates of ``models`` (names of :data:`SOLVERS`) for inputs of any broadcast shape, by name, in order."""
     shape, *inputs = _flat_inputs(caller, tx, rx1, rx2, d1, d2)
-    reason, position, normal, reflection = _solve(*inputs, np.array([name in models for name in _SOLVERS]))
+    reason, position, normal, reflection = solve_rows(*inputs, np.array([name in models for name in SOLVERS]))
     estimates = {}
     for name in models:
-        index = _SOLVERS.index(name)
+        index = SOLVERS.index(name)
         codes = reason[index].reshape(shape)
         point = position[index].reshape(shape + (2,))
         if name == "plane":

@@ -17,11 +17,12 @@ different processes.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from sonar_ring import classify, doa, localise
+from sonar_ring.compiled import kernel
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import Layout
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, Landmarks, make_landmarks
@@ -100,73 +101,65 @@ def horizontal_paths(echoes: EchoArrays, dz: np.ndarray, settings: Settings):
         return horizontal, paths / horizontal
 
 
-def sigma_point_paths(d1, d2, paths_covariance):
-    """Path lengths at the five sigma points of the unscented transform (``n + kappa = 3``).
+@kernel
+def _unscented_models(tx, rx1, rx2, d1, d2, paths_covariance, wanted):
+    """The models of ``localise.SOLVERS`` flagged in ``wanted`` for N rows, with unscented covariances.
 
-    Returns two arrays of shape (5, N): point 0 is the measurement itself, so
-    one batched model call gives the estimate and its spread together.
+    Each row's paths ``(d1, d2)`` (N,) with covariance ``S`` (N, 2, 2) give five
+    sigma points (``n + kappa = 3``): the measurement, and it plus and minus each
+    column of the Cholesky factor of ``3 S``; one solve of all five times N
+    entries (``localise.solve_rows``) gives the estimate (point 0) and its spread.
+    Returns ``reason`` (5, N), ``position`` (5, N, 2), the plane's ``normal``
+    (N, 2) and ``reflection_points`` (N, 2, 2) of the estimates, and their
+    covariances (5, N, 2, 2): the sigma points' covariance with the arc's bias
+    raised to :data:`ARC_MSE` (see :func:`localise_ping`); NaN where a sigma
+    point has no solution.
     """
-    scale = np.linalg.cholesky(3.0 * np.nan_to_num(paths_covariance) + 1e-30 * np.eye(2))  # (N, 2, 2)
-    offsets = np.stack([np.zeros((len(d1), 2))]
-                       + [sign * scale[:, :, column] for column in range(2) for sign in (1.0, -1.0)])
-    return d1[None, :] + offsets[:, :, 0], d2[None, :] + offsets[:, :, 1]
-
-
-def unscented_covariance(points) -> np.ndarray:
-    """Covariance of an estimate that stays consistent where its error bends along an arc.
-
-    A pair measures range far better than bearing, so the error region is a thin
-    arc (a banana): a tangential error ``t`` moves the estimate inwards by about
-    ``t^2 / (2 rho)``, which at a few metres exceeds the first-order radial
-    standard deviation.  A first-order (Jacobian) covariance then covers only
-    ~85 % of errors at 3 sigma, which breaks the mapper's Mahalanobis gating.
-
-    The five sigma points (:func:`sigma_point_paths`) give the covariance
-    including the arc's second-order spread, and the bias ``b`` of their mean
-    (``|b| = m = sigma_t^2 / (2 rho)``, pointing inwards).  Along ``b`` the
-    total mean-squared error is set to :data:`ARC_MSE` ``m^2``: the arc at
-    ``t = 3 sigma_t`` lies ``9 m`` inwards, and ``(9 m)^2 / (30 m^2) = 2.7``
-    keeps it inside the 3-sigma ellipse (Mahalanobis ``9 + 2.7 < 11.83``).
-    Across the arc nothing changes.
-
-    Parameters
-    ----------
-    points : ndarray, shape (5, N, 2)
-        The estimator evaluated at the five sigma points, point 0 the estimate, m.
-
-    Returns
-    -------
-    ndarray, shape (N, 2, 2)
-        m^2; NaN where a sigma point has no solution (the estimate's own
-        validity still decides whether it is used).
-    """
-    weights = np.array([1 / 3] + [1 / 6] * 4)
-    mean = np.einsum("s,sni->ni", weights, points)
-    deviation = points - mean
-    covariance = np.einsum("s,sni,snj->nij", weights, deviation, deviation)
-    bias = mean - points[0]
-    # The transform already holds 2 m^2 of arc spread along the bias; add the rest of ARC_MSE.
-    return covariance + (ARC_MSE - 2.0) * bias[:, :, None] * bias[:, None, :]
-
-
-def _covariance(batch, estimate, tx, rx1, rx2, paths_covariance) -> np.ndarray:
-    """Unscented covariance (N, 2, 2) of a model's estimates, first order where a sigma point has no solution.
-
-    Near the border of the solvable region (``|d2 - d1|`` close to the baseline)
-    one sigma point can fall outside it while the estimate itself is valid.
-    """
-    covariance = unscented_covariance(batch.position)
-    lost = estimate.valid & ~np.isfinite(covariance).all(axis=(1, 2))
-    if lost.any():
-        first_order = localise.position_covariance(estimate, tx, rx1, rx2, paths_covariance)
-        covariance[lost] = first_order[lost]
-    return covariance
-
-
-def _first(batch):
-    """The estimate at sigma point 0 (the measurement) of a batched model call."""
-    return replace(batch, **{f.name: getattr(batch, f.name)[0] for f in fields(batch)
-                             if isinstance(getattr(batch, f.name), np.ndarray)})
+    count = d1.size
+    sigma_d1, sigma_d2 = np.empty(5 * count), np.empty(5 * count)
+    sigma_tx, sigma_rx1, sigma_rx2 = np.empty((5 * count, 2)), np.empty((5 * count, 2)), np.empty((5 * count, 2))
+    largest = np.finfo(np.float64).max
+    for row in range(count):
+        scaled = np.empty(3)
+        for entry, (i, j) in enumerate(((0, 0), (1, 0), (1, 1))):
+            value = paths_covariance[row, i, j]
+            finite = value if np.isfinite(value) else (0.0 if np.isnan(value) else np.sign(value) * largest)
+            scaled[entry] = 3.0 * finite + (1e-30 if i == j else 0.0)
+        # Cholesky factor [[l00, 0], [l10, l11]] of 3 S; the sigma points add and subtract its columns.
+        l00 = np.sqrt(scaled[0])
+        l10 = scaled[1] / l00
+        l11 = np.sqrt(scaled[2] - l10 * l10)
+        offsets = ((0.0, 0.0), (l00, l10), (-l00, -l10), (0.0, l11), (-0.0, -l11))
+        for point in range(5):
+            entry = point * count + row
+            sigma_d1[entry] = d1[row] + offsets[point][0]
+            sigma_d2[entry] = d2[row] + offsets[point][1]
+            sigma_tx[entry], sigma_rx1[entry], sigma_rx2[entry] = tx[row], rx1[row], rx2[row]
+    reason, position, normal, reflection = localise.solve_rows(sigma_tx, sigma_rx1, sigma_rx2, sigma_d1, sigma_d2,
+                                                               wanted)
+    weights = (1.0 / 3.0, 1.0 / 6.0, 1.0 / 6.0, 1.0 / 6.0, 1.0 / 6.0)
+    covariance = np.full((5, count, 2, 2), np.nan)
+    for model in range(5):
+        if not wanted[model]:
+            continue
+        for row in range(count):
+            mean_x = mean_y = 0.0
+            for point in range(5):
+                mean_x += weights[point] * position[model, point * count + row, 0]
+                mean_y += weights[point] * position[model, point * count + row, 1]
+            xx = xy = yy = 0.0
+            for point in range(5):
+                dx = position[model, point * count + row, 0] - mean_x
+                dy = position[model, point * count + row, 1] - mean_y
+                xx += weights[point] * dx * dx
+                xy += weights[point] * dx * dy
+                yy += weights[point] * dy * dy
+            # The transform already holds 2 m^2 of arc spread along the bias b; add the rest of ARC_MSE.
+            bias_x, bias_y = mean_x - position[model, row, 0], mean_y - position[model, row, 1]
+            covariance[model, row, 0, 0] = xx + (ARC_MSE - 2.0) * bias_x * bias_x
+            covariance[model, row, 0, 1] = covariance[model, row, 1, 0] = xy + (ARC_MSE - 2.0) * bias_x * bias_y
+            covariance[model, row, 1, 1] = yy + (ARC_MSE - 2.0) * bias_y * bias_y
+    return (reason[:, :count], position[:, :count], normal[:count], reflection[:count], covariance)
 
 
 def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Settings()) -> Landmarks:
@@ -182,37 +175,47 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
         return _localise_triads(layout, echoes, settings)
     tx, receivers, dz = _row_geometry(layout, echoes)
     paths, scale = horizontal_paths(echoes, dz, settings)
-    rx1, rx2 = receivers[:, 0], receivers[:, 1]
-    d1, d2 = paths[:, 0], paths[:, 1]
+    rx1, rx2 = np.ascontiguousarray(receivers[:, 0]), np.ascontiguousarray(receivers[:, 1])
+    d1, d2 = np.ascontiguousarray(paths[:, 0]), np.ascontiguousarray(paths[:, 1])
     # Rows with absurd paths overflow here; localise flags them NOT_FINITE, so the warnings are noise.
     with np.errstate(over="ignore", invalid="ignore"):
         covariance_paths = localise.path_covariance(d1, d2, settings.sigma_tof, echoes.speed_of_sound,
                                                     settings.sigma_speed)
         covariance_paths = covariance_paths * scale[:, :, None] * scale[:, None, :]
-        sigma_d1, sigma_d2 = sigma_point_paths(d1, d2, covariance_paths)
-    rows = np.arange(echoes.n_echoes)
-    batches = localise.hypotheses(tx, rx1, rx2, sigma_d1, sigma_d2, settings.models)
-    estimates = {model: _first(batch) for model, batch in batches.items()}
-    covariances = [_covariance(batches[model], estimates[model], tx, rx1, rx2, covariance_paths)
-                   for model in estimates]
-    valid = np.concatenate([estimate.valid for estimate in estimates.values()])
-    position = np.concatenate([estimate.position for estimate in estimates.values()])
-    normal = np.zeros_like(position)
-    segment = np.repeat(position[:, None, :], 2, axis=1)
-    if "plane" in estimates:
-        start = list(estimates).index("plane") * echoes.n_echoes
-        block = slice(start, start + echoes.n_echoes)
-        normal[block] = -estimates["plane"].normal
-        segment[block] = estimates["plane"].reflection_points
-    keep = valid[:, None]
-    covariance = np.concatenate(covariances)
-    return make_landmarks(
-        np.repeat([MODEL_CLASS[model] for model in estimates], echoes.n_echoes),
-        np.where(keep, position, 0.0), normal=np.where(keep, normal, 0.0),
-        covariance=np.where(keep[:, :, None], covariance, 0.0),
-        segment=np.where(keep[:, :, None], segment, 0.0), group=np.tile(echoes.group, len(estimates)),
-        echo=np.tile(rows, len(estimates)), valid=valid,
-        reason=np.concatenate([estimate.reason for estimate in estimates.values()]))
+    wanted = np.array([name in settings.models for name in localise.SOLVERS])
+    reason, position, normal, reflection, covariance = _unscented_models(
+        np.ascontiguousarray(tx), rx1, rx2, d1, d2, covariance_paths, wanted)
+    models = [localise.SOLVERS.index(model) for model in settings.models]
+    reason, position, covariance = reason[models], position[models], covariance[models]
+    valid = reason == localise.OK
+    # Near the border of the solvable region (|d2 - d1| close to the baseline) a sigma point can
+    # fall outside it while the estimate is valid: first-order covariance there.
+    for index, model in enumerate(settings.models):
+        lost = valid[index] & ~np.isfinite(covariance[index]).all(axis=(1, 2))
+        if lost.any():
+            estimate = localise.PointEstimate(position[index, lost], valid[index, lost], reason[index, lost], model)
+            covariance[index, lost] = localise.position_covariance(estimate, tx[lost], rx1[lost], rx2[lost],
+                                                                   covariance_paths[lost])
+    count = echoes.n_echoes
+    normals = np.zeros_like(position)
+    segment = np.repeat(position[:, :, None, :], 2, axis=2)
+    if "plane" in settings.models:
+        index = settings.models.index("plane")
+        normals[index] = -normal
+        segment[index] = reflection
+    keep = valid.reshape(-1)
+    return Landmarks(
+        landmark_class=np.repeat(np.array([MODEL_CLASS[model] for model in settings.models], dtype=np.uint8), count),
+        position=np.where(keep[:, None], position.reshape(-1, 2), 0.0),
+        normal=np.where(keep[:, None], normals.reshape(-1, 2), 0.0),
+        covariance=np.where(keep[:, None, None], covariance.reshape(-1, 2, 2), 0.0),
+        confidence=np.zeros(keep.size, dtype=np.float32),
+        segment=np.where(keep[:, None, None], segment.reshape(-1, 2, 2), 0.0),
+        observations=np.ones(keep.size, dtype=np.uint32),
+        group=np.tile(echoes.group, len(models)).astype(np.uint16),
+        echo=np.tile(np.arange(count, dtype=np.uint32), len(models)),
+        valid=keep,
+        reason=reason.reshape(-1).astype(np.uint8))
 
 
 @functools.lru_cache(maxsize=32)
