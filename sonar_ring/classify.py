@@ -587,26 +587,12 @@ def geometric_consistency(transmitter, receivers, paths, sigma_path, z=CONSISTEN
     transmitter = np.broadcast_to(transmitter, (n_echoes, 2))
     sigma = np.broadcast_to(_positive_finite("sigma_path", sigma_path), (n_echoes, n_receivers))
 
-    usable = np.isfinite(paths) & (paths > 0) & np.all(np.isfinite(receivers), axis=-1)
-    usable &= np.all(np.isfinite(transmitter), axis=-1)[:, None]
-    weight = np.where(usable, 1.0 / np.square(sigma), 0.0)
-    # Unused entries get harmless finite values; their weight keeps them out of every sum.
-    safe_receivers = np.where(usable[..., None], receivers, 0.0)
-    safe_paths = np.where(usable, paths, 0.0)
-    safe_transmitter = np.where(np.isfinite(transmitter), transmitter, 0.0)
-    dof = usable.sum(axis=1) - 2
+    outward = np.zeros((n_echoes, 2)) if facing is None else np.broadcast_to(np.asarray(facing, dtype=float),
+                                                                            (n_echoes, 2))
+    image, chi2_specular, edge, chi2_edge, dof = _fit_models(
+        np.ascontiguousarray(transmitter), np.ascontiguousarray(receivers), np.ascontiguousarray(paths),
+        np.ascontiguousarray(sigma), np.ascontiguousarray(outward), facing is not None)
     tested = dof >= 1
-
-    with np.errstate(invalid="ignore", divide="ignore"):
-        count = np.maximum(usable.sum(axis=1), 1)
-        centroid = (safe_receivers * usable[..., None]).sum(axis=1) / count[:, None]
-        outward = centroid - safe_transmitter if facing is None else np.broadcast_to(facing, (n_echoes, 2))
-        outward = outward / np.linalg.norm(outward, axis=-1, keepdims=True)
-        image = _far_field_image(centroid, outward, safe_receivers, safe_paths, usable)
-        image, chi2_specular = _gauss_newton(image, safe_receivers, safe_paths, weight, None)
-        # The corner point (T + T') / 2 is within millimetres of an edge (Browne section 7).
-        edge, chi2_edge = _gauss_newton(0.5 * (safe_transmitter + image), safe_receivers, safe_paths,
-                                        weight, safe_transmitter)
 
     chi2_specular = np.where(tested, chi2_specular, np.nan)
     chi2_edge = np.where(tested, chi2_edge, np.nan)
@@ -631,24 +617,41 @@ def geometric_consistency(transmitter, receivers, paths, sigma_path, z=CONSISTEN
     )
 
 
+@kernel
 def _far_field_image(centroid, outward, receivers, paths, usable):
     """Starting virtual image from a plane-wave fit: T' ~= centroid + mean(d) * arrival direction.
 
     Starting on the far side of the receivers (``outward``, unit (N, 2)) matters: nearly
     collinear receivers make the mirror image of ``T'`` across their line an almost
-    equally good local minimum.
+    equally good local minimum.  ``receivers`` (N, K, 2), ``paths`` (N, K), m, and
+    ``usable`` (N, K); returns (N, 2), m.
     """
-    count = np.maximum(usable.sum(axis=1), 1)
-    lateral = np.stack([-outward[:, 1], outward[:, 0]], axis=-1)
-    offset = np.einsum("nkc,nc->nk", receivers - centroid[:, None, :], lateral)
-    mean_path = (paths * usable).sum(axis=1) / count
-    offset_c = np.where(usable, offset - (offset * usable).sum(axis=1, keepdims=True) / count[:, None], 0.0)
-    path_c = np.where(usable, paths - mean_path[:, None], 0.0)
-    spread = np.sum(offset_c * offset_c, axis=1)
-    # A receiver further towards the source (larger lateral offset) has a shorter path.
-    sine = np.clip(-np.sum(offset_c * path_c, axis=1) / np.where(spread > 0, spread, 1.0), -1.0, 1.0)
-    direction = np.sqrt(1.0 - sine**2)[:, None] * outward + sine[:, None] * lateral
-    return centroid + mean_path[:, None] * direction
+    n_echoes, n_receivers = paths.shape
+    image = np.empty((n_echoes, 2))
+    offset = np.empty(n_receivers)
+    for n in range(n_echoes):
+        lateral_x, lateral_y = -outward[n, 1], outward[n, 0]
+        count = max(np.sum(usable[n]), 1)
+        mean_path = mean_offset = 0.0
+        for k in range(n_receivers):
+            offset[k] = ((receivers[n, k, 0] - centroid[n, 0]) * lateral_x
+                         + (receivers[n, k, 1] - centroid[n, 1]) * lateral_y)
+            if usable[n, k]:
+                mean_path += paths[n, k]
+                mean_offset += offset[k]
+        mean_path /= count
+        mean_offset /= count
+        spread = moment = 0.0
+        for k in range(n_receivers):
+            if usable[n, k]:
+                spread += (offset[k] - mean_offset) ** 2
+                moment += (offset[k] - mean_offset) * (paths[n, k] - mean_path)
+        # A receiver further towards the source (larger lateral offset) has a shorter path.
+        sine = min(max(-moment / (spread if spread > 0 else 1.0), -1.0), 1.0)
+        cosine = np.sqrt(1.0 - sine ** 2)
+        image[n, 0] = centroid[n, 0] + mean_path * (cosine * outward[n, 0] + sine * lateral_x)
+        image[n, 1] = centroid[n, 1] + mean_path * (cosine * outward[n, 1] + sine * lateral_y)
+    return image
 
 
 def load_kernels() -> None:
@@ -660,33 +663,71 @@ def load_kernels() -> None:
     process opens the bag.  Runs each kernel once through the functions that call
     it, so the argument types are the production ones.
     """
-    receivers = np.array([[[0.0, 0.02], [0.0, -0.02]]])
-    paths = np.ones((1, 2))
-    for transmitter in (None, np.zeros((1, 2))):
-        _gauss_newton(np.ones((1, 2)), receivers, paths, paths, transmitter)
+    receivers = np.array([[[0.02, 0.04], [0.02, 0.0], [0.02, -0.04]]])
+    paths = np.full((1, 3), 2.0)
+    geometric_consistency(np.zeros(2), receivers, paths, 1e-3, facing=np.array([1.0, 0.0]))
     one = np.zeros(1, dtype=int)
     _gated_matches(one, one, paths, paths, receivers, np.zeros((1, 1), dtype=int), CONSISTENCY_Z)
 
 
-def _gauss_newton(start, receivers, paths, weight, transmitter):
-    """Weighted least squares for a virtual image (``transmitter`` None) or an edge point.
+@kernel
+def _fit_models(transmitter, receivers, paths, sigma, facing, has_facing):
+    """Both models' fits for :func:`geometric_consistency`, each echo on its own.
 
-    ``start`` (N, 2) m; ``receivers`` (N, K, 2) m; ``paths`` (N, K) m; ``weight``
-    (N, K), 0 for receivers left out; ``transmitter`` (N, 2) m or None.
-    Returns the fitted points (N, 2) and their weighted residual sums of squares (N,).
-    Each echo iterates on its own, up to :data:`_GAUSS_NEWTON_STEPS` steps or until
-    its step is below :data:`_CONVERGED`, so its fit is the same in any batch.
+    ``transmitter`` (N, 2), ``receivers`` (N, K, 2), ``paths`` and ``sigma`` (N, K), m;
+    ``facing`` (N, 2) the outward direction where ``has_facing``, else the direction
+    from the transmitter to the receivers' centroid is used.  A receiver is used
+    where its path is finite and positive and the geometry finite.  Returns the
+    fitted virtual image (N, 2) and its chi-square (N,), the fitted edge point and
+    its chi-square, and the degrees of freedom (usable receivers - 2) (N,).
     """
-    edge = transmitter is not None
-    emitter = np.ascontiguousarray(transmitter if edge else start, dtype=float)
-    return _fit(np.ascontiguousarray(start, dtype=float), np.ascontiguousarray(receivers, dtype=float),
-                np.ascontiguousarray(paths, dtype=float), np.ascontiguousarray(weight, dtype=float), emitter, edge,
-                _GAUSS_NEWTON_STEPS, _CONVERGED)
+    n_echoes, n_receivers = paths.shape
+    usable = np.zeros((n_echoes, n_receivers), dtype=np.bool_)
+    weight = np.zeros((n_echoes, n_receivers))
+    # Unused entries get harmless finite values; their weight keeps them out of every sum.
+    safe_receivers = np.zeros((n_echoes, n_receivers, 2))
+    safe_paths = np.zeros((n_echoes, n_receivers))
+    safe_transmitter = np.zeros((n_echoes, 2))
+    centroid = np.zeros((n_echoes, 2))
+    outward = np.empty((n_echoes, 2))
+    dof = np.empty(n_echoes, dtype=np.int64)
+    for n in range(n_echoes):
+        transmitter_finite = np.isfinite(transmitter[n, 0]) and np.isfinite(transmitter[n, 1])
+        for axis in range(2):
+            if np.isfinite(transmitter[n, axis]):
+                safe_transmitter[n, axis] = transmitter[n, axis]
+        for k in range(n_receivers):
+            if (np.isfinite(paths[n, k]) and paths[n, k] > 0 and np.isfinite(receivers[n, k, 0])
+                    and np.isfinite(receivers[n, k, 1]) and transmitter_finite):
+                usable[n, k] = True
+                weight[n, k] = 1.0 / sigma[n, k] ** 2
+                safe_receivers[n, k] = receivers[n, k]
+                safe_paths[n, k] = paths[n, k]
+                centroid[n] += receivers[n, k]
+        count = np.sum(usable[n])
+        dof[n] = count - 2
+        centroid[n] /= max(count, 1)
+        direction = facing[n] if has_facing else centroid[n] - safe_transmitter[n]
+        outward[n] = direction / np.sqrt(direction[0] ** 2 + direction[1] ** 2)
+    image, chi2_specular = _fit(_far_field_image(centroid, outward, safe_receivers, safe_paths, usable),
+                                safe_receivers, safe_paths, weight, safe_transmitter, False, _GAUSS_NEWTON_STEPS,
+                                _CONVERGED)
+    # The corner point (T + T') / 2 is within millimetres of an edge (Browne section 7).
+    edge, chi2_edge = _fit(0.5 * (safe_transmitter + image), safe_receivers, safe_paths, weight, safe_transmitter,
+                           True, _GAUSS_NEWTON_STEPS, _CONVERGED)
+    return image, chi2_specular, edge, chi2_edge, dof
 
 
 @kernel
 def _fit(start, receivers, paths, weight, emitter, edge, steps, converged):
-    """Each echo's Gauss-Newton fit (see :func:`_gauss_newton`)."""
+    """Each echo's weighted least squares for a virtual image (not ``edge``) or an edge point.
+
+    ``start`` (N, 2) m; ``receivers`` (N, K, 2) m; ``paths`` (N, K) m; ``weight``
+    (N, K), 0 for receivers left out; ``emitter`` (N, 2) m, used for an edge.
+    Returns the fitted points (N, 2) and their weighted residual sums of squares (N,).
+    Each echo iterates on its own, up to ``steps`` Gauss-Newton steps or until
+    its step is below ``converged``, so its fit is the same in any batch.
+    """
     n_echoes, n_receivers = paths.shape
     fitted = np.empty((n_echoes, 2))
     chi2 = np.empty(n_echoes)
