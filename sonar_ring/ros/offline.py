@@ -42,7 +42,7 @@ from std_msgs.msg import Header
 
 from sonar_ring import classify, localise, mapping, pipeline
 from sonar_ring.geometry import Layout, LayoutError, config_path, load_layout
-from sonar_ring.landmarks import CLASS_NAMES, Landmarks
+from sonar_ring.landmarks import CLASS_NAMES
 from sonar_ring.mapping import LandmarkMap, Sightings
 from sonar_ring.msg import Echoes
 from sonar_ring.progress import Progress
@@ -162,8 +162,8 @@ class PingOutput:
     messages : tuple of bytes
         Serialized ``landmarks/raw``, ``landmarks`` and ``markers`` messages;
         empty when the ping was refused.
-    landmarks : Landmarks or None
-        The labelled landmarks (sensor frame).
+    per_class : ndarray of int or None
+        The labelled landmarks per class code; None when the ping was refused.
     sightings : Sightings or None
         Those landmarks screened for the mapper at the ping's pose
         (:func:`~sonar_ring.ros.mapper.sightings_at`); None without a pose.
@@ -172,7 +172,7 @@ class PingOutput:
     problems: dict
     notes: dict
     messages: tuple = ()
-    landmarks: Landmarks | None = None
+    per_class: np.ndarray | None = None
     sightings: Sightings | None = None
 
 
@@ -226,7 +226,8 @@ class PingStage:
                     serialize_markers(landmark_markers(labelled, "landmarks", self.marker_lifetime), msg.header))
             sightings = None if poses[index] is None else mapper.sightings_at(self.screening, labelled, poses[index],
                                                                               self.sensor_offset)
-            outputs.append(PingOutput(dict(tally.problems), dict(tally.notes), data, labelled, sightings))
+            per_class = np.bincount(labelled.landmark_class, minlength=len(CLASS_NAMES))
+            outputs.append(PingOutput(dict(tally.problems), dict(tally.notes), data, per_class, sightings))
         return outputs
 
 
@@ -345,11 +346,11 @@ class OfflineGraph:
         self._maps_until(time_ns)
         self._tally.problems.update(output.problems)
         self._tally.notes.update(output.notes)
-        if output.landmarks is None:
+        if output.per_class is None:
             return
         for name, data in zip(("landmarks/raw", "landmarks", "markers"), output.messages, strict=True):
             self._writer.write(self._connections[name], time_ns, data)
-        self.per_class += np.bincount(output.landmarks.landmark_class, minlength=len(CLASS_NAMES))
+        self.per_class += output.per_class
         pose, problem = self._robot_pose(stamp_ns(header))
         if pose is None:
             self._tally.problem(*problem)
