@@ -265,7 +265,8 @@ def stage_workers(stage: PingStage, jobs: int):
         yield pool
 
 
-def ordered_map(stage: PingStage, items, workers: ProcessPoolExecutor | None, jobs: int, batch: int = 64):
+def ordered_map(stage: PingStage, items, workers: ProcessPoolExecutor | None, jobs: int, meanwhile=None,
+                batch: int = 64):
     """``(item, output)`` for ``(message, data, pose, item)`` in ``items``, in order: the stage's output.
 
     The output is that of ``message`` with the robot at ``pose`` (:meth:`PingStage.run`).
@@ -275,10 +276,13 @@ def ordered_map(stage: PingStage, items, workers: ProcessPoolExecutor | None, jo
     batches go to the workers (``jobs - 1`` of them) as serialized messages
     (``data``), while this process, which reads, maps and writes and is the
     busiest, goes on.  At most ``2 * jobs`` batches are in flight, so a long bag
-    is streamed, not loaded.
+    is streamed, not loaded.  ``meanwhile`` (no arguments) runs once before the
+    first output: with workers, while they work on the first batches.
     """
     chunks = iter(lambda: list(itertools.islice(items, batch)), [])
     if workers is None:
+        if meanwhile:
+            meanwhile()
         for chunk in chunks:
             outputs = stage.run([message for message, *_ in chunk], [pose for *_, pose, _ in chunk])
             yield from zip([item for *_, item in chunk], outputs, strict=True)
@@ -289,6 +293,9 @@ def ordered_map(stage: PingStage, items, workers: ProcessPoolExecutor | None, jo
             pending.append(([item for *_, item in chunk],
                             workers.submit(_work, [data for _, data, *_ in chunk], [pose for *_, pose, _ in chunk])))
         while pending and (chunk is None or len(pending) >= 2 * jobs):
+            if meanwhile:
+                meanwhile()
+                meanwhile = None
             chunk_items, future = pending.popleft()
             yield from zip(chunk_items, future.result(), strict=True)
 
@@ -522,7 +529,6 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
         stage = PingStage.from_values(sensor, values)
         jobs = jobs or len(os.sched_getaffinity(0))
         with stage_workers(stage, jobs) as workers, BagWriter(out_path, storage) as writer:
-            mapping.load_kernels()  # while the workers load theirs
             graphs = {}
             for name, namespace in zip(chosen, namespaces, strict=True):
                 odometry = None
@@ -543,7 +549,9 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
                     if bar:
                         bar.update(len(times))
 
-            for (graph, time_ns, header), output in ordered_map(stage, admitted(), workers, jobs):
+            # The map's kernels load while the workers localise the first batches.
+            for (graph, time_ns, header), output in ordered_map(stage, admitted(), workers, jobs,
+                                                                meanwhile=mapping.load_kernels):
                 graph.take(time_ns, header, output)
             if bar:
                 bar.close()
