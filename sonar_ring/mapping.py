@@ -263,6 +263,73 @@ def _gated_scores(innovation, covariance, observations, distance, with_distance,
     return d2, score
 
 
+@kernel
+def _point_scores(rows, slots, seen_class, position, covariance, normal, distance, entry_class, by_motion, mean,
+                  information, observations, anchor, line, line_information, extent, map_sigma, gate):
+    """:meth:`LandmarkMap._point_distances` of sightings ``rows`` (of the sightings' arrays) against points ``slots``.
+
+    A sighting is tried as a point where the classes allow (not a plane; the
+    point UNKNOWN, the sighting UNKNOWN or of its class, or the point's class
+    from motion alone), and against an UNKNOWN point's plane hypothesis where it
+    may be a plane; ``d^2`` and the score are the smaller of the two (inf where
+    neither applies).
+    """
+    seen, entry = seen_class[rows], entry_class[slots]
+    as_point = (seen != PLANE) & ((entry == UNKNOWN) | (seen == UNKNOWN) | (seen == entry) | by_motion[slots])
+    floor = map_sigma ** 2 * np.eye(2)
+    d2, score = _gated_scores(position[rows] - mean[slots], covariance[rows] + (_inverse(information[slots]) + floor),
+                              observations[slots], np.zeros(0), False, gate)
+    d2 = np.where(as_point, d2, np.inf)
+    score = np.where(as_point, score, np.inf)
+    as_line = np.flatnonzero((entry == UNKNOWN) & ((seen == UNKNOWN) | (seen == PLANE)))
+    if as_line.size:
+        open_slots, line_rows = slots[as_line], rows[as_line]
+        value, jacobian = _line_of_sight(normal[line_rows], position[line_rows], anchor[open_slots],
+                                         distance[line_rows])
+        innovation = value - line[open_slots]
+        innovation[:, 0] = (innovation[:, 0] + np.pi) % (2.0 * np.pi) - np.pi
+        line_covariance = (_sandwich(jacobian, covariance[line_rows])
+                           + (_inverse(line_information[open_slots]) + _line_floor(extent[open_slots], map_sigma)))
+        line_d2, line_score = _gated_scores(innovation, line_covariance, observations[open_slots],
+                                            distance[line_rows], True, gate)
+        d2[as_line] = np.minimum(d2[as_line], line_d2)
+        score[as_line] = np.minimum(score[as_line], line_score)
+    return d2, score
+
+
+@kernel
+def _wall_scores(rows, slots, position, covariance, normal, distance, anchor, line, information, tangent, extent,
+                 observations, map_sigma, radius, gate):
+    """Sightings ``rows`` (of the sightings' arrays) near walls ``slots``, and their line ``d^2`` and scores.
+
+    A pair is a candidate where the sighting lies within ``radius`` of the wall's
+    segment.  Returns the pairs' sighting rows and wall slots, by sighting, then
+    wall, and their ``d^2`` and scores (see :meth:`LandmarkMap._score`).
+    """
+    near_rows, near_walls = [], []
+    for row in rows:
+        for wall in slots:
+            start_x = anchor[wall, 0] + extent[wall, 0] * tangent[wall, 0]
+            start_y = anchor[wall, 1] + extent[wall, 0] * tangent[wall, 1]
+            along_x = anchor[wall, 0] + extent[wall, 1] * tangent[wall, 0] - start_x
+            along_y = anchor[wall, 1] + extent[wall, 1] * tangent[wall, 1] - start_y
+            offset_x, offset_y = position[row, 0] - start_x, position[row, 1] - start_y
+            fraction = min(max((offset_x * along_x + offset_y * along_y)
+                               / max(along_x * along_x + along_y * along_y, 1e-18), 0.0), 1.0)
+            gap_x, gap_y = offset_x - fraction * along_x, offset_y - fraction * along_y
+            if gap_x ** 2 + gap_y ** 2 <= radius ** 2:
+                near_rows.append(row)
+                near_walls.append(wall)
+    pair_rows, pair_walls = np.array(near_rows, dtype=np.int64), np.array(near_walls, dtype=np.int64)
+    value, jacobian = _line_of_sight(normal[pair_rows], position[pair_rows], anchor[pair_walls], distance[pair_rows])
+    innovation = value - line[pair_walls]
+    innovation[:, 0] = (innovation[:, 0] + np.pi) % (2.0 * np.pi) - np.pi
+    line_covariance = (_sandwich(jacobian, covariance[pair_rows])
+                       + (_inverse(information[pair_walls]) + _line_floor(extent[pair_walls], map_sigma)))
+    d2, score = _gated_scores(innovation, line_covariance, observations[pair_walls], distance[pair_rows], True, gate)
+    return pair_rows, pair_walls, d2, score
+
+
 def _chi2_quantile(dof, z: float):
     """Wilson-Hilferty approximation of the chi-square quantile at normal point ``z``."""
     dof = np.maximum(dof, 1.0)
@@ -982,22 +1049,9 @@ class LandmarkMap:
         score that of the best model within the gate (see :meth:`_score`).
         """
         p = self._points
-        seen = s.landmark_class[rows]
-        entry = p.landmark_class[slots]
-        as_point = (seen != PLANE) & ((entry == UNKNOWN) | (seen == UNKNOWN) | (seen == entry) | p.by_motion[slots])
-        d2, score = self._score(s.position[rows] - p.mean[slots], s.covariance[rows] + self._point_covariance(slots),
-                                p.observations[slots])
-        d2 = np.where(as_point, d2, np.inf)
-        score = np.where(as_point, score, np.inf)
-        as_line = np.flatnonzero((entry == UNKNOWN) & ((seen == UNKNOWN) | (seen == PLANE)))
-        if as_line.size:
-            open_slots = slots[as_line]
-            innovation, covariance = s.line_innovation(rows[as_line], p.anchor[open_slots], p.line[open_slots])
-            line_d2, line_score = self._score(innovation, covariance + self._track_line_covariance(open_slots),
-                                              p.observations[open_slots], s.distance[rows[as_line]])
-            d2[as_line] = np.minimum(d2[as_line], line_d2)
-            score[as_line] = np.minimum(score[as_line], line_score)
-        return d2, score
+        return _point_scores(rows, slots, s.landmark_class, s.position, s.covariance, s.normal, s.distance,
+                             p.landmark_class, p.by_motion, p.mean, p.information, p.observations, p.anchor, p.line,
+                             p.line_information, p.extent, self.map_sigma, self.gate)
 
     def _associate(self, s: Sightings) -> np.ndarray:
         """Best entry for each sighting, all sightings against the whole map at once.
@@ -1018,17 +1072,10 @@ class LandmarkMap:
         slots = np.flatnonzero(self._walls.active)
         line_like = np.flatnonzero((s.landmark_class == UNKNOWN) | (s.landmark_class == PLANE))
         if slots.size and line_like.size:
-            ends = self._walls.end_points(slots)
-            along = ends[:, 1] - ends[:, 0]
-            length2 = np.maximum(_dot(along, along), 1e-18)
-            offset = s.position[line_like, None, :] - ends[None, :, 0]
-            fraction = np.clip(_dot(offset, along[None]) / length2, 0.0, 1.0)
-            gap = offset - fraction[..., None] * along[None]
-            row, column = np.nonzero(gap[..., 0] ** 2 + gap[..., 1] ** 2 <= self.search_radius ** 2)
-            row, walls = line_like[row], slots[column]
-            innovation, covariance = s.line_innovation(row, self._walls.anchor[walls], self._walls.line[walls])
-            d2, score = self._score(innovation, covariance + self._wall_covariance(walls),
-                                    self._walls.observations[walls], s.distance[row])
+            w = self._walls
+            row, walls, d2, score = _wall_scores(line_like, slots, s.position, s.covariance, s.normal, s.distance,
+                                                 w.anchor, w.line, w.information, w.tangent, w.extent, w.observations,
+                                                 self.map_sigma, self.search_radius, self.gate)
             rows.append(row)
             targets.append(self.max_points + walls)
             distances.append(d2)
