@@ -37,4 +37,10 @@ colcon --log-base log build --base-paths "$root" --build-base build --install-ba
   --event-handlers console_cohesion- summary- status- \
   --cmake-args -DPython3_EXECUTABLE="$venv/bin/python" -DBUILD_TESTING=OFF -Wno-dev \
   > "$root/log/colcon-build.txt" 2>&1 || { cat log/colcon-build.txt; echo "bootstrap: colcon build failed"; exit 1; }
+# numba compiles the core's kernels at their first use and caches the machine code
+# beside the installed modules: do it here (about 20 s after a change), not in the
+# first test or the first ping.  An unchanged build keeps the cache.
+(set +u && source "$root/tools/env.sh" && cd / && python -c \
+  "from sonar_ring import classify, localise, mapping; localise.load_kernels(); classify.load_kernels(); mapping.load_kernels()") \
+  || { echo "bootstrap: loading the compiled kernels failed"; exit 1; }
 echo "bootstrap: built into install/ (source tools/env.sh to use it)"
