@@ -330,6 +330,39 @@ def _wall_scores(rows, slots, position, covariance, normal, distance, anchor, li
     return pair_rows, pair_walls, d2, score
 
 
+@kernel
+def _fuse_lines(line, information, chi2, with_chi2, anchor, axis, extent, slots, rows, normal, position, distance,
+                covariance, segment):
+    """Fuse sightings ``rows`` (of the sightings' arrays) into the lines ``slots`` of a table, in place.
+
+    Each entry's line ``(theta, delta)`` about its anchor takes the sightings' line
+    observations in information form (:func:`_information_update`, ``chi2`` where
+    ``with_chi2``), ``theta`` wrapped, and its extent along ``axis`` (its unit
+    direction, per entry) grows to cover the sightings' segment ends.  Returns
+    the entries updated (ascending) and whether each one's extent grew.
+    """
+    value, jacobian = _line_of_sight(normal[rows], position[rows], anchor[slots], distance[rows])
+    innovation = value - line[slots]
+    innovation[:, 0] = (innovation[:, 0] + np.pi) % (2.0 * np.pi) - np.pi
+    updated = np.unique(slots)
+    _fuse_information(line, information, chi2, with_chi2, slots, updated, innovation,
+                      _inverse(_sandwich(jacobian, covariance[rows])))
+    before = extent[updated].copy()
+    for slot in updated:
+        line[slot, 0] = (line[slot, 0] + np.pi) % (2.0 * np.pi) - np.pi
+    for k in range(slots.size):
+        slot, row = slots[k], rows[k]
+        for end in range(2):
+            along = ((segment[row, end, 0] - anchor[slot, 0]) * axis[slot, 0]
+                     + (segment[row, end, 1] - anchor[slot, 1]) * axis[slot, 1])
+            extent[slot, 0] = np.minimum(extent[slot, 0], along)
+            extent[slot, 1] = np.maximum(extent[slot, 1], along)
+    grew = np.empty(updated.size, dtype=np.bool_)
+    for index in range(updated.size):
+        grew[index] = extent[updated[index], 0] != before[index, 0] or extent[updated[index], 1] != before[index, 1]
+    return updated, grew
+
+
 def _chi2_quantile(dof, z: float):
     """Wilson-Hilferty approximation of the chi-square quantile at normal point ``z``."""
     dof = np.maximum(dof, 1.0)
@@ -1246,14 +1279,9 @@ class LandmarkMap:
     def _fuse_plane_hypotheses(self, s: Sightings, rows, slots) -> None:
         """Fuse sightings ``rows`` into the plane hypotheses, extents and baselines of ``slots``."""
         p = self._points
-        innovation, covariance = s.line_innovation(rows, p.anchor[slots], p.line[slots])
-        _information_update(p.line, p.line_information, p.line_chi2, _Groups(slots, self.max_points), innovation,
-                            _inverse(covariance))
-        p.line[slots, 0] = _wrap(p.line[slots, 0])
+        _fuse_lines(p.line, p.line_information, p.line_chi2, True, p.anchor, p.across, p.extent, slots, rows,
+                    s.normal, s.position, s.distance, s.covariance, s.segment)
         across = p.across[slots]
-        along = _dot(s.segment[rows] - p.anchor[slots][:, None, :], across[:, None, :])
-        np.minimum.at(p.extent[:, 0], slots, along.min(axis=1))
-        np.maximum.at(p.extent[:, 1], slots, along.max(axis=1))
         sensor_along = _dot(s.sensor - p.anchor[slots], across)
         np.minimum.at(p.baseline[:, 0], slots, sensor_along)
         np.maximum.at(p.baseline[:, 1], slots, sensor_along)
@@ -1268,20 +1296,14 @@ class LandmarkMap:
         w = self._walls
         slots = target[rows] - self.max_points
         groups = _Groups(slots, self.max_walls)
-        innovation, covariance = s.line_innovation(rows, w.anchor[slots], w.line[slots])
-        along = _dot(s.segment[rows] - w.anchor[slots][:, None, :], w.tangent[slots][:, None, :])
-        _information_update(w.line, w.information, None, groups, innovation, _inverse(covariance))
-        w.line[groups.rows, 0] = _wrap(w.line[groups.rows, 0])
-        before = w.extent[groups.rows]
-        np.minimum.at(w.extent[:, 0], slots, along.min(axis=1))
-        np.maximum.at(w.extent[:, 1], slots, along.max(axis=1))
-        grown = groups.rows[np.any(w.extent[groups.rows] != before, axis=1)]
+        updated, grew = _fuse_lines(w.line, w.information, np.zeros(0), False, w.anchor, w.tangent, w.extent, slots,
+                                    rows, s.normal, s.position, s.distance, s.covariance, s.segment)
         w.observations[groups.rows] += groups.counts[groups.rows]
         classified = s.landmark_class[rows] != UNKNOWN
         w.confidence_sum[groups.rows] += groups.total(np.where(classified, s.confidence[rows], 0.0))
         w.confidence_count[groups.rows] += groups.total(classified.astype(float))
         w.recentre(groups.rows)
-        return grown
+        return updated[grew]
 
     # ------------------------------------------------------------------ classes over motion
 
