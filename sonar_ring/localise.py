@@ -377,7 +377,7 @@ def solve_rows(tx, rx1, rx2, d1, d2, wanted):
             if plane_reason == OK and not length > 0:
                 plane_reason = DEGENERATE
             reason[1, k] = plane_reason
-            if plane_reason == OK:
+            if wanted[1] and plane_reason == OK:
                 normal_x, normal_y = axis_x / length, axis_y / length
                 normal[k, 0], normal[k, 1] = normal_x, normal_y
                 position[1, k, 0], position[1, k, 1] = tx_x + 0.5 * axis_x, tx_y + 0.5 * axis_y
@@ -394,7 +394,7 @@ def solve_rows(tx, rx1, rx2, d1, d2, wanted):
             if corner_reason == OK and not (corner_x - c_x) * n_x + (corner_y - c_y) * n_y > 0:
                 corner_reason = BEHIND
             reason[2, k] = corner_reason
-            if corner_reason == OK:
+            if wanted[2] and corner_reason == OK:
                 position[2, k, 0], position[2, k, 1] = corner_x, corner_y
 
         if wanted[3]:
