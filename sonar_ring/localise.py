@@ -318,15 +318,19 @@ def solve_rows(tx, rx1, rx2, d1, d2, wanted):
 
     Inputs as :func:`_flat_inputs` gives them.  Returns ``reason`` (5, N) int8,
     ``position`` (5, N, 2), and the plane's ``normal`` (N, 2) and
-    ``reflection_points`` (N, 2, 2); NaN wherever the entry is not valid (and for
-    models not wanted).  An entry carries the code of the first check it fails,
+    ``reflection_points`` (N, 2, 2); NaN wherever the entry is not valid, and
+    unspecified for models not wanted.  An entry carries the code of the first check it fails,
     in the order of the module docstring.
     """
     count = d1.size
     reason = np.zeros((5, count), dtype=np.int8)
-    position = np.full((5, count, 2), np.nan)
-    normal = np.full((count, 2), np.nan)
-    reflection = np.full((count, 2, 2), np.nan)
+    # Only what is wanted is filled (NaN until an entry turns out valid); the rest is never read.
+    position = np.empty((5, count, 2))
+    for model in range(5):
+        if wanted[model]:
+            position[model] = np.nan
+    normal = np.full((count, 2), np.nan) if wanted[1] else np.empty((count, 2))
+    reflection = np.full((count, 2, 2), np.nan) if wanted[1] else np.empty((count, 2, 2))
     for k in range(count):
         tx_x, tx_y, r1_x, r1_y, r2_x, r2_y = tx[k, 0], tx[k, 1], rx1[k, 0], rx1[k, 1], rx2[k, 0], rx2[k, 1]
         a, b = d1[k], d2[k]
