@@ -207,8 +207,8 @@ def _add_process(subparsers) -> None:
     p.add_argument("--odom-topic", metavar="TOPIC", help="nav_msgs/Odometry for the mapper, relative to the echoes' "
                    "namespace (default: odom if the bag has it, else the mapper's fixed_pose)")
     p.add_argument("--jobs", type=_positive_int, metavar="N", help="processes in all: this one (reading, mapping, "
-                   "writing) and N - 1 workers localising and classifying batches of pings; 1: all in this one "
-                   "(default: one per CPU)")
+                   "writing) and N - 1 workers localising, classifying and screening batches of pings for the "
+                   "mapper; 1: all in this one (default: one per CPU)")
     _add_output_options(p)
     p.set_defaults(handler=_run_process)
 

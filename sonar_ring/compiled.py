@@ -9,10 +9,13 @@ and compiled from the first call of any kernel on:
 * numba is imported then, not when the core is imported (about 0.2 s and 100 MiB a
   process that never calls a kernel need not pay);
 * every kernel becomes its numba dispatcher, under its own name in its module,
-  so kernels call each other (across modules too) as compiled code and Python
-  callers reach the machine code without a wrapper;
+  so kernels call each other as compiled code and Python callers reach the
+  machine code without a wrapper.  A kernel calls kernels of its own module
+  only: numba's cache of a caller holds its callees' code and is invalidated by
+  changes to the caller's file alone;
 * the machine code is cached beside the module (or in the user's cache where that
-  is read-only), so later processes load it in tens of milliseconds;
+  is read-only; nowhere, and compiled in each process, where neither can be
+  written), so later processes load it in milliseconds;
 * ``error_model="numpy"``: division follows IEEE (inf and NaN, as numpy) instead of
   raising ``ZeroDivisionError``.
 
@@ -24,11 +27,13 @@ from __future__ import annotations
 
 import functools
 import sys
+import threading
 
 _KERNELS: dict[str, list] = {}
 """The kernel functions of each module, by module name, in definition order."""
 _DISPATCHERS: dict[tuple, object] = {}
 """The numba dispatcher of each kernel compiled so far, by (module name, function name)."""
+_LOCK = threading.Lock()
 
 
 def kernel(function):
@@ -36,8 +41,8 @@ def kernel(function):
     _KERNELS.setdefault(function.__module__, []).append(function)
 
     @functools.wraps(function)
-    def first_call(*args):
-        return _compile()[function.__module__, function.__name__](*args)
+    def first_call(*args, **kwargs):
+        return _compile()[function.__module__, function.__name__](*args, **kwargs)
 
     return first_call
 
@@ -45,16 +50,22 @@ def kernel(function):
 def _compile() -> dict:
     """Every kernel of every imported module as a numba dispatcher, put in its module under its name.
 
-    All at once, so a kernel may call kernels of other modules; numba compiles
+    All at once, so a kernel may call the others of its module; numba compiles
     (or loads) each one at its own first call.  Kernels of modules imported later
     join at the next first call.
     """
     import numba
 
-    jit = numba.njit(cache=True, error_model="numpy", nogil=True)
-    for module_name, functions in _KERNELS.items():
-        for function in functions:
-            if (module_name, function.__name__) not in _DISPATCHERS:
-                dispatcher = _DISPATCHERS[module_name, function.__name__] = jit(function)
+    with _LOCK:
+        for module_name, functions in list(_KERNELS.items()):
+            for function in functions:
+                if (module_name, function.__name__) in _DISPATCHERS:
+                    continue
+                options = {"error_model": "numpy", "nogil": True}
+                try:
+                    dispatcher = numba.njit(cache=True, **options)(function)
+                except RuntimeError:  # no writable cache location: compile in each process instead
+                    dispatcher = numba.njit(**options)(function)
+                _DISPATCHERS[module_name, function.__name__] = dispatcher
                 setattr(sys.modules[module_name], function.__name__, dispatcher)
-    return _DISPATCHERS
+        return _DISPATCHERS

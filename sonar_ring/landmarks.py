@@ -83,6 +83,8 @@ class Landmarks:
     def select(self, index) -> Landmarks:
         """The landmarks picked by a boolean mask (shape (L,)) or an index array."""
         index = np.asarray(index)
+        if index.size == 0 and index.dtype != bool:
+            index = index.astype(np.intp)  # an empty list is an empty index, not floats
         if index.dtype == bool:
             if index.shape != (len(self),):
                 raise IndexError(f"Landmarks.select: a mask of shape {index.shape} for {len(self)} landmarks")

@@ -468,6 +468,70 @@ def solve_rows(tx, rx1, rx2, d1, d2, wanted):
     return reason, position, normal, reflection
 
 
+ARC_MSE = 30.0
+"""Mean-squared error along an estimate's arc bias, in squared biases (see :func:`unscented_models`)."""
+
+
+@kernel
+def unscented_models(tx, rx1, rx2, d1, d2, paths_covariance, wanted):
+    """The models of ``localise.SOLVERS`` flagged in ``wanted`` for N rows, with unscented covariances.
+
+    Each row's paths ``(d1, d2)`` (N,) with covariance ``S`` (N, 2, 2) give five
+    sigma points (``n + kappa = 3``): the measurement, and it plus and minus each
+    column of the Cholesky factor of ``3 S``; one solve of all five times N
+    entries (``localise.solve_rows``) gives the estimate (point 0) and its spread.
+    Returns ``reason`` (5, N), ``position`` (5, N, 2), the plane's ``normal``
+    (N, 2) and ``reflection_points`` (N, 2, 2) of the estimates, and their
+    covariances (5, N, 2, 2): the sigma points' covariance with the arc's bias
+    raised to :data:`ARC_MSE` (see :func:`localise_ping`); NaN where a sigma
+    point has no solution.
+    """
+    count = d1.size
+    sigma_d1, sigma_d2 = np.empty(5 * count), np.empty(5 * count)
+    sigma_tx, sigma_rx1, sigma_rx2 = np.empty((5 * count, 2)), np.empty((5 * count, 2)), np.empty((5 * count, 2))
+    largest = np.finfo(np.float64).max
+    for row in range(count):
+        scaled = np.empty(3)
+        for entry, (i, j) in enumerate(((0, 0), (1, 0), (1, 1))):
+            value = paths_covariance[row, i, j]
+            finite = value if np.isfinite(value) else (0.0 if np.isnan(value) else np.sign(value) * largest)
+            scaled[entry] = 3.0 * finite + (1e-30 if i == j else 0.0)
+        # Cholesky factor [[l00, 0], [l10, l11]] of 3 S; the sigma points add and subtract its columns.
+        l00 = np.sqrt(scaled[0])
+        l10 = scaled[1] / l00
+        l11 = np.sqrt(scaled[2] - l10 * l10)
+        offsets = ((0.0, 0.0), (l00, l10), (-l00, -l10), (0.0, l11), (-0.0, -l11))
+        for point in range(5):
+            entry = point * count + row
+            sigma_d1[entry] = d1[row] + offsets[point][0]
+            sigma_d2[entry] = d2[row] + offsets[point][1]
+            sigma_tx[entry], sigma_rx1[entry], sigma_rx2[entry] = tx[row], rx1[row], rx2[row]
+    reason, position, normal, reflection = solve_rows(sigma_tx, sigma_rx1, sigma_rx2, sigma_d1, sigma_d2, wanted)
+    weights = (1.0 / 3.0, 1.0 / 6.0, 1.0 / 6.0, 1.0 / 6.0, 1.0 / 6.0)
+    covariance = np.full((5, count, 2, 2), np.nan)
+    for model in range(5):
+        if not wanted[model]:
+            continue
+        for row in range(count):
+            mean_x = mean_y = 0.0
+            for point in range(5):
+                mean_x += weights[point] * position[model, point * count + row, 0]
+                mean_y += weights[point] * position[model, point * count + row, 1]
+            xx = xy = yy = 0.0
+            for point in range(5):
+                dx = position[model, point * count + row, 0] - mean_x
+                dy = position[model, point * count + row, 1] - mean_y
+                xx += weights[point] * dx * dx
+                xy += weights[point] * dx * dy
+                yy += weights[point] * dy * dy
+            # The transform already holds 2 m^2 of arc spread along the bias b; add the rest of ARC_MSE.
+            bias_x, bias_y = mean_x - position[model, row, 0], mean_y - position[model, row, 1]
+            covariance[model, row, 0, 0] = xx + (ARC_MSE - 2.0) * bias_x * bias_x
+            covariance[model, row, 0, 1] = covariance[model, row, 1, 0] = xy + (ARC_MSE - 2.0) * bias_x * bias_y
+            covariance[model, row, 1, 1] = yy + (ARC_MSE - 2.0) * bias_y * bias_y
+    return (reason[:, :count], position[:, :count], normal[:count], reflection[:count], covariance)
+
+
 def _solved(caller, models, tx, rx1, rx2, d1, d2) -> dict:
     """The estimates of ``models`` (names of :data:`SOLVERS`) for inputs of any broadcast shape, by name, in order."""
     shape, *inputs = _flat_inputs(caller, tx, rx1, rx2, d1, d2)
@@ -660,12 +724,16 @@ def hypotheses(tx, rx1, rx2, d1, d2, models=tuple(MODELS)) -> dict:
 
 
 def load_kernels() -> None:
-    """Load the compiled solver now instead of at the first solve.
+    """Load the compiled solvers now instead of at the first solve.
 
     Loading takes about 0.5 s (numba's start and the cached machine code); a
-    process that localises on a deadline pays it at start.
+    process that localises on a deadline pays it at start.  Runs the models
+    alone (:func:`hypotheses`) and with their covariances (:func:`unscented_models`,
+    what ``pipeline.localise_ping`` uses), with the production argument types.
     """
     hypotheses([0.0, 0.0], [0.0, 0.02], [0.0, -0.02], 1.0, 1.0)
+    unscented_models(np.zeros((1, 2)), np.array([[0.0, 0.02]]), np.array([[0.0, -0.02]]), np.ones(1), np.ones(1),
+                     1e-8 * np.eye(2)[None], np.ones(len(SOLVERS), dtype=bool))
 
 
 @_quiet

@@ -650,7 +650,9 @@ def _screen_rows(landmark_class, valid, position, covariance, segment, normal, s
                   and abs(yy) <= MAX_COORDINATE ** 2)
         for axis in range(2):
             finite = (finite and abs(position[k, axis]) <= MAX_COORDINATE and abs(segment[k, 0, axis]) <= MAX_COORDINATE
-                      and abs(segment[k, 1, axis]) <= MAX_COORDINATE and (np.isfinite(normal[k, axis]) or not plane))
+                      and abs(segment[k, 1, axis]) <= MAX_COORDINATE)
+        # A plane's normal: its components' sum finite (huge components overflow it, as NaN and inf do).
+        finite = finite and (np.isfinite(normal[k, 0] + normal[k, 1]) or not plane)
         if not finite:
             counts[1] += 1
             continue
@@ -1498,15 +1500,16 @@ def load_kernels() -> None:
 
     Loading takes about 0.5 s (numba's start and the cached machine code of each
     kernel); a process that maps on a deadline pays it at start.  A scratch map
-    sees a wall, a corner and an unknown reflector from three poses, which takes
-    every kernel's path with the production argument types.
+    sees two walls, a corner and an unknown reflector from three poses, which
+    takes every kernel's path with the production argument types.
     """
     scratch = LandmarkMap()
     spread = np.array([[-0.02, 0.0], [0.02, 0.0]])
     for x in (0.0, 0.2, 0.4):
-        position = np.array([[x, 1.0], [1.5, -1.2], [-1.0, 0.5]])
-        scratch.update(make_landmarks(np.array([PLANE, CORNER, UNKNOWN]), position,
-                                      normal=np.array([[0.0, 1.0], [0.0, 0.0], [0.0, 0.0]]),
-                                      covariance=np.tile(1e-4 * np.eye(2), (3, 1, 1)),
-                                      segment=position[:, None, :] + spread, confidence=np.array([0.9, 0.9, 0.0])),
+        position = np.array([[x, 1.0], [x + 2.0, 1.0], [1.5, -1.2], [-1.0, 0.5]])
+        scratch.update(make_landmarks(np.array([PLANE, PLANE, CORNER, UNKNOWN]), position,
+                                      normal=np.array([[0.0, 1.0], [0.0, 1.0], [0.0, 0.0], [0.0, 0.0]]),
+                                      covariance=np.tile(1e-4 * np.eye(2), (4, 1, 1)),
+                                      segment=position[:, None, :] + spread,
+                                      confidence=np.array([0.9, 0.9, 0.9, 0.0])),
                        (x, 0.0, 0.0))

@@ -564,3 +564,11 @@ def test_room_end_to_end(room_run, unclassified):
     assert_allclose(south.normal[0], [0.0, 1.0], atol=np.sin(np.radians(0.5)))
     travel = [pings[0][0][0], pings[-1][0][0]]
     assert_allclose(np.sort(south.segment[0, :, 0]), travel, atol=0.1)
+
+
+def test_a_plane_normal_that_overflows_is_not_finite():
+    """Huge components pass one by one but their sum overflows: corrupt, like NaN."""
+    landmark_map = LandmarkMap()
+    plane = make_landmarks([PLANE], [[1.0, 1.0]], normal=[[1e308, 1e308]], covariance=np.diag([1e-4, 1e-4]))
+    landmark_map.update(plane, [0.0, 0.0, 0.0])
+    assert landmark_map.counts.not_finite == 1 and len(landmark_map) == 0

@@ -152,6 +152,8 @@ def test_error_handling():
         pipeline.Settings(models=("plane", "wall"))
     with pytest.raises(ValueError, match="models must be a non-empty subset"):
         pipeline.Settings(models=())
+    with pytest.raises(ValueError, match="each once"):
+        pipeline.Settings(models=("plane", "plane"))
     triad = load_layout("kreczmer_triad")
     no_phase = EchoArrays(triad.name, 343.0, np.array([0]), np.array([0]), np.full((1, 3), 5e-3),
                           np.empty((1, 0)), np.empty((1, 0)))
@@ -168,3 +170,19 @@ def test_error_handling():
     empty = EchoArrays(RING.name, 343.0, np.zeros(0, int), np.zeros(0, int), np.empty((0, 2)), np.empty((0, 0)),
                        np.empty((0, 0)))
     assert len(pipeline.classify_ping(RING, empty, pipeline.localise_ping(RING, empty))) == 0
+
+
+def test_a_singular_path_covariance_falls_back_to_first_order():
+    """sigma_t = 0 with a speed-of-sound error: the paths' covariance has rank one.
+
+    Its Cholesky factor may not be real; those rows take the first-order
+    covariance instead of failing the ping.
+    """
+    settings = pipeline.Settings(sigma_tof=0.0, sigma_speed=1.0)
+    for ping in room_pings(5, 1e-6):
+        hypotheses = pipeline.localise_ping(RING, ping.echoes, settings)
+        valid = hypotheses.valid
+        assert valid.any()
+        assert np.isfinite(hypotheses.covariance[valid]).all()
+        # Positive semi-definite: what the speed of sound alone can move, along one direction.
+        assert (np.linalg.eigvalsh(hypotheses.covariance[valid]) > -1e-12).all()

@@ -27,9 +27,10 @@ from sonar_ring.ros.run import spin
 
 
 def _models_problem(models) -> str | None:
-    unknown = set(models) - set(pipeline.MODEL_CLASS)
-    if unknown or not models:
-        return f"models must be a non-empty subset of {sorted(pipeline.MODEL_CLASS)}, got {list(models)}"
+    try:
+        pipeline.Settings(models=tuple(models))
+    except ValueError as error:
+        return str(error)
     return None
 
 

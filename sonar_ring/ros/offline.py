@@ -6,7 +6,9 @@ recorded in a bag and writes what they publish to a new bag;
 Both call the functions the nodes call -- :func:`sonar_ring.ros.inputs.check_echoes`,
 :mod:`sonar_ring.pipeline`, :mod:`sonar_ring.ros.convert`,
 :mod:`sonar_ring.ros.markers`, the mapper's :func:`~sonar_ring.ros.mapper.integrate`
-and :func:`~sonar_ring.ros.mapper.map_messages`, the driver's message builders
+(in its two halves, :func:`~sonar_ring.ros.mapper.sightings_at` and
+:func:`~sonar_ring.ros.mapper.add_sightings`) and
+:func:`~sonar_ring.ros.mapper.map_messages`, the driver's message builders
 -- on rclpy messages serialized by rclpy (markers by
 :func:`~sonar_ring.ros.markers.serialize_markers`, as the nodes publish them), so
 each output message is the one the live graph publishes for the same input;
@@ -16,11 +18,11 @@ Bag time replaces the node clocks: a ping's outputs are written at its echoes'
 bag time with its echoes' header, and the map at ``map_rate`` ticks of bag time
 (the first one ``1 / map_rate`` after the first ping), when it changed.
 
-The localiser's and classifier's work on a ping needs nothing of other pings
-(:class:`PingStage`), so ``process`` runs it on batches of pings at once
-(:func:`sonar_ring.pipeline.label_pings`) and hands the batches to worker
-processes; the input check, the mapper and the file I/O stay in order in the
-main process.
+The localiser's and classifier's work on a ping, and the mapper's screening of
+its landmarks, need nothing of other pings (:class:`PingStage`), so ``process``
+runs them on batches of pings at once (:func:`sonar_ring.pipeline.label_pings`)
+and hands the batches to worker processes; the input check, the map's
+association and fusion and the file I/O stay in order in the main process.
 """
 
 from __future__ import annotations
@@ -42,7 +44,7 @@ from std_msgs.msg import Header
 
 from sonar_ring import classify, localise, mapping, pipeline
 from sonar_ring.geometry import Layout, LayoutError, config_path, load_layout
-from sonar_ring.landmarks import CLASS_NAMES
+from sonar_ring.landmarks import CLASS_NAMES, Landmarks
 from sonar_ring.mapping import LandmarkMap, Sightings
 from sonar_ring.msg import Echoes
 from sonar_ring.progress import Progress
@@ -242,6 +244,7 @@ def _start_worker(stage: PingStage) -> None:
         localise.load_kernels()
     if stage.layout.kind == "ring":
         classify.load_kernels()
+    stage.screening.screen(Landmarks.empty(), (0.0, 0.0, 0.0))  # loads the screening kernel
 
 
 def _work(batch: list[bytes], poses: list) -> list[PingOutput]:
@@ -494,9 +497,10 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
     storage : str
         ``mcap`` or ``sqlite3``, for the output.
     jobs : int, optional
-        Processes for the localiser's and classifier's work (the mapper and
-        the file I/O stay in this one); 1 does everything here; default one
-        per CPU this process may use.
+        Processes in all: this one (the map's association and fusion and the
+        file I/O, in order) and ``jobs - 1`` workers for the localiser's and
+        classifier's work and the mapper's screening; 1 does everything here;
+        default one per CPU this process may use.
     progress : bool
         Draw a progress bar on stderr.
 
