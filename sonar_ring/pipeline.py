@@ -17,7 +17,7 @@ different processes.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -318,12 +318,16 @@ def _stackable(first: EchoArrays, other: EchoArrays) -> bool:
 
 
 def _split(landmarks: Landmarks, offsets: np.ndarray) -> list[Landmarks]:
-    """Landmarks of stacked pings back per ping (rows ``offsets[i]:offsets[i + 1]``), ``echo`` per ping, in order."""
+    """Landmarks of stacked pings back per ping (rows ``offsets[i]:offsets[i + 1]``), ``echo`` per ping, in order.
+
+    One gather puts the rows in ping order; each ping's landmarks are then slices
+    of it (views of the batch's arrays).
+    """
     ping = np.searchsorted(offsets, landmarks.echo, side="right") - 1
     order = np.argsort(ping, kind="stable")
+    ordered = landmarks.select(order)
+    ordered = replace(ordered, echo=(ordered.echo - offsets[ping[order]]).astype(ordered.echo.dtype))
     bounds = np.searchsorted(ping[order], np.arange(len(offsets)))
-    parts = []
-    for index in range(len(offsets) - 1):
-        part = landmarks.select(order[bounds[index]:bounds[index + 1]])
-        parts.append(replace(part, echo=(part.echo - offsets[index]).astype(part.echo.dtype)))
-    return parts
+    columns = [getattr(ordered, field.name) for field in fields(Landmarks)]
+    return [Landmarks(*(column[bounds[index]:bounds[index + 1]] for column in columns))
+            for index in range(len(offsets) - 1)]

@@ -155,7 +155,7 @@ _MARKER_TAIL = _marker_tail()
 def _coloured(landmark_class: int, confidence: np.ndarray, repeat: int) -> tuple[tuple, np.ndarray]:
     """Colour by class, alpha by confidence: the marker's colour, and per-point colours where alphas differ."""
     r, g, b = CLASS_COLOURS[landmark_class]
-    alpha = MIN_ALPHA + (1.0 - MIN_ALPHA) * np.clip(confidence, 0.0, 1.0)
+    alpha = MIN_ALPHA + (1.0 - MIN_ALPHA) * np.minimum(np.maximum(confidence, 0.0), 1.0)
     colour = (r, g, b, float(alpha[0]) if alpha.size else 1.0)
     if alpha.size == 0 or bool(np.all(alpha == alpha[0])):
         return colour, np.empty((0, 4), dtype=np.float32)
@@ -180,13 +180,14 @@ def landmark_markers(landmarks: Landmarks, namespace: str, lifetime: float, poin
                      line_width: float = 0.03, min_plane_length: float = 0.25) -> list[MarkerParts]:
     """One marker per class in ``namespace/<class>``; ``lifetime`` 0 keeps them forever."""
     markers = []
+    shown = np.where(landmarks.valid, landmarks.landmark_class, len(CLASS_NAMES))
     for code, name in enumerate(CLASS_NAMES):
-        rows = np.flatnonzero(landmarks.valid & (landmarks.landmark_class == code))
+        rows = np.flatnonzero(shown == code)
         if code == PLANE:
             colour, colours = _coloured(code, landmarks.confidence[rows], 2)
+            ends = plane_segments(landmarks.select(rows), min_plane_length) if rows.size else np.empty((0, 2, 2))
             markers.append(MarkerParts(f"{namespace}/{name}", Marker.LINE_LIST, (line_width, 0.0, 0.0), colour,
-                                       plane_segments(landmarks.select(rows), min_plane_length).reshape(-1, 2),
-                                       colours, lifetime))
+                                       ends.reshape(-1, 2), colours, lifetime))
         else:
             colour, colours = _coloured(code, landmarks.confidence[rows], 1)
             markers.append(MarkerParts(f"{namespace}/{name}", Marker.POINTS, (point_size, point_size, 0.0), colour,
