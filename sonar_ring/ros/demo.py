@@ -161,7 +161,9 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
         bar.close()
         executor.remove_node(driver)
         deadline = time.monotonic() + DRAIN_SECONDS
-        while mapper.health.received_count < driver.pings_published and time.monotonic() < deadline:
+        # Until the mapper has every ping, and each one's odometry: the final map must hold them all.
+        while ((mapper.health.received_count < driver.pings_published or mapper.pending_pings)
+               and time.monotonic() < deadline):
             executor.spin_once(timeout_sec=0.02)
         elapsed = time.monotonic() - started
         mapper.publish_map()

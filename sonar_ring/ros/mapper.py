@@ -198,6 +198,11 @@ class Mapper(SonarNode):
             self.create_subscription(Odometry, "odom", self._on_odometry, 50)
         self._timer = self.create_timer(1.0 / self.params["map_rate"], self.publish_map)
 
+    @property
+    def pending_pings(self) -> int:
+        """Pings received and waiting for odometry at or after their stamp."""
+        return len(self._pending)
+
     # ------------------------------------------------------------------ poses
 
     def _forget_poses(self) -> None:
