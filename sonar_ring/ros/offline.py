@@ -351,8 +351,11 @@ class OfflineGraph:
         self._clock.nanoseconds = time_ns
         return msg if self._gate.admit(msg.header) else None
 
-    def take(self, time_ns: int, header, output: PingOutput) -> None:
-        """Write a ping's outputs at ``time_ns`` and add its landmarks to the map (and the map ticks before it)."""
+    def take(self, time_ns: int, no_pose, output: PingOutput) -> None:
+        """Write a ping's outputs at ``time_ns`` and add its landmarks to the map (and the map ticks before it).
+
+        ``no_pose`` is None, or why the ping has no pose (:meth:`robot_pose`): then it is not mapped.
+        """
         self._maps_until(time_ns)
         self._tally.problems.update(output.problems)
         self._tally.notes.update(output.notes)
@@ -361,9 +364,8 @@ class OfflineGraph:
         for name, data in zip(("landmarks/raw", "landmarks", "markers"), output.messages, strict=True):
             self._writer.write(self._connections[name], time_ns, data)
         self.per_class += output.per_class
-        pose, problem = self._robot_pose(stamp_ns(header))
-        if pose is None:
-            self._tally.problem(*problem)
+        if no_pose:
+            self._tally.problem(*no_pose)
         else:
             mapper.count_sightings(self._tally, mapper.add_sightings(self.map, output.sightings))
             self._map_changed = True
@@ -373,12 +375,12 @@ class OfflineGraph:
         if self._map_changed and self._next_map is not None:
             self._write_map(self._next_map)
 
-    def robot_pose(self, header) -> np.ndarray | None:
-        """The robot pose (x, y, yaw) in ``odom`` at a message's stamp, or None where the mapper has none."""
-        return self._robot_pose(stamp_ns(header))[0]
+    def robot_pose(self, header):
+        """``(pose, None)``: the robot pose (x, y, yaw) in ``odom`` at a message's stamp; ``(None, (reason, detail))``.
 
-    def _robot_pose(self, stamp: int):
-        """``(pose, None)``, or ``(None, (reason, detail))`` when the odometry does not cover ``stamp``."""
+        The second when the odometry does not cover the stamp.
+        """
+        stamp = stamp_ns(header)
         if self._odometry is None:
             return np.asarray(self._mapper["fixed_pose"], dtype=float), None
         stamps, poses = self._odometry
@@ -549,14 +551,15 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
                     graph = graphs[connection.topic]
                     message = graph.admit(time_ns, data)
                     if message is not None:
-                        yield message, data, graph.robot_pose(message.header), (graph, time_ns, message.header)
+                        pose, no_pose = graph.robot_pose(message.header)
+                        yield message, data, pose, (graph, time_ns, no_pose)
                     if bar:
                         bar.update(len(times))
 
             # The map's kernels load while the workers localise the first batches.
-            for (graph, time_ns, header), output in ordered_map(stage, admitted(), workers, jobs,
-                                                                meanwhile=mapping.load_kernels):
-                graph.take(time_ns, header, output)
+            for (graph, time_ns, no_pose), output in ordered_map(stage, admitted(), workers, jobs,
+                                                                 meanwhile=mapping.load_kernels):
+                graph.take(time_ns, no_pose, output)
             if bar:
                 bar.close()
             for graph in graphs.values():
