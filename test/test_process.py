@@ -193,6 +193,27 @@ def test_undecodable_and_misfit_messages_are_counted_not_fatal(sim_bag, tmp_path
     assert len(read_bag(tmp_path / "out")[1]["/landmarks"]) == 4
 
 
+def test_pings_the_odometry_does_not_cover_are_counted_not_mapped(sim_bag, tmp_path, capsys):
+    """As the live mapper: a ping before the first odometry or after the last has no pose."""
+    bag = tmp_path / "short_odometry"
+    _, source = read_bag(sim_bag)
+    echoes_times = [time_ns for time_ns, _ in source["/echoes"][:8]]
+    with BagWriter(bag) as writer:
+        echoes = writer.connection("/echoes", TOPIC["echoes"].message, TOPIC["echoes"].qos)
+        odom = writer.connection("/odom", TOPIC["odom"].message, TOPIC["odom"].qos)
+        # Odometry covers pings 2 to 5 only: ping 0 and 1 come before it, 6 and 7 after it.
+        kept = [(t, raw) for t, raw in source["/odom"] if echoes_times[2] <= t <= echoes_times[5]]
+        assert kept
+        for time_ns, raw in sorted([(t, (echoes, raw)) for t, raw in source["/echoes"][:8]]
+                                   + [(t, (odom, raw)) for t, raw in kept], key=lambda item: item[0]):
+            writer.write(raw[0], time_ns, raw[1])
+    code, printed, err = run_cli(capsys, "process", str(bag), str(tmp_path / "out"), "--quiet")
+    assert code == 0, err
+    assert "processed 8 pings" in printed
+    assert "2 no_odometry" in printed and "2 pose_too_old" in printed, printed
+    assert len(read_bag(tmp_path / "out")[1]["/landmarks"]) == 8  # labelled all the same
+
+
 def one_line_error(err):
     lines = err.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in err, err
