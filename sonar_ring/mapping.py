@@ -155,8 +155,9 @@ def _rotation(yaw: float) -> np.ndarray:
     return np.array([[cos_yaw, -sin_yaw], [sin_yaw, cos_yaw]])
 
 
+@kernel
 def _wrap(angle):
-    """Angle in [-pi, pi)."""
+    """Angle in [-pi, pi), of a number or an array."""
     return (angle + np.pi) % (2.0 * np.pi) - np.pi
 
 
@@ -250,7 +251,18 @@ def _pairs_within(query, points, radius):
 
 @kernel
 def _gated_scores(innovation, covariance, observations, distance, with_distance, gate):
-    """:meth:`LandmarkMap._score` of innovations (K, 2) with covariances (K, 2, 2): ``d^2`` and scores (K,)."""
+    """Mahalanobis ``d^2`` of innovations (K, 2) with covariances (K, 2, 2), and the association scores (K,).
+
+    The score ``d^2 + ln det C - 2 ln n`` is minus twice the log of the sighting's
+    likelihood times a prior proportional to the entry's sightings so far ``n``
+    (``observations``): among the candidates that pass the gate a well-known entry
+    beats a vague or young one (a sighting from the tail of a landmark's
+    distribution that started an entry of its own does not draw the landmark's
+    later sightings away).  Line innovations pass ``distance`` (``r``, used where
+    ``with_distance``): the map from a sighting's point to its line coordinates
+    has determinant ``1 / r``, so ``+ 2 ln r`` puts their scores on the point
+    scale.  The score is inf where ``d^2`` does not pass ``gate``.
+    """
     d2 = _mahalanobis2(innovation, covariance)
     score = np.empty(d2.size)
     for k in range(d2.size):
@@ -276,8 +288,8 @@ def _point_scores(rows, slots, seen_class, position, covariance, normal, distanc
     """
     seen, entry = seen_class[rows], entry_class[slots]
     as_point = (seen != PLANE) & ((entry == UNKNOWN) | (seen == UNKNOWN) | (seen == entry) | by_motion[slots])
-    floor = map_sigma ** 2 * np.eye(2)
-    d2, score = _gated_scores(position[rows] - mean[slots], covariance[rows] + (_inverse(information[slots]) + floor),
+    d2, score = _gated_scores(position[rows] - mean[slots],
+                              covariance[rows] + _point_entry_covariance(information[slots], map_sigma),
                               observations[slots], np.zeros(0), False, gate)
     d2 = np.where(as_point, d2, np.inf)
     score = np.where(as_point, score, np.inf)
@@ -287,9 +299,9 @@ def _point_scores(rows, slots, seen_class, position, covariance, normal, distanc
         value, jacobian = _line_of_sight(normal[line_rows], position[line_rows], anchor[open_slots],
                                          distance[line_rows])
         innovation = value - line[open_slots]
-        innovation[:, 0] = (innovation[:, 0] + np.pi) % (2.0 * np.pi) - np.pi
+        innovation[:, 0] = _wrap(innovation[:, 0])
         line_covariance = (_sandwich(jacobian, covariance[line_rows])
-                           + (_inverse(line_information[open_slots]) + _line_floor(extent[open_slots], map_sigma)))
+                           + _line_entry_covariance(line_information[open_slots], extent[open_slots], map_sigma))
         line_d2, line_score = _gated_scores(innovation, line_covariance, observations[open_slots],
                                             distance[line_rows], True, gate)
         d2[as_line] = np.minimum(d2[as_line], line_d2)
@@ -304,7 +316,7 @@ def _wall_scores(rows, slots, position, covariance, normal, distance, anchor, li
 
     A pair is a candidate where the sighting lies within ``radius`` of the wall's
     segment.  Returns the pairs' sighting rows and wall slots, by sighting, then
-    wall, and their ``d^2`` and scores (see :meth:`LandmarkMap._score`).
+    wall, and their ``d^2`` and scores (see :func:`_gated_scores`).
     """
     near_rows, near_walls = [], []
     for row in rows:
@@ -323,9 +335,9 @@ def _wall_scores(rows, slots, position, covariance, normal, distance, anchor, li
     pair_rows, pair_walls = np.array(near_rows, dtype=np.int64), np.array(near_walls, dtype=np.int64)
     value, jacobian = _line_of_sight(normal[pair_rows], position[pair_rows], anchor[pair_walls], distance[pair_rows])
     innovation = value - line[pair_walls]
-    innovation[:, 0] = (innovation[:, 0] + np.pi) % (2.0 * np.pi) - np.pi
+    innovation[:, 0] = _wrap(innovation[:, 0])
     line_covariance = (_sandwich(jacobian, covariance[pair_rows])
-                       + (_inverse(information[pair_walls]) + _line_floor(extent[pair_walls], map_sigma)))
+                       + _line_entry_covariance(information[pair_walls], extent[pair_walls], map_sigma))
     d2, score = _gated_scores(innovation, line_covariance, observations[pair_walls], distance[pair_rows], True, gate)
     return pair_rows, pair_walls, d2, score
 
@@ -343,13 +355,13 @@ def _fuse_lines(line, information, chi2, with_chi2, anchor, axis, extent, slots,
     """
     value, jacobian = _line_of_sight(normal[rows], position[rows], anchor[slots], distance[rows])
     innovation = value - line[slots]
-    innovation[:, 0] = (innovation[:, 0] + np.pi) % (2.0 * np.pi) - np.pi
+    innovation[:, 0] = _wrap(innovation[:, 0])
     updated = np.unique(slots)
     _fuse_information(line, information, chi2, with_chi2, slots, updated, innovation,
                       _inverse(_sandwich(jacobian, covariance[rows])))
     before = extent[updated].copy()
     for slot in updated:
-        line[slot, 0] = (line[slot, 0] + np.pi) % (2.0 * np.pi) - np.pi
+        line[slot, 0] = _wrap(line[slot, 0])
     for k in range(slots.size):
         slot, row = slots[k], rows[k]
         for end in range(2):
@@ -389,6 +401,18 @@ def _line_floor(extent, sigma):
 
 
 @kernel
+def _point_entry_covariance(information, map_sigma):
+    """Covariance (K, 2, 2) of point entries against the truth from their information, with the ``map_sigma`` floor."""
+    return _inverse(information) + map_sigma ** 2 * np.eye(2)
+
+
+@kernel
+def _line_entry_covariance(information, extent, map_sigma):
+    """Covariance (K, 2, 2) of lines (walls, plane hypotheses) from their information, with the end-point floor."""
+    return _inverse(information) + _line_floor(extent, map_sigma)
+
+
+@kernel
 def _match_walls(keep, other, anchor, line, information, normal, tangent, extent, map_sigma):
     """:meth:`LandmarkMap._wall_matches` of walls ``other`` against walls ``keep`` (K,), from the wall table."""
     count = keep.size
@@ -399,7 +423,7 @@ def _match_walls(keep, other, anchor, line, information, normal, tangent, extent
     for k in range(count):
         a, b = keep[k], other[k]
         lever_x, lever_y = anchor[b, 0] - anchor[a, 0], anchor[b, 1] - anchor[a, 1]
-        innovation[k, 0] = (line[b, 0] - line[a, 0] + np.pi) % (2.0 * np.pi) - np.pi
+        innovation[k, 0] = _wrap(line[b, 0] - line[a, 0])
         innovation[k, 1] = line[b, 1] + (normal[b, 0] * lever_x + normal[b, 1] * lever_y) - line[a, 1]
         jacobian[k, 0, 0] = jacobian[k, 1, 1] = 1.0
         jacobian[k, 1, 0] = tangent[b, 0] * lever_x + tangent[b, 1] * lever_y
@@ -410,7 +434,7 @@ def _match_walls(keep, other, anchor, line, information, normal, tangent, extent
         gap[k] = np.maximum(np.minimum(along[k, 0], along[k, 1]) - extent[a, 1],
                             extent[a, 0] - np.maximum(along[k, 0], along[k, 1]))
     covariance = _sandwich(jacobian, _inverse(information[other]))
-    floors = (_inverse(information[keep]) + _line_floor(extent[keep], map_sigma)
+    floors = (_line_entry_covariance(information[keep], extent[keep], map_sigma)
               + _sandwich(jacobian, _line_floor(extent[other], map_sigma)))
     return _mahalanobis2(innovation, floors + covariance), gap, innovation, covariance, along
 
@@ -587,17 +611,6 @@ class Sightings:
         """
         value, jacobian = _line_of_sight(self.normal[rows], self.position[rows], anchor, self.distance[rows])
         return value, _sandwich(jacobian, self.covariance[rows])
-
-    def line_innovation(self, rows, anchor, line):
-        """Line innovations of sightings ``rows`` against lines ``(theta, delta)`` (K, 2).
-
-        The lines are about ``anchor`` (K, 2).  Returns the innovations (K, 2) and the
-        sightings' line covariances (K, 2, 2).
-        """
-        value, covariance = self.line(rows, anchor)
-        innovation = value - line
-        innovation[:, 0] = _wrap(innovation[:, 0])
-        return innovation, covariance
 
 
 @kernel
@@ -1050,38 +1063,17 @@ class LandmarkMap:
 
     def _point_covariance(self, slots):
         """Covariance of points ``slots`` against the truth, with the ``map_sigma`` floor, (K, 2, 2)."""
-        return _inverse(self._points.information[slots]) + self.map_sigma ** 2 * np.eye(2)
-
-    def _track_line_covariance(self, slots):
-        """Covariance of the plane hypotheses of points ``slots``, with the floor, (K, 2, 2)."""
-        p = self._points
-        return _inverse(p.line_information[slots]) + _line_floor(p.extent[slots], self.map_sigma)
+        return _point_entry_covariance(self._points.information[slots], self.map_sigma)
 
     def _wall_covariance(self, slots):
         """Covariance of the lines of walls ``slots``, with the floor, (K, 2, 2)."""
-        w = self._walls
-        return _inverse(w.information[slots]) + _line_floor(w.extent[slots], self.map_sigma)
-
-    def _score(self, innovation, covariance, observations, distance=None):
-        """Mahalanobis ``d^2`` and the association score ``d^2 + ln det C - 2 ln n``.
-
-        The score is minus twice the log of the sighting's likelihood times a prior
-        proportional to the entry's sightings so far ``n``: among the candidates that
-        pass the gate a well-known entry beats a vague or young one (a sighting from the
-        tail of a landmark's distribution that started an entry of its own does not
-        draw the landmark's later sightings away).  Line innovations pass ``distance``
-        (``r``): the map from a sighting's point to its line coordinates has determinant
-        ``1 / r``, so ``+ 2 ln r`` puts their scores on the point scale.  The score is
-        inf where the gate is not passed.
-        """
-        return _gated_scores(np.ascontiguousarray(innovation), np.ascontiguousarray(covariance), observations,
-                             np.zeros(0) if distance is None else distance, distance is not None, self.gate)
+        return _line_entry_covariance(self._walls.information[slots], self._walls.extent[slots], self.map_sigma)
 
     def _point_distances(self, s: Sightings, rows, slots):
         """Gate distances and scores (K,) of sightings ``rows`` against points ``slots``.
 
         ``d^2`` is the smaller over the models the classes allow (inf if none), the
-        score that of the best model within the gate (see :meth:`_score`).
+        score that of the best model within the gate (see :func:`_gated_scores`).
         """
         p = self._points
         return _point_scores(rows, slots, s.landmark_class, s.position, s.covariance, s.normal, s.distance,
