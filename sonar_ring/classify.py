@@ -38,7 +38,7 @@ import numpy as np
 
 from sonar_ring.compiled import kernel
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN
-from sonar_ring.localise import horizontal_path
+from sonar_ring.localise import MAX_LENGTH
 
 DECISION_MARGIN = 6.0
 """Barshan & Kuc eqs 13-14: one amplitude is *greater* than another only by more than 6 sigma."""
@@ -589,11 +589,15 @@ def geometric_consistency(transmitter, receivers, paths, sigma_path, z=CONSISTEN
 
     outward = np.zeros((n_echoes, 2)) if facing is None else np.broadcast_to(np.asarray(facing, dtype=float),
                                                                             (n_echoes, 2))
-    image, chi2_specular, edge, chi2_edge, dof = _fit_models(
-        np.ascontiguousarray(transmitter), np.ascontiguousarray(receivers), np.ascontiguousarray(paths),
-        np.ascontiguousarray(sigma), np.ascontiguousarray(outward), facing is not None)
-    tested = dof >= 1
+    fits = _fit_models(np.ascontiguousarray(transmitter), np.ascontiguousarray(receivers),
+                       np.ascontiguousarray(paths), np.ascontiguousarray(sigma), np.ascontiguousarray(outward),
+                       facing is not None)
+    return _decision(*fits, z)
 
+
+def _decision(image, chi2_specular, edge, chi2_edge, dof, z) -> ConsistencyResult:
+    """The tests of :func:`geometric_consistency` on both models' fits (:func:`_fit_models`' outputs)."""
+    tested = dof >= 1
     chi2_specular = np.where(tested, chi2_specular, np.nan)
     chi2_edge = np.where(tested, chi2_edge, np.nan)
     difference = chi2_specular - chi2_edge
@@ -666,8 +670,14 @@ def load_kernels() -> None:
     receivers = np.array([[[0.02, 0.04], [0.02, 0.0], [0.02, -0.04]]])
     paths = np.full((1, 3), 2.0)
     geometric_consistency(np.zeros(2), receivers, paths, 1e-3, facing=np.array([1.0, 0.0]))
-    one = np.zeros(1, dtype=int)
-    _gated_matches(one, one, paths, paths, receivers, np.zeros((1, 1), dtype=int), CONSISTENCY_Z)
+    # ring_consistency's arguments: per-group arrays as Layout.plan and _ring_slots give them, read-only.
+    height_offset, pair, transmitters = np.zeros((1, 1, 2)), np.ascontiguousarray(receivers[:, :2]), np.zeros((1, 1, 2))
+    facing, slots = np.array([[1.0, 0.0]]), np.zeros((1, 1), dtype=np.int64)
+    for array in (height_offset, pair, transmitters, facing, slots):
+        array.flags.writeable = False
+    one = np.zeros(1, dtype=np.int64)
+    _ring_fits(one, one, np.full((1, 2), 2.0), height_offset, pair, transmitters, facing, slots, 1e-3, CONSISTENCY_Z,
+               MAX_ECHOES_PER_GROUP)
 
 
 @kernel
@@ -879,90 +889,128 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
     if ping.shape != (n_echoes,):
         raise ValueError(f"ping must have shape {(n_echoes,)}, got {ping.shape}")
 
-    dz = layout.height_offset()[group, 0, :]  # (N, K)
-    horizontal = horizontal_path(paths, dz).value  # NaN where invalid
-    with np.errstate(invalid="ignore", divide="ignore"):
-        sigma = sigma_path * paths / horizontal
-    sigma = np.where(np.isfinite(sigma) & (sigma > 0), sigma, sigma_path)
-    receivers = layout.receivers[layout.groups[group], :2]  # (N, K, 2)
-    own = np.arange(layout.n_groups)[:, None]
-    slots = np.concatenate([own, overlapping_groups(layout)], axis=1)  # slot 0: the echo's own group
-    _, slot_of_row, rows_in_slot = np.unique(ping * layout.n_groups + group, return_inverse=True, return_counts=True)
-    overfull = rows_in_slot[slot_of_row] > MAX_ECHOES_PER_GROUP
-    candidate, matches = _gated_matches(ping, np.where(overfull, -1, group), horizontal, sigma, receivers, slots,
-                                        z)  # (N, 1 + J, C)
-    unique = matches.sum(axis=-1) == 1
-    match = np.take_along_axis(candidate, np.argmax(matches, axis=-1)[..., None], axis=-1)[..., 0]
-    joined = np.where(unique, match, -1)
-    crowded = matches[:, 0].any(axis=-1) | overfull
-    rows = np.concatenate([np.arange(n_echoes)[:, None], joined[:, 1:]], axis=1)  # (N, 1 + J)
-    present = (rows >= 0) & ~crowded[:, None]
-    take = np.where(present, rows, 0)
-    width = rows.shape[1] * k
-    all_paths = np.where(present[..., None], horizontal[take], np.nan).reshape(n_echoes, width)
-    all_sigma = sigma[take].reshape(n_echoes, width)
-    all_receivers = receivers[take].reshape(n_echoes, width, 2)
-    transmitter = layout.transmitters[layout.group_transmitters[group, 0], :2]
-    yaw = layout.group_yaw()[group]
-    facing = np.stack([np.cos(yaw), np.sin(yaw)], axis=-1)
-    return geometric_consistency(transmitter, all_receivers, all_paths, all_sigma, z=z, facing=facing)
+    plan = layout.plan
+    fits = _ring_fits(ping.astype(np.int64), group.astype(np.int64), np.ascontiguousarray(paths), plan.height_offset,
+                      plan.receivers, plan.transmitters, plan.facing, _ring_slots(plan.yaw.tobytes(),
+                                                                                   float(layout.beam_half_angle)),
+                      sigma_path, float(z), MAX_ECHOES_PER_GROUP)
+    return _decision(*fits, z)
 
 
-def _gated_matches(ping, group, horizontal, sigma, receivers, slots, z):
-    """Echoes of each slot group (same ping) and whether they pass the gate with each echo.
-
-    A row whose ``group`` is -1 is left out: no candidate of any echo, none of its own.
-    Returns ``candidate`` (N, S, C) int, the rows of group ``slots[group[n], s]`` in
-    echo ``n``'s ping (C = the most echoes any such group has), and ``matches``
-    (N, S, C) bool, True where that candidate exists, is not ``n`` itself, both
-    heard the echo with at least one receiver, and every pair of receivers heard
-    by both satisfies the triangle-inequality gate.
-    """
-    n_echoes = group.size
-    key = np.where(group >= 0, ping * slots.shape[0] + group, -1)  # -1: left out, never a candidate
-    order = np.argsort(key, kind="stable")
-    sorted_key = key[order]
-    target = np.where(group[:, None] >= 0, slots[group], -1)  # (N, S)
-    wanted = ping[:, None] * slots.shape[0] + target
-    first = np.searchsorted(sorted_key, wanted, side="left")
-    count = np.where(target >= 0, np.searchsorted(sorted_key, wanted, side="right") - first, 0)
-    width = max(int(count.max(initial=0)), 1)  # one column even when empty, so argmax works
-    candidate = order[np.minimum(first[..., None] + np.arange(width), max(n_echoes - 1, 0))]
-    exists = (np.arange(width) < count[..., None]) & (candidate != np.arange(n_echoes)[:, None, None])
-    passes = _gate(candidate, exists, np.ascontiguousarray(horizontal, dtype=float),
-                   np.ascontiguousarray(sigma, dtype=float), np.ascontiguousarray(receivers, dtype=float), float(z))
-    return candidate, passes
+@functools.lru_cache(maxsize=16)
+def _ring_slots(yaw_bytes: bytes, beam_half_angle: float) -> np.ndarray:
+    """Each group followed by its overlapping groups (:func:`overlapping_groups`), shape (G, 1 + J), -1 padded."""
+    overlapping = _overlapping_groups(yaw_bytes, beam_half_angle)
+    slots = np.concatenate([np.arange(len(overlapping))[:, None], overlapping], axis=1).astype(np.int64)
+    slots.flags.writeable = False
+    return slots
 
 
 @kernel
-def _gate(candidate, exists, horizontal, sigma, receivers, z):
-    """``exists`` and the triangle-inequality gate over every pair of receivers heard by both echoes."""
-    n_echoes, n_slots, width = candidate.shape
-    n_receivers = horizontal.shape[1]
-    passes = np.zeros(candidate.shape, dtype=np.bool_)
+def _ring_fits(ping, group, paths, height_offset, receivers, transmitters, facing, slots, sigma_path, z,
+               max_per_group):
+    """Both models' fits of every echo of :func:`ring_consistency`, joined with its overlapping groups' echoes.
+
+    ``ping`` and ``group`` (N,) int; ``paths`` (N, K) measured path lengths, m;
+    per group (:attr:`sonar_ring.geometry.Layout.plan`): ``height_offset``
+    (G, M, K), ``receivers`` (G, K, 2), ``transmitters`` (G, M, 2), m, and the unit
+    ``facing`` (G, 2); ``slots`` (G, 1 + J) each group and its overlapping ones
+    (:func:`_ring_slots`); ``sigma_path`` m; ``z`` the gate's significance; a group
+    with more than ``max_per_group`` echoes in a ping is left out.  Returns what
+    :func:`_fit_models` returns, one row per echo; an echo left out (crowded, too
+    many echoes) has no usable receiver.
+    """
+    n_echoes, n_receivers = paths.shape
+    n_groups, n_slots = slots.shape
+    # Horizontal paths sqrt(d^2 - dz^2) (NaN where localise.horizontal_path flags them) and their sigma.
+    horizontal = np.full((n_echoes, n_receivers), np.nan)
+    sigma = np.full((n_echoes, n_receivers), sigma_path)
     for n in range(n_echoes):
+        for k in range(n_receivers):
+            d = paths[n, k]
+            height = abs(height_offset[group[n], 0, k])
+            if abs(d) <= MAX_LENGTH and height <= MAX_LENGTH and d > 0 and d >= height:
+                horizontal[n, k] = np.sqrt((d - height) * (d + height))
+                scaled = sigma_path * d / horizontal[n, k]
+                if np.isfinite(scaled) and scaled > 0:
+                    sigma[n, k] = scaled
+    # Rows of each (ping, group) slot, in row order: a stable sort by key and a binary search.
+    key = ping * n_groups + group
+    order = np.argsort(key, kind="mergesort")
+    sorted_key = key[order]
+    overfull = np.empty(n_echoes, dtype=np.bool_)
+    for n in range(n_echoes):
+        overfull[n] = (np.searchsorted(sorted_key, key[n], side="right")
+                       - np.searchsorted(sorted_key, key[n], side="left")) > max_per_group
+    width = n_slots * n_receivers
+    all_paths = np.full((n_echoes, width), np.nan)
+    all_sigma = np.full((n_echoes, width), sigma_path)
+    all_receivers = np.zeros((n_echoes, width, 2))
+    echo_transmitter = np.empty((n_echoes, 2))
+    echo_facing = np.empty((n_echoes, 2))
+    joined = np.empty(n_slots, dtype=np.int64)
+    for n in range(n_echoes):
+        echo_transmitter[n] = transmitters[group[n], 0]
+        echo_facing[n] = facing[group[n]]
+        if overfull[n]:
+            continue
+        # Each slot's echo joins when it alone passes the gate; a second echo passing in the
+        # echo's own group (slot 0) makes the echo crowded: it is not tested at all.
+        crowded = False
         for slot in range(n_slots):
-            for c in range(width):
-                if not exists[n, slot, c]:
-                    continue
-                other = candidate[n, slot, c]
-                heard, fits = False, True
-                for i in range(n_receivers):
-                    own = horizontal[n, i]
-                    if not np.isfinite(own):
-                        continue
-                    for j in range(n_receivers):
-                        theirs = horizontal[other, j]
-                        if not np.isfinite(theirs):
-                            continue
-                        heard = True
-                        dx = receivers[n, i, 0] - receivers[other, j, 0]
-                        dy = receivers[n, i, 1] - receivers[other, j, 1]
-                        noise = np.sqrt(sigma[n, i] ** 2 + sigma[other, j] ** 2)
-                        if not (np.sqrt(dx * dx + dy * dy) + z * noise - abs(own - theirs) >= 0.0):
-                            fits = False
-                            break
-                    if not fits:
-                        break
-                passes[n, slot, c] = heard and fits
-    return passes
+            joined[slot] = -1
+            target = slots[group[n], slot]
+            if target < 0:
+                continue
+            wanted = ping[n] * n_groups + target
+            passing = 0
+            for index in range(np.searchsorted(sorted_key, wanted, side="left"),
+                               np.searchsorted(sorted_key, wanted, side="right")):
+                other = order[index]
+                if other != n and not overfull[other] and _passes_gate(n, other, horizontal, sigma, receivers,
+                                                                        group, z):
+                    passing += 1
+                    joined[slot] = other
+            if slot == 0 and passing > 0:
+                crowded = True
+            if passing != 1:
+                joined[slot] = -1
+        if crowded:
+            continue
+        joined[0] = n
+        for slot in range(n_slots):
+            row = joined[slot]
+            if row < 0:
+                continue
+            for k in range(n_receivers):
+                column = slot * n_receivers + k
+                all_paths[n, column] = horizontal[row, k]
+                all_sigma[n, column] = sigma[row, k]
+                all_receivers[n, column] = receivers[group[row], k]
+    return _fit_models(echo_transmitter, all_receivers, all_paths, all_sigma, echo_facing, True)
+
+
+@kernel
+def _passes_gate(n, other, horizontal, sigma, receivers, group, z):
+    """Whether echoes ``n`` and ``other`` were both heard and fit one reflector.
+
+    Every pair of receivers that heard them must satisfy the triangle inequality
+    ``|h_i - h_k| <= |R_i - R_k| + z sqrt(sigma_i^2 + sigma_k^2)``.
+    """
+    n_receivers = horizontal.shape[1]
+    heard = False
+    for i in range(n_receivers):
+        own = horizontal[n, i]
+        if not np.isfinite(own):
+            continue
+        for j in range(n_receivers):
+            theirs = horizontal[other, j]
+            if not np.isfinite(theirs):
+                continue
+            heard = True
+            dx = receivers[group[n], i, 0] - receivers[group[other], j, 0]
+            dy = receivers[group[n], i, 1] - receivers[group[other], j, 1]
+            noise = np.sqrt(sigma[n, i] ** 2 + sigma[other, j] ** 2)
+            if not (np.sqrt(dx * dx + dy * dy) + z * noise - abs(own - theirs) >= 0.0):
+                return False
+    return heard

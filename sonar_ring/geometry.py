@@ -21,6 +21,7 @@ expected value.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -60,6 +61,31 @@ MAX_SENSOR_EXTENT = 100.0
 
 class LayoutError(ValueError):
     """A layout file or mapping is malformed; the message names file and field."""
+
+
+@dataclass(frozen=True)
+class GroupPlan:
+    """A layout's groups seen from above (:attr:`Layout.plan`); G groups, K receivers, M transmitters each.
+
+    Attributes
+    ----------
+    receivers : ndarray, shape (G, K, 2)
+        Horizontal receiver positions, m, sensor frame.
+    transmitters : ndarray, shape (G, M, 2)
+        Horizontal transmitter positions, m.
+    height_offset : ndarray, shape (G, M, K)
+        Transmitter minus receiver height, m (:meth:`Layout.height_offset`).
+    facing : ndarray, shape (G, 2)
+        Unit vector along each group's facing.
+    yaw : ndarray, shape (G,)
+        That facing's angle, rad (:meth:`Layout.group_yaw`).
+    """
+
+    receivers: np.ndarray
+    transmitters: np.ndarray
+    height_offset: np.ndarray
+    facing: np.ndarray
+    yaw: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -159,6 +185,21 @@ class Layout:
         tz = self.transmitters[self.group_transmitters, 2]  # (G, M)
         rz = self.receivers[self.groups, 2]  # (G, K)
         return tz[:, :, None] - rz[:, None, :]
+
+    @functools.cached_property
+    def plan(self) -> GroupPlan:
+        """The groups' horizontal geometry, computed at first use and kept (read-only arrays).
+
+        For per-echo code that indexes it by group on every ping; the layout is
+        immutable, so it never goes stale.
+        """
+        yaw = self.group_yaw()
+        arrays = tuple(np.ascontiguousarray(array, dtype=float) for array in (
+            self.group_receivers()[..., :2], self.transmitters[self.group_transmitters, :2], self.height_offset(),
+            np.stack([np.cos(yaw), np.sin(yaw)], axis=-1), yaw))
+        for array in arrays:
+            array.flags.writeable = False
+        return GroupPlan(*arrays)
 
     def wavelength(self, speed_of_sound: float) -> float:
         """Carrier wavelength at the given speed of sound, m."""

@@ -6,7 +6,7 @@ import math
 import numpy as np
 import pytest
 import yaml
-from numpy.testing import assert_allclose
+from numpy.testing import assert_allclose, assert_array_equal
 
 from sonar_ring import geometry
 from sonar_ring.geometry import LayoutError, load_layout
@@ -31,6 +31,22 @@ def test_shipped_layouts_load_consistently(name):
     assert np.all(layout.group_separation() > 0)
     assert layout.height_offset().shape == (layout.n_groups, layout.group_transmitters.shape[1], k)
     assert_allclose(layout.wavelength(343.0), 343.0 / layout.frequency, rtol=1e-15)
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_plan_is_the_layouts_geometry_from_above_and_read_only(name):
+    layout = load_layout(name)
+    plan = layout.plan
+    assert layout.plan is plan  # computed once
+    assert_array_equal(plan.receivers, layout.group_receivers()[..., :2])
+    assert_array_equal(plan.transmitters, layout.transmitters[layout.group_transmitters, :2])
+    assert_array_equal(plan.height_offset, layout.height_offset())
+    assert_array_equal(plan.yaw, layout.group_yaw())
+    assert_allclose(plan.facing, np.stack([np.cos(plan.yaw), np.sin(plan.yaw)], axis=-1), rtol=0, atol=0)
+    for array in (plan.receivers, plan.transmitters, plan.height_offset, plan.facing, plan.yaw):
+        assert array.flags.c_contiguous
+        with pytest.raises(ValueError, match="read-only"):
+            array[...] = 0.0
 
 
 def test_browne_ring_geometry():
