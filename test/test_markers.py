@@ -1,8 +1,10 @@
-"""RViz markers written straight into CDR: the message rclpy serializes for the same MarkerArray.
+"""Messages written straight into CDR (RViz markers, landmark arrays): the ones rclpy serializes from objects.
 
 CDR leaves the padding bytes unspecified (rclpy's are whatever the buffer held), so
 the check is: same length, and the same message when either is decoded.
 """
+
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -10,10 +12,12 @@ from builtin_interfaces.msg import Duration
 from geometry_msgs.msg import Point
 from numpy.testing import assert_allclose
 from rclpy.serialization import deserialize_message, serialize_message
+from sonar_ring.msg import LandmarkArray
 from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, make_landmarks
+from sonar_ring.ros.convert import landmarks_from_msg, landmarks_to_msg, serialize_landmarks
 from sonar_ring.ros.markers import (
     MIN_ALPHA,
     MarkerParts,
@@ -65,6 +69,22 @@ def some_landmarks():
     return make_landmarks(classes, rng.uniform(-3, 3, (count, 2)), normal=normal, covariance=covariance,
                           confidence=np.where(classes == EDGE, rng.uniform(0, 1, count), 0.0),
                           segment=rng.uniform(-3, 3, (count, 2, 2)), valid=rng.random(count) > 0.1)
+
+
+def test_landmark_arrays_serialize_exactly_as_rclpy_does():
+    landmarks = some_landmarks()
+    covariance = landmarks.covariance.copy()
+    covariance[0] = np.nan  # what a lost covariance looks like: carried, not dropped
+    for chosen in (replace(landmarks, covariance=covariance), landmarks.select(np.zeros(len(landmarks), dtype=bool))):
+        ours = serialize_landmarks(chosen, header())
+        theirs = serialize_message(landmarks_to_msg(chosen, header()))
+        assert len(ours) == len(theirs)
+        decoded = deserialize_message(ours, LandmarkArray)
+        assert decoded.header == header()
+        round_trip = landmarks_from_msg(decoded)
+        for name in ("landmark_class", "position", "normal", "covariance", "confidence", "segment", "observations",
+                     "group", "echo", "valid", "reason"):
+            np.testing.assert_array_equal(getattr(round_trip, name), getattr(chosen, name), err_msg=name)
 
 
 def test_ping_markers_serialize_exactly_as_rclpy_does():

@@ -19,7 +19,7 @@ from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import Landmarks
 from sonar_ring.msg import Echoes, LandmarkArray
-from sonar_ring.ros.convert import MessageError, landmarks_from_msg, landmarks_to_msg
+from sonar_ring.ros.convert import MessageError, landmarks_from_msg, serialize_landmarks
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, check_echoes
 from sonar_ring.ros.localiser import settings_from
@@ -104,11 +104,11 @@ class Classifier(SonarNode):
 
     def _label(self, header, echoes: EchoArrays, hypotheses: Landmarks, started: float) -> None:
         labelled = pipeline.classify_ping(self.layout, echoes, hypotheses, self.settings)
-        message = landmarks_to_msg(labelled, header)
-        self._landmarks.publish(message)
+        # Markers first: RViz shows a ping as soon as it can.
         self._markers.publish(serialize_markers(landmark_markers(labelled, "landmarks", self.params["marker_lifetime"]),
                                                 header))
-        downstream = self.pass_on(message, labelled)
+        self._landmarks.publish(serialize_landmarks(labelled, header))
+        downstream = self.pass_on(header, labelled)
         self.health.processed(time.perf_counter() - started - downstream, published=2)
 
 

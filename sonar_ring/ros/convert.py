@@ -2,12 +2,16 @@
 
 rclpy stores primitive sequences as ``array.array``; building one from a numpy
 buffer costs well under a microsecond for a ping, where assigning the numpy array
-itself makes rclpy check every element (tens of microseconds).
+itself makes rclpy check every element (tens of microseconds).  What the nodes
+publish on every ping is written straight into its serialized form
+(:class:`Cdr`, :func:`serialize_landmarks`): a message object would still be
+converted field by field when published.
 """
 
 from __future__ import annotations
 
 import array
+import struct
 
 import numpy as np
 
@@ -31,6 +35,57 @@ def to_sequence(values, dtype) -> array.array:
 def from_sequence(values, dtype) -> np.ndarray:
     """A read-only numpy view of a message sequence (``array.array``), no copy."""
     return np.frombuffer(values, dtype=dtype) if len(values) else np.empty(0, dtype=dtype)
+
+
+class Cdr:
+    """Little-endian CDR (the encoding rmw uses), alignment counted from after the 4-byte encapsulation header."""
+
+    def __init__(self) -> None:
+        self.buffer = bytearray(b"\x00\x01\x00\x00")
+
+    def align(self, size: int) -> None:
+        """Zero padding up to the next multiple of ``size`` bytes."""
+        self.buffer += bytes(-(len(self.buffer) - 4) % size)
+
+    def pack(self, fmt: str, *values, align: int) -> None:
+        """``values`` by the :mod:`struct` format ``fmt``, after aligning to ``align`` bytes."""
+        self.align(align)
+        self.buffer += struct.pack("<" + fmt, *values)
+
+    def string(self, text: str) -> None:
+        """A string: its length in bytes with the terminating NUL, then UTF-8 and the NUL."""
+        data = text.encode()
+        self.pack("I", len(data) + 1, align=4)
+        self.buffer += data + b"\x00"
+
+    def header(self, sec: int, nanosec: int, frame_id: str) -> None:
+        """A ``std_msgs/Header``: the stamp's seconds and nanoseconds, then the frame."""
+        self.pack("iI", sec, nanosec, align=4)
+        self.string(frame_id)
+
+    def array(self, values: np.ndarray, align: int) -> None:
+        """A sequence: its length in elements (rows of ``values``), then the raw values (aligned even when none)."""
+        self.pack("I", len(values), align=4)
+        self.align(align)
+        self.buffer += np.ascontiguousarray(values).tobytes()
+
+
+def serialize_landmarks(landmarks: Landmarks, header) -> bytes:
+    """A serialized ``sonar_ring/LandmarkArray`` of ``landmarks`` with ``header`` (``std_msgs/Header``).
+
+    The message :func:`landmarks_to_msg` builds, as ``rclpy.serialization.serialize_message``
+    writes it (same length, same fields when decoded); publishers take it as it is.
+    """
+    cdr = Cdr()
+    cdr.header(header.stamp.sec, header.stamp.nanosec, header.frame_id)
+    for values, dtype in ((landmarks.landmark_class, "<u1"), (landmarks.position, "<f8"), (landmarks.normal, "<f8"),
+                          (landmarks.bearing, "<f8"), (landmarks.range, "<f8"), (landmarks.covariance, "<f8"),
+                          (landmarks.confidence, "<f4"), (landmarks.segment, "<f8"), (landmarks.observations, "<u4"),
+                          (landmarks.group, "<u2"), (landmarks.echo, "<u4"), (landmarks.valid, "?"),
+                          (landmarks.reason, "<u1")):
+        flat = np.asarray(values, dtype=dtype).reshape(-1)
+        cdr.array(flat, flat.itemsize)
+    return bytes(cdr.buffer)
 
 
 def echoes_to_msg(echoes: EchoArrays, header) -> Echoes:

@@ -224,12 +224,12 @@ class Driver(SonarNode):
         if kept is None:
             return 0.0
         message = echoes_to_msg(kept, header)
-        self._echo_publisher.publish(message)
-        self.pings_published += 1
         # The message's own arrays (float32 amplitudes, ...): what the next node would decode, so composed and
         # separate nodes, and `sonar-ring process`, give the same landmarks.
         downstream = self.pass_on(message, echoes_from_msg(message))
-        # After the hand-off: the landmarks of a ping matter more than its ranges being first.
+        # After the hand-off: the landmarks of a ping matter more than its echoes and ranges being first.
+        self._echo_publisher.publish(message)
+        self.pings_published += 1
         if self.params["publish_range"]:
             self._ranges.publish(kept, header)
         return downstream

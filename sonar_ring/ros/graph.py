@@ -3,7 +3,10 @@
 The same nodes as the four executables, composed: each hands its ping straight
 to the next (:func:`compose`), as rclcpp's intra-process communication does,
 so a ping is one executor callback from the driver's input to the map.  Every
-topic is still published for RViz, recorders and your nodes; the nodes take
+topic is still published for RViz, recorders and your nodes, in the order that
+gets a ping to RViz first: the driver and the localiser hand a ping on before
+they publish ``echoes`` and ``landmarks/raw``, and the classifier publishes
+``markers`` before ``landmarks``.  The nodes take
 their inputs only from each other, so feed this process through the driver's
 source (``source:=topic`` reads ``tof_in``) -- or run the four executables to
 take ``echoes`` or ``landmarks`` from elsewhere.  Odometry still comes over DDS.

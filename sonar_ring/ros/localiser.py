@@ -18,7 +18,7 @@ from sonar_ring import localise, pipeline
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import load_layout
 from sonar_ring.msg import Echoes, LandmarkArray
-from sonar_ring.ros.convert import landmarks_to_msg
+from sonar_ring.ros.convert import serialize_landmarks
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, check_echoes
 from sonar_ring.ros.node import SonarNode
@@ -104,8 +104,9 @@ class Localiser(SonarNode):
         for code, count in zip(*np.unique(invalid, return_counts=True), strict=True):
             self.health.note(f"invalid hypothesis: {localise.REASONS[int(code)]}", int(count))
         usable = hypotheses.select(hypotheses.valid)
-        self._publisher.publish(landmarks_to_msg(usable, msg.header))
+        # The labelled landmarks, not these hypotheses, are what a ping is for: in one process they go first.
         downstream = self.pass_on(msg, echoes, usable)
+        self._publisher.publish(serialize_landmarks(usable, msg.header))
         self.health.processed(time.perf_counter() - started - downstream)
 
 

@@ -31,7 +31,7 @@ from visualization_msgs.msg import MarkerArray
 from sonar_ring.landmarks import Landmarks
 from sonar_ring.mapping import LandmarkMap, Sightings, load_kernels, transform_landmarks
 from sonar_ring.msg import LandmarkArray
-from sonar_ring.ros.convert import MessageError, landmarks_from_msg, landmarks_to_msg
+from sonar_ring.ros.convert import MessageError, landmarks_from_msg, serialize_landmarks
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, stamp_ns
 from sonar_ring.ros.markers import covariance_ellipses, landmark_markers, serialize_markers
@@ -159,7 +159,7 @@ def map_messages(landmark_map: LandmarkMap, header: Header, min_observations: in
     """
     snapshot = landmark_map.snapshot(min_observations=min_observations)
     markers = [*landmark_markers(snapshot, "map", lifetime=0.0), covariance_ellipses(snapshot, "map")]
-    return (serialize_message(landmarks_to_msg(snapshot, header)), serialize_markers(markers, header),
+    return (serialize_landmarks(snapshot, header), serialize_markers(markers, header),
             serialize_message(point_cloud(landmark_map.points(min_observations=min_observations), header)))
 
 
@@ -243,11 +243,11 @@ class Mapper(SonarNode):
             return
         self._place(stamp_ns(msg.header), landmarks)
 
-    def on_ping(self, msg: LandmarkArray, landmarks: Landmarks) -> None:
-        """A ping's labelled landmarks from the classifier in this process: the message and its arrays."""
+    def on_ping(self, header: Header, landmarks: Landmarks) -> None:
+        """A ping's labelled landmarks from the classifier in this process: their header and arrays."""
         self.health.received()
-        if self._landmarks_gate.admit(msg.header):
-            self._place(stamp_ns(msg.header), landmarks)
+        if self._landmarks_gate.admit(header):
+            self._place(stamp_ns(header), landmarks)
 
     def _place(self, stamp: int, landmarks: Landmarks) -> None:
         """Integrate a ping's landmarks at the robot pose of ``stamp`` (ns), or keep them until odometry comes."""

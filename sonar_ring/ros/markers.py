@@ -15,13 +15,13 @@ of the ring and tens of milliseconds for a map with its covariance ellipses.
 
 from __future__ import annotations
 
-import struct
 from dataclasses import dataclass
 
 import numpy as np
 from visualization_msgs.msg import Marker
 
 from sonar_ring.landmarks import CLASS_NAMES, CORNER, EDGE, PLANE, UNKNOWN, Landmarks, ellipse_outlines
+from sonar_ring.ros.convert import Cdr
 
 CLASS_COLOURS = {
     PLANE: (0.15, 0.45, 1.0),
@@ -77,36 +77,6 @@ class MarkerParts:
             raise ValueError(f"marker {self.ns!r}: lifetime must be finite and >= 0 s, got {self.lifetime!r}")
 
 
-class _Cdr:
-    """Little-endian CDR (the encoding rmw uses), alignment counted from after the 4-byte encapsulation header."""
-
-    def __init__(self) -> None:
-        self.buffer = bytearray(b"\x00\x01\x00\x00")
-
-    def align(self, size: int) -> None:
-        self.buffer += bytes(-(len(self.buffer) - 4) % size)
-
-    def pack(self, fmt: str, *values, align: int) -> None:
-        self.align(align)
-        self.buffer += struct.pack("<" + fmt, *values)
-
-    def string(self, text: str) -> None:
-        data = text.encode()
-        self.pack("I", len(data) + 1, align=4)
-        self.buffer += data + b"\x00"
-
-    def header(self, sec: int, nanosec: int, frame_id: str) -> None:
-        self.pack("iI", sec, nanosec, align=4)
-        self.string(frame_id)
-
-    def array(self, values: np.ndarray, align: int) -> None:
-        """A sequence: its length in elements (rows of ``values``), then the raw values."""
-        self.pack("I", len(values), align=4)
-        if len(values):
-            self.align(align)
-            self.buffer += np.ascontiguousarray(values).tobytes()
-
-
 def serialize_markers(markers: list[MarkerParts], header) -> bytes:
     """A serialized ``visualization_msgs/MarkerArray`` of ``markers``, all with ``header`` (``std_msgs/Header``).
 
@@ -115,7 +85,7 @@ def serialize_markers(markers: list[MarkerParts], header) -> bytes:
     decoded (padding bytes are zero here; CDR leaves them unspecified).
     Publishers take it as it is (``test/test_markers.py``).
     """
-    cdr = _Cdr()
+    cdr = Cdr()
     cdr.pack("I", len(markers), align=4)
     for marker in markers:
         cdr.header(header.stamp.sec, header.stamp.nanosec, header.frame_id)
@@ -135,7 +105,7 @@ def serialize_markers(markers: list[MarkerParts], header) -> bytes:
 
 def _marker_tail() -> bytes:
     """The fields after ``colors``, all empty: the same bytes for every marker (``colors`` ends 4-aligned)."""
-    cdr = _Cdr()
+    cdr = Cdr()
     cdr.string("")  # texture_resource
     cdr.header(0, 0, "")  # texture: sensor_msgs/CompressedImage
     cdr.string("")

@@ -50,7 +50,7 @@ from sonar_ring.msg import Echoes
 from sonar_ring.progress import Progress
 from sonar_ring.ros import classifier, localiser, mapper
 from sonar_ring.ros.bag import TOPIC, BagError, BagReader, BagWriter, absolute, range_topics
-from sonar_ring.ros.convert import echoes_to_msg, landmarks_to_msg
+from sonar_ring.ros.convert import echoes_to_msg, serialize_landmarks
 from sonar_ring.ros.driver import DEFAULT_SPEED_OF_SOUND, odometry_message, truth_message, usable_echoes
 from sonar_ring.ros.inputs import InputGate, check_echoes, stamp_ns
 from sonar_ring.ros.markers import landmark_markers, serialize_markers
@@ -223,8 +223,8 @@ class PingStage:
                 outputs.append(PingOutput(dict(tally.problems), dict(tally.notes)))
                 continue
             hypotheses, labelled = labels[index]
-            data = (serialize_message(landmarks_to_msg(hypotheses, msg.header)),
-                    serialize_message(landmarks_to_msg(labelled, msg.header)),
+            data = (serialize_landmarks(hypotheses, msg.header),
+                    serialize_landmarks(labelled, msg.header),
                     serialize_markers(landmark_markers(labelled, "landmarks", self.marker_lifetime), msg.header))
             sightings = None if poses[index] is None else mapper.sightings_at(self.screening, labelled, poses[index],
                                                                               self.sensor_offset)
