@@ -38,7 +38,7 @@ import numpy as np
 
 from sonar_ring.compiled import kernel
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN
-from sonar_ring.localise import MAX_LENGTH
+from sonar_ring.localise import horizontal_path
 
 DECISION_MARGIN = 6.0
 """Barshan & Kuc eqs 13-14: one amplitude is *greater* than another only by more than 6 sigma."""
@@ -671,13 +671,14 @@ def load_kernels() -> None:
     paths = np.full((1, 3), 2.0)
     geometric_consistency(np.zeros(2), receivers, paths, 1e-3, facing=np.array([1.0, 0.0]))
     # ring_consistency's arguments: per-group arrays as Layout.plan and _ring_slots give them, read-only.
-    height_offset, pair, transmitters = np.zeros((1, 1, 2)), np.ascontiguousarray(receivers[:, :2]), np.zeros((1, 1, 2))
+    pair, transmitters = np.ascontiguousarray(receivers[:, :2]), np.zeros((1, 1, 2))
     facing, slots = np.array([[1.0, 0.0]]), np.zeros((1, 1), dtype=np.int64)
-    for array in (height_offset, pair, transmitters, facing, slots):
+    for array in (pair, transmitters, facing, slots):
         array.flags.writeable = False
     one = np.zeros(1, dtype=np.int64)
-    _ring_fits(one, one, np.full((1, 2), 2.0), height_offset, pair, transmitters, facing, slots, 1e-3, CONSISTENCY_Z,
-               MAX_ECHOES_PER_GROUP)
+    two_paths = np.full((1, 2), 2.0)
+    _ring_fits(one, one, two_paths, horizontal_path(two_paths, 0.0).value, pair, transmitters, facing, slots, 1e-3,
+               CONSISTENCY_Z, MAX_ECHOES_PER_GROUP)
 
 
 @kernel
@@ -890,10 +891,11 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
         raise ValueError(f"ping must have shape {(n_echoes,)}, got {ping.shape}")
 
     plan = layout.plan
-    fits = _ring_fits(ping.astype(np.int64), group.astype(np.int64), np.ascontiguousarray(paths), plan.height_offset,
-                      plan.receivers, plan.transmitters, plan.facing, _ring_slots(plan.yaw.tobytes(),
-                                                                                   float(layout.beam_half_angle)),
-                      sigma_path, float(z), MAX_ECHOES_PER_GROUP)
+    horizontal = horizontal_path(paths, plan.height_offset[group, 0]).value  # NaN where invalid
+    fits = _ring_fits(ping.astype(np.int64), group.astype(np.int64), np.ascontiguousarray(paths), horizontal,
+                      plan.receivers, plan.transmitters, plan.facing,
+                      _ring_slots(plan.yaw.tobytes(), float(layout.beam_half_angle)), sigma_path, float(z),
+                      MAX_ECHOES_PER_GROUP)
     return _decision(*fits, z)
 
 
@@ -907,13 +909,14 @@ def _ring_slots(yaw_bytes: bytes, beam_half_angle: float) -> np.ndarray:
 
 
 @kernel
-def _ring_fits(ping, group, paths, height_offset, receivers, transmitters, facing, slots, sigma_path, z,
+def _ring_fits(ping, group, paths, horizontal, receivers, transmitters, facing, slots, sigma_path, z,
                max_per_group):
     """Both models' fits of every echo of :func:`ring_consistency`, joined with its overlapping groups' echoes.
 
-    ``ping`` and ``group`` (N,) int; ``paths`` (N, K) measured path lengths, m;
-    per group (:attr:`sonar_ring.geometry.Layout.plan`): ``height_offset``
-    (G, M, K), ``receivers`` (G, K, 2), ``transmitters`` (G, M, 2), m, and the unit
+    ``ping`` and ``group`` (N,) int; ``paths`` (N, K) measured path lengths and
+    ``horizontal`` their horizontal parts (NaN where unusable), m;
+    per group (:attr:`sonar_ring.geometry.Layout.plan`): ``receivers`` (G, K, 2),
+    ``transmitters`` (G, M, 2), m, and the unit
     ``facing`` (G, 2); ``slots`` (G, 1 + J) each group and its overlapping ones
     (:func:`_ring_slots`); ``sigma_path`` m; ``z`` the gate's significance; a group
     with more than ``max_per_group`` echoes in a ping is left out.  Returns what
@@ -922,18 +925,13 @@ def _ring_fits(ping, group, paths, height_offset, receivers, transmitters, facin
     """
     n_echoes, n_receivers = paths.shape
     n_groups, n_slots = slots.shape
-    # Horizontal paths sqrt(d^2 - dz^2) (NaN where localise.horizontal_path flags them) and their sigma.
-    horizontal = np.full((n_echoes, n_receivers), np.nan)
+    # A horizontal path's sigma: the measured one's, scaled by d / sqrt(d^2 - dz^2).
     sigma = np.full((n_echoes, n_receivers), sigma_path)
     for n in range(n_echoes):
         for k in range(n_receivers):
-            d = paths[n, k]
-            height = abs(height_offset[group[n], 0, k])
-            if abs(d) <= MAX_LENGTH and height <= MAX_LENGTH and d > 0 and d >= height:
-                horizontal[n, k] = np.sqrt((d - height) * (d + height))
-                scaled = sigma_path * d / horizontal[n, k]
-                if np.isfinite(scaled) and scaled > 0:
-                    sigma[n, k] = scaled
+            scaled = sigma_path * paths[n, k] / horizontal[n, k]
+            if np.isfinite(scaled) and scaled > 0:
+                sigma[n, k] = scaled
     # Rows of each (ping, group) slot, in row order: a stable sort by key and a binary search.
     key = ping * n_groups + group
     order = np.argsort(key, kind="mergesort")

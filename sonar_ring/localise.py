@@ -310,6 +310,7 @@ def _flat_inputs(caller, tx, rx1, rx2, d1, d2):
 
 SOLVERS = ("virtual_image", "plane", "corner", "edge", "on_axis")
 """The models :func:`solve_rows` computes, in the order of its ``wanted`` flags and outputs."""
+PLANE_SOLVER = SOLVERS.index("plane")
 
 
 @kernel
@@ -532,6 +533,69 @@ def unscented_models(tx, rx1, rx2, d1, d2, paths_covariance, wanted):
     return (reason[:, :count], position[:, :count], normal[:count], reflection[:count], covariance)
 
 
+@kernel
+def localise_rows(tx, rx1, rx2, paths, dz, vertical, sigma_tof, speed, sigma_speed, models):
+    """A ping's rows localised with ``models`` (indices into :data:`SOLVERS`, output order), as hypotheses.
+
+    ``tx``, ``rx1``, ``rx2`` (N, 2) m; ``paths`` (N, 2) the measured path lengths
+    to each receiver, m, and ``dz`` (N, 2) the transmitter's height over each
+    receiver, m; with ``vertical`` each path is first made horizontal
+    (:func:`horizontal_path`) and its noise scaled by ``d / sqrt(d^2 - dz^2)``;
+    ``sigma_tof`` s, ``speed`` and ``sigma_speed`` m/s give the paths'
+    covariance (:func:`path_covariance`), which :func:`unscented_models` carries
+    to each model's position.
+
+    Returns, for M models by N rows (entry ``m N + n``): ``reason`` (M N,),
+    ``position``, ``normal`` (the plane's, towards the sensor) (M N, 2),
+    ``covariance`` (M N, 2, 2) and ``segment`` (M N, 2, 2) (the plane's reflection
+    points, else the position twice), all 0 where the reason is not OK; the
+    rows' path covariance (N, 2, 2); and ``lost`` (M N,), valid entries whose
+    sigma points left the solvable region, with a covariance still to compute.
+    """
+    count = paths.shape[0]
+    d1, d2 = np.empty(count), np.empty(count)
+    covariance_paths = np.empty((count, 2, 2))
+    scale = np.ones(2)
+    horizontal = np.empty(2)
+    for row in range(count):
+        for k in range(2):
+            horizontal[k] = paths[row, k]
+            if vertical:
+                horizontal[k] = _horizontal(paths[row, k], dz[row, k])[0]
+                scale[k] = paths[row, k] / horizontal[k]
+        d1[row], d2[row] = horizontal[0], horizontal[1]
+        _path_covariance(d1[row], d2[row], sigma_tof, speed, sigma_speed, covariance_paths[row])
+        for i in range(2):
+            for j in range(2):
+                covariance_paths[row, i, j] = covariance_paths[row, i, j] * scale[i] * scale[j]
+    wanted = np.zeros(len(SOLVERS), dtype=np.bool_)
+    for model in models:
+        wanted[model] = True
+    solved_reason, solved_position, plane_normal, reflection, solved_covariance = unscented_models(
+        tx, rx1, rx2, d1, d2, covariance_paths, wanted)
+    size = len(models) * count
+    reason = np.empty(size, dtype=np.uint8)
+    position, normal = np.zeros((size, 2)), np.zeros((size, 2))
+    covariance, segment = np.zeros((size, 2, 2)), np.zeros((size, 2, 2))
+    lost = np.zeros(size, dtype=np.bool_)
+    for index in range(len(models)):
+        model = models[index]
+        for row in range(count):
+            entry = index * count + row
+            reason[entry] = solved_reason[model, row]
+            if reason[entry] != OK:
+                continue
+            position[entry] = solved_position[model, row]
+            covariance[entry] = solved_covariance[model, row]
+            lost[entry] = not np.all(np.isfinite(covariance[entry]))
+            if model == PLANE_SOLVER:
+                normal[entry, 0], normal[entry, 1] = -plane_normal[row, 0], -plane_normal[row, 1]
+                segment[entry] = reflection[row]
+            else:
+                segment[entry, 0] = segment[entry, 1] = position[entry]
+    return reason, position, normal, covariance, segment, covariance_paths, lost
+
+
 def _solved(caller, models, tx, rx1, rx2, d1, d2) -> dict:
     """The estimates of ``models`` (names of :data:`SOLVERS`) for inputs of any broadcast shape, by name, in order."""
     shape, *inputs = _flat_inputs(caller, tx, rx1, rx2, d1, d2)
@@ -728,12 +792,12 @@ def load_kernels() -> None:
 
     Loading takes about 0.5 s (numba's start and the cached machine code); a
     process that localises on a deadline pays it at start.  Runs the models
-    alone (:func:`hypotheses`) and with their covariances (:func:`unscented_models`,
-    what ``pipeline.localise_ping`` uses), with the production argument types.
+    alone (:func:`hypotheses`) and for a ping (:func:`localise_rows`, what
+    ``pipeline.localise_ping`` uses), with the production argument types.
     """
     hypotheses([0.0, 0.0], [0.0, 0.02], [0.0, -0.02], 1.0, 1.0)
-    unscented_models(np.zeros((1, 2)), np.array([[0.0, 0.02]]), np.array([[0.0, -0.02]]), np.ones(1), np.ones(1),
-                     1e-8 * np.eye(2)[None], np.ones(len(SOLVERS), dtype=bool))
+    localise_rows(np.zeros((1, 2)), np.array([[0.0, 0.02]]), np.array([[0.0, -0.02]]), np.ones((1, 2)),
+                  np.zeros((1, 2)), True, 1e-6, 343.0, 0.0, np.arange(len(SOLVERS)))
 
 
 @_quiet
@@ -763,14 +827,32 @@ def horizontal_path(d, dz) -> ScalarEstimate:
     """
     d = _real_array("d", d, "horizontal_path")
     dz = _real_array("dz", dz, "horizontal_path")
-    reason = np.zeros(_shape("horizontal_path", d=d, dz=dz), dtype=np.int8)
-    _flag(reason, ~(_bounded(d) & _bounded(dz)), NOT_FINITE)
-    _flag(reason, ~(d > 0), NEGATIVE)
-    height = np.abs(dz)
-    _flag(reason, d < height, BELOW_HEIGHT)
-    value = np.sqrt((d - height) * (d + height))
-    valid, (value,) = _finish(reason, (value, 0))
-    return ScalarEstimate(value, valid, reason)
+    shape = _shape("horizontal_path", d=d, dz=dz)
+    value, reason = _horizontal_rows(np.broadcast_to(d, shape).ravel(), np.broadcast_to(dz, shape).ravel())
+    return ScalarEstimate(value.reshape(shape), reason.reshape(shape) == OK, reason.reshape(shape))
+
+
+@kernel
+def _horizontal_rows(d, dz):
+    """:func:`_horizontal` of each entry of the flat arrays ``d`` and ``dz`` (N,), m; values and reasons (int8)."""
+    value = np.empty(d.size)
+    reason = np.empty(d.size, dtype=np.int8)
+    for entry in range(d.size):
+        value[entry], reason[entry] = _horizontal(d[entry], dz[entry])
+    return value, reason
+
+
+@kernel
+def _horizontal(d, dz):
+    """``sqrt(d^2 - dz^2)`` as ``sqrt((d - |dz|)(d + |dz|))`` and its reason code; NaN unless OK."""
+    height = abs(dz)
+    if not (abs(d) <= MAX_LENGTH and height <= MAX_LENGTH):
+        return np.nan, NOT_FINITE
+    if not d > 0:
+        return np.nan, NEGATIVE
+    if d < height:
+        return np.nan, BELOW_HEIGHT
+    return np.sqrt((d - height) * (d + height)), OK
 
 
 @_quiet
@@ -895,11 +977,27 @@ def path_covariance(d1, d2, sigma_tof, speed_of_sound, sigma_speed=0.0) -> np.nd
             and np.all(np.isfinite(speed) & (speed > 0))):
         raise ValueError("path_covariance: need sigma_tof >= 0, sigma_speed >= 0 and speed_of_sound > 0, all finite")
     shape = _shape("path_covariance", d1=d1, d2=d2, sigma_tof=sigma_tof, speed=speed, sigma_speed=sigma_speed)
-    paths = np.stack(np.broadcast_arrays(d1, d2), axis=-1)
-    relative = (sigma_speed / speed)[..., None, None]
-    independent = np.square(speed * sigma_tof)[..., None, None] * np.eye(2)
-    return np.broadcast_to(independent + np.square(relative) * paths[..., :, None] * paths[..., None, :],
-                           shape + (2, 2)).copy()
+    flat = [np.broadcast_to(value, shape).ravel() for value in (d1, d2, sigma_tof, speed, sigma_speed)]
+    return _path_covariance_rows(*flat).reshape(shape + (2, 2))
+
+
+@kernel
+def _path_covariance_rows(d1, d2, sigma_tof, speed, sigma_speed):
+    """:func:`_path_covariance` of each entry of flat arrays (N,); returns (N, 2, 2), m^2."""
+    covariance = np.empty((d1.size, 2, 2))
+    for entry in range(d1.size):
+        _path_covariance(d1[entry], d2[entry], sigma_tof[entry], speed[entry], sigma_speed[entry], covariance[entry])
+    return covariance
+
+
+@kernel
+def _path_covariance(d1, d2, sigma_tof, speed, sigma_speed, out):
+    """Write the paths' covariance ``(c sigma_t)^2 I + (sigma_c / c)^2 d d^T`` into ``out`` (2, 2), m^2."""
+    independent = (speed * sigma_tof) ** 2
+    relative = (sigma_speed / speed) ** 2
+    out[0, 0] = independent + relative * d1 * d1
+    out[0, 1] = out[1, 0] = relative * d1 * d2
+    out[1, 1] = independent + relative * d2 * d2
 
 
 def _inverse_2x2(rows: np.ndarray) -> np.ndarray:

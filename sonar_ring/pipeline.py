@@ -82,22 +82,6 @@ def _row_geometry(layout: Layout, echoes: EchoArrays):
     return tx[:, :2], receivers[..., :2], tx[:, None, 2] - receivers[..., 2]
 
 
-def horizontal_paths(echoes: EchoArrays, dz: np.ndarray, settings: Settings):
-    """Path lengths of every row and receiver, shape (N, K), m, and their scale d/h.
-
-    With ``settings.vertical_correction`` the exact horizontal part
-    ``sqrt(d^2 - dz^2)`` (``dz`` (N, K), m); NaN where a receiver missed the
-    echo or ``d < |dz|``.  The scale ``d / h`` turns a path's standard deviation
-    into the horizontal one.
-    """
-    paths = echoes.path_lengths()
-    if not settings.vertical_correction:
-        return paths, np.ones_like(paths)
-    horizontal = localise.horizontal_path(paths, dz).value
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return horizontal, paths / horizontal
-
-
 def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Settings()) -> Landmarks:
     """Landmark hypotheses for every echo row and enabled model, sensor frame.
 
@@ -110,48 +94,33 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
     if layout.kind == "triad":
         return _localise_triads(layout, echoes, settings)
     tx, receivers, dz = _row_geometry(layout, echoes)
-    paths, scale = horizontal_paths(echoes, dz, settings)
-    rx1, rx2 = np.ascontiguousarray(receivers[:, 0]), np.ascontiguousarray(receivers[:, 1])
-    d1, d2 = np.ascontiguousarray(paths[:, 0]), np.ascontiguousarray(paths[:, 1])
-    # Rows with absurd paths overflow here; localise flags them NOT_FINITE, so the warnings are noise.
-    with np.errstate(over="ignore", invalid="ignore"):
-        covariance_paths = localise.path_covariance(d1, d2, settings.sigma_tof, echoes.speed_of_sound,
-                                                    settings.sigma_speed)
-        covariance_paths = covariance_paths * scale[:, :, None] * scale[:, None, :]
-    wanted = np.array([name in settings.models for name in localise.SOLVERS])
-    reason, position, normal, reflection, covariance = localise.unscented_models(
-        np.ascontiguousarray(tx), rx1, rx2, d1, d2, covariance_paths, wanted)
-    models = [localise.SOLVERS.index(model) for model in settings.models]
-    reason, position, covariance = reason[models], position[models], covariance[models]
-    valid = reason == localise.OK
+    models = np.array([localise.SOLVERS.index(model) for model in settings.models])
+    reason, position, normal, covariance, segment, covariance_paths, lost = localise.localise_rows(
+        np.ascontiguousarray(tx), np.ascontiguousarray(receivers[:, 0]), np.ascontiguousarray(receivers[:, 1]),
+        np.ascontiguousarray(echoes.path_lengths()), np.ascontiguousarray(dz), settings.vertical_correction,
+        float(settings.sigma_tof), float(echoes.speed_of_sound), float(settings.sigma_speed), models)
+    count = echoes.n_echoes
     # Near the border of the solvable region (|d2 - d1| close to the baseline) a sigma point can
     # fall outside it while the estimate is valid: first-order covariance there.
-    for index, model in enumerate(settings.models):
-        lost = valid[index] & ~np.isfinite(covariance[index]).all(axis=(1, 2))
-        if lost.any():
-            estimate = localise.PointEstimate(position[index, lost], valid[index, lost], reason[index, lost], model)
-            covariance[index, lost] = localise.position_covariance(estimate, tx[lost], rx1[lost], rx2[lost],
-                                                                   covariance_paths[lost])
-    count = echoes.n_echoes
-    normals = np.zeros_like(position)
-    segment = np.repeat(position[:, :, None, :], 2, axis=2)
-    if "plane" in settings.models:
-        index = settings.models.index("plane")
-        normals[index] = -normal
-        segment[index] = reflection
-    keep = valid.reshape(-1)
+    for index in np.unique(np.flatnonzero(lost) // max(count, 1)):
+        rows = np.flatnonzero(lost[index * count:(index + 1) * count])
+        entries = index * count + rows
+        estimate = localise.PointEstimate(position[entries], np.ones(rows.size, dtype=bool), reason[entries],
+                                          settings.models[index])
+        covariance[entries] = localise.position_covariance(estimate, tx[rows], receivers[rows, 0], receivers[rows, 1],
+                                                           covariance_paths[rows])
     return Landmarks(
         landmark_class=np.repeat(np.array([MODEL_CLASS[model] for model in settings.models], dtype=np.uint8), count),
-        position=np.where(keep[:, None], position.reshape(-1, 2), 0.0),
-        normal=np.where(keep[:, None], normals.reshape(-1, 2), 0.0),
-        covariance=np.where(keep[:, None, None], covariance.reshape(-1, 2, 2), 0.0),
-        confidence=np.zeros(keep.size, dtype=np.float32),
-        segment=np.where(keep[:, None, None], segment.reshape(-1, 2, 2), 0.0),
-        observations=np.ones(keep.size, dtype=np.uint32),
+        position=position,
+        normal=normal,
+        covariance=covariance,
+        confidence=np.zeros(reason.size, dtype=np.float32),
+        segment=segment,
+        observations=np.ones(reason.size, dtype=np.uint32),
         group=np.tile(echoes.group, len(models)).astype(np.uint16),
         echo=np.tile(np.arange(count, dtype=np.uint32), len(models)),
-        valid=keep,
-        reason=reason.reshape(-1).astype(np.uint8))
+        valid=reason == localise.OK,
+        reason=reason)
 
 
 @functools.lru_cache(maxsize=32)
