@@ -22,6 +22,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from sonar_ring import classify, doa, localise
+from sonar_ring.compiled import kernel
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import Layout
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, Landmarks, make_landmarks
@@ -174,35 +175,65 @@ def classify_ping(layout: Layout, echoes: EchoArrays, hypotheses: Landmarks,
     """
     ping = np.zeros(echoes.n_echoes, dtype=np.int64) if ping is None else np.asarray(ping, dtype=np.int64)
     decided, confidence = _evidence(layout, echoes, settings, ping)
-    count = echoes.n_echoes
-    index = {}
-    for code in (UNKNOWN, PLANE, CORNER, EDGE):
-        mine = hypotheses.landmark_class == code
-        index[code] = np.full(count, -1, dtype=np.int64)
-        index[code][hypotheses.echo[mine].astype(np.int64)] = np.flatnonzero(mine)
-
-    def usable(picked):
-        ok = picked >= 0
-        ok[ok] = hypotheses.valid[picked[ok]]
-        return ok
-
-    of_decided = np.full(count, -1, dtype=np.int64)
-    for code in (PLANE, CORNER, EDGE):
-        of_decided[decided == code] = index[code][decided == code]
-    use_decided = usable(of_decided)
-    fallback = np.where(usable(index[CORNER]), index[CORNER], index[UNKNOWN])
-    pick = np.where(use_decided, of_decided, fallback)
-    keep = usable(pick)
-    labelled = hypotheses.select(pick[keep]).with_class(np.where(use_decided, decided, UNKNOWN)[keep],
-                                                        np.where(use_decided, confidence, 0.0)[keep])
+    pick, label, decided_confidence, edge_row = _picks(hypotheses.landmark_class, hypotheses.echo.astype(np.int64),
+                                                       hypotheses.valid, decided, confidence)
+    labelled = hypotheses.select(pick).with_class(label, decided_confidence)
     # An undecided echo may be an edge placed with the corner model (Browne s7): its
     # covariance carries that model discrepancy, so it stays consistent either way.
-    undecided = np.flatnonzero(~use_decided[keep] & usable(index[EDGE])[keep])
-    edge_rows = index[EDGE][keep][undecided]
-    gap = hypotheses.position[edge_rows] - labelled.position[undecided]
+    undecided = np.flatnonzero(edge_row >= 0)
+    gap = hypotheses.position[edge_row[undecided]] - labelled.position[undecided]
     covariance = labelled.covariance.copy()
     covariance[undecided] += gap[:, :, None] * gap[:, None, :]
     return replace(labelled, covariance=covariance)
+
+
+def load_kernels() -> None:
+    """Load the compiled part of :func:`classify_ping` now instead of at the first ping.
+
+    The classifier node and the workers of ``sonar-ring process`` call it at start,
+    with :func:`sonar_ring.classify.load_kernels` on a ring.
+    """
+    _picks(np.zeros(1, dtype=np.uint8), np.zeros(1, dtype=np.int64), np.ones(1, dtype=bool),
+           np.zeros(1, dtype=np.uint8), np.zeros(1))
+
+
+@kernel
+def _picks(landmark_class, echo, valid, decided, confidence):
+    """Which hypothesis labels each echo row, for :func:`classify_ping`.
+
+    Hypotheses: ``landmark_class``, ``echo`` (their echo rows) and ``valid``
+    (H,); per echo row: the evidence's ``decided`` class and ``confidence`` (N,).
+    An echo takes the hypothesis of its decided class when that one is valid,
+    else the corner model's, else the UNKNOWN one (a triad's), else none.
+    Returns, per labelled echo in row order: the hypothesis row (L,), its class
+    (the decided one, or UNKNOWN) and confidence (L,), and the row of its valid
+    edge hypothesis where the class is not decided, else -1 (L,).
+    """
+    count = decided.size
+    index = np.full((4, count), -1, dtype=np.int64)  # by class code: UNKNOWN, PLANE, CORNER, EDGE
+    for row in range(landmark_class.size):
+        index[landmark_class[row], echo[row]] = row
+    pick = np.empty(count, dtype=np.int64)
+    label = np.empty(count, dtype=np.uint8)
+    label_confidence = np.empty(count)
+    edge_row = np.empty(count, dtype=np.int64)
+    kept = 0
+    for n in range(count):
+        chosen = index[decided[n], n] if decided[n] != UNKNOWN else -1
+        if chosen >= 0 and valid[chosen]:
+            label[kept], label_confidence[kept], edge_row[kept] = decided[n], confidence[n], -1
+        else:
+            chosen = index[CORNER, n]
+            if not (chosen >= 0 and valid[chosen]):
+                chosen = index[UNKNOWN, n]
+            if not (chosen >= 0 and valid[chosen]):
+                continue
+            edge = index[EDGE, n]
+            label[kept], label_confidence[kept] = UNKNOWN, 0.0
+            edge_row[kept] = edge if edge >= 0 and valid[edge] else -1
+        pick[kept] = chosen
+        kept += 1
+    return pick[:kept], label[:kept], label_confidence[:kept], edge_row[:kept]
 
 
 def _evidence(layout: Layout, echoes: EchoArrays, settings: Settings, ping: np.ndarray):

@@ -52,8 +52,9 @@ class Classifier(SonarNode):
         self.params = declare(self, PARAMS, self._on_change)
         self.layout = load_layout(self.params["layout"])
         self.settings = settings_from(self.params)
+        pipeline.load_kernels()  # now, or the first ping would wait for them (~0.3 s)
         if self.layout.kind == "ring":
-            classify.load_kernels()  # now, or the first ping would wait ~0.3 s for them
+            classify.load_kernels()
         self.health = NodeHealth(self, hardware_id=self.layout.name)
         self._pending: OrderedDict[tuple, dict] = OrderedDict()
         self._landmarks = self.create_publisher(LandmarkArray, "landmarks", qos_profile_sensor_data)

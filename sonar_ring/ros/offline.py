@@ -242,6 +242,7 @@ def _start_worker(stage: PingStage) -> None:
     _worker_stage = stage
     if stage.layout.kind != "triad":
         localise.load_kernels()
+    pipeline.load_kernels()
     if stage.layout.kind == "ring":
         classify.load_kernels()
     stage.screening.screen(Landmarks.empty(), (0.0, 0.0, 0.0))  # loads the screening kernel
