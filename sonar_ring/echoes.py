@@ -10,6 +10,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from sonar_ring.compiled import kernel
+
 SLOWEST_SPEED_OF_SOUND = 250.0
 """m/s: below any air a robot works in (-50 degC dry air is 299 m/s); slower is a corrupt value."""
 FASTEST_SPEED_OF_SOUND = 450.0
@@ -79,31 +81,73 @@ def sanitize(echoes: EchoArrays, n_groups: int, group_transmitters: np.ndarray, 
         ``not_positive_tof``, ``tof_too_long``, ``empty_row`` -- counts of
         rows (group, transmitter, empty) or values (TOFs).
     """
-    group = np.asarray(echoes.group, dtype=np.int64)
-    transmitter = np.asarray(echoes.transmitter, dtype=np.int64)
-    known_group = (group >= 0) & (group < n_groups)
-    allowed = np.zeros(echoes.n_echoes, dtype=bool)
-    allowed[known_group] = np.any(group_transmitters[group[known_group]] == transmitter[known_group, None], axis=1)
     tof = np.array(echoes.tof, dtype=float)
-    infinite = np.isinf(tof)
-    finite = np.isfinite(tof)
-    not_positive = finite & (tof <= 0)
-    too_long = finite & (tof > max_tof)
-    tof[infinite | not_positive | too_long] = np.nan
-    heard = np.any(np.isfinite(tof), axis=1)
-    keep = known_group & allowed & heard
-    problems = {
-        "unknown_group": int(np.count_nonzero(~known_group)),
-        "unknown_transmitter": int(np.count_nonzero(known_group & ~allowed)),
-        "not_finite_tof": int(np.count_nonzero(infinite[known_group & allowed])),
-        "not_positive_tof": int(np.count_nonzero(not_positive[known_group & allowed])),
-        "tof_too_long": int(np.count_nonzero(too_long[known_group & allowed])),
-        "empty_row": int(np.count_nonzero(known_group & allowed & ~heard)),
-    }
+    keep, counts = _screen_rows(np.asarray(echoes.group, dtype=np.int64),
+                                np.asarray(echoes.transmitter, dtype=np.int64), tof, n_groups,
+                                np.ascontiguousarray(group_transmitters, dtype=np.int64), float(max_tof))
+    problems = dict(zip(SANITIZE_PROBLEMS, counts.tolist(), strict=True))
     kept = EchoArrays(layout=echoes.layout, speed_of_sound=echoes.speed_of_sound, group=echoes.group[keep],
                       transmitter=echoes.transmitter[keep], tof=tof[keep], amplitude=echoes.amplitude[keep],
                       phase_delay=echoes.phase_delay[keep])
     return kept, {reason: n for reason, n in problems.items() if n}
+
+
+def load_kernels() -> None:
+    """Load the compiled row checks of :func:`sanitize` now instead of at the first ping.
+
+    Every node that screens pings calls it at start (the first call of any kernel
+    also starts numba, about 0.5 s).
+    """
+    _screen_rows(np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64), np.ones((1, 2)), 1,
+                 np.zeros((1, 1), dtype=np.int64), 1.0)
+
+
+SANITIZE_PROBLEMS = ("unknown_group", "unknown_transmitter", "not_finite_tof", "not_positive_tof", "tof_too_long",
+                     "empty_row")
+"""What :func:`sanitize` counts, in the order of :func:`_screen_rows`' counts."""
+
+
+@kernel
+def _screen_rows(group, transmitter, tof, n_groups, group_transmitters, max_tof):
+    """The checks of :func:`sanitize` on each row: which rows to keep, and the problems' counts.
+
+    ``group`` and ``transmitter`` (N,) int; ``tof`` (N, K) s, in which TOFs that
+    are infinite, not positive or longer than ``max_tof`` are set to NaN here;
+    ``group_transmitters`` (G, M).  Returns ``keep`` (N,) bool and the counts of
+    :data:`SANITIZE_PROBLEMS` (6,), TOF values counted only in rows of a known
+    group and transmitter.
+    """
+    n_echoes, n_receivers = tof.shape
+    keep = np.zeros(n_echoes, dtype=np.bool_)
+    counts = np.zeros(len(SANITIZE_PROBLEMS), dtype=np.int64)
+    for n in range(n_echoes):
+        if not 0 <= group[n] < n_groups:
+            counts[0] += 1
+            continue
+        allowed = False
+        for slot in range(group_transmitters.shape[1]):
+            allowed = allowed or group_transmitters[group[n], slot] == transmitter[n]
+        heard = False
+        for k in range(n_receivers):
+            value = tof[n, k]
+            if np.isinf(value):
+                counts[2] += allowed
+                tof[n, k] = np.nan
+            elif value <= 0:
+                counts[3] += allowed
+                tof[n, k] = np.nan
+            elif value > max_tof:
+                counts[4] += allowed
+                tof[n, k] = np.nan
+            elif value == value:
+                heard = True
+        if not allowed:
+            counts[1] += 1
+        elif not heard:
+            counts[5] += 1
+        else:
+            keep[n] = True
+    return keep, counts
 
 
 def longest_tof(layout) -> float:

@@ -16,6 +16,7 @@ from visualization_msgs.msg import MarkerArray
 
 from sonar_ring import classify, pipeline
 from sonar_ring.echoes import EchoArrays
+from sonar_ring.echoes import load_kernels as load_screening_kernels
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import Landmarks
 from sonar_ring.msg import Echoes, LandmarkArray
@@ -52,7 +53,8 @@ class Classifier(SonarNode):
         self.params = declare(self, PARAMS, self._on_change)
         self.layout = load_layout(self.params["layout"])
         self.settings = settings_from(self.params)
-        pipeline.load_kernels()  # now, or the first ping would wait for them (~0.3 s)
+        load_screening_kernels()  # now, or the first ping would wait ~0.5 s for them
+        pipeline.load_kernels()
         if self.layout.kind == "ring":
             classify.load_kernels()
         self.health = NodeHealth(self, hardware_id=self.layout.name)

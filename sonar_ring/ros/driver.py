@@ -26,6 +26,7 @@ from rclpy.subscription import MessageInfo
 from std_msgs.msg import Header
 
 from sonar_ring.echoes import FASTEST_SPEED_OF_SOUND, SLOWEST_SPEED_OF_SOUND, EchoArrays
+from sonar_ring.echoes import load_kernels as load_screening_kernels
 from sonar_ring.geometry import load_layout, speed_of_sound
 from sonar_ring.landmarks import make_landmarks
 from sonar_ring.msg import Echoes
@@ -83,6 +84,7 @@ class Driver(SonarNode):
         super().__init__("driver", **kwargs)
         self.params = declare(self, PARAMS, self._on_change)
         self.layout = load_layout(self.params["layout"])
+        load_screening_kernels()  # now, or the first ping would wait ~0.5 s for them
         self.health = NodeHealth(self, hardware_id=f"{self.params['source']}:{self.layout.name}")
         self._echo_publisher = self.create_publisher(Echoes, "echoes", qos_profile_sensor_data)
         if self.params["publish_range"]:

@@ -16,6 +16,7 @@ from rclpy.subscription import MessageInfo
 
 from sonar_ring import localise, pipeline
 from sonar_ring.echoes import EchoArrays
+from sonar_ring.echoes import load_kernels as load_screening_kernels
 from sonar_ring.geometry import load_layout
 from sonar_ring.msg import Echoes, LandmarkArray
 from sonar_ring.ros.convert import serialize_landmarks
@@ -72,8 +73,9 @@ class Localiser(SonarNode):
         self.params = declare(self, PARAMS, self._on_change)
         self.layout = load_layout(self.params["layout"])
         self.settings = settings_from(self.params)
+        load_screening_kernels()  # now, or the first ping would wait ~0.5 s for them
         if self.layout.kind != "triad":
-            localise.load_kernels()  # now, or the first ping would wait ~0.5 s for them
+            localise.load_kernels()
         self.health = NodeHealth(self, hardware_id=self.layout.name)
         self._publisher = self.create_publisher(LandmarkArray, "landmarks/raw", qos_profile_sensor_data)
         self._gate = InputGate(self, self.health, "echoes", self.params)

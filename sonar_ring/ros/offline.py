@@ -43,6 +43,7 @@ from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import Header
 
 from sonar_ring import classify, localise, mapping, pipeline
+from sonar_ring.echoes import load_kernels as load_screening_kernels
 from sonar_ring.geometry import Layout, LayoutError, config_path, load_layout
 from sonar_ring.landmarks import CLASS_NAMES, Landmarks
 from sonar_ring.mapping import LandmarkMap, Sightings
@@ -240,6 +241,7 @@ _worker_stage: PingStage | None = None
 def _start_worker(stage: PingStage) -> None:
     global _worker_stage
     _worker_stage = stage
+    load_screening_kernels()
     if stage.layout.kind != "triad":
         localise.load_kernels()
     pipeline.load_kernels()
