@@ -2,8 +2,10 @@
 
 The four nodes run as the ``graph`` executable does (one process, one executor,
 composed so a ping is one callback; ``source:=topic``, fixed pose) in a child
-process; this process plays the sensor.  Each ping -- 48 pairs of the Browne ring, 3 echoes per pair -- goes to
-the driver's ``tof_in`` stamped with the wall clock when it is sent; a ping's
+process; this process plays the sensor and RViz, as lightly as it can (the
+same two cores run both): each ping -- 48 pairs of the Browne ring, 3 echoes
+per pair -- is serialized once, and goes to the driver's ``tof_in`` with the
+wall clock at sending written into its stamp; a ping's
 latency is the time from that stamp until the middleware here received its
 markers (which carry the same stamp), so it includes both DDS hops, the
 graph's executor, the driver's checks, localiser, classifier and the marker
