@@ -82,8 +82,9 @@ def sanitize(echoes: EchoArrays, n_groups: int, group_transmitters: np.ndarray, 
         rows (group, transmitter, empty) or values (TOFs).
     """
     tof = np.array(echoes.tof, dtype=float)
-    keep, counts = _screen_rows(np.asarray(echoes.group, dtype=np.int64),
-                                np.asarray(echoes.transmitter, dtype=np.int64), tof, n_groups,
+    # Copies (astype): a message's arrays are read-only views, another type to numba.
+    keep, counts = _screen_rows(np.asarray(echoes.group).astype(np.int64),
+                                np.asarray(echoes.transmitter).astype(np.int64), tof, n_groups,
                                 np.ascontiguousarray(group_transmitters, dtype=np.int64), float(max_tof))
     problems = dict(zip(SANITIZE_PROBLEMS, counts.tolist(), strict=True))
     kept = EchoArrays(layout=echoes.layout, speed_of_sound=echoes.speed_of_sound, group=echoes.group[keep],

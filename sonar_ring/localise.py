@@ -245,6 +245,15 @@ def _bounded(values: np.ndarray) -> np.ndarray:
     return np.abs(values) <= MAX_LENGTH
 
 
+def _flat_copies(shape: tuple, *arrays) -> list[np.ndarray]:
+    """Each array broadcast to ``shape``, flattened, as a new (writable) float64 array.
+
+    Writable always: numba compiles a read-only array as another type, so a
+    view of a message's buffer would make the kernel compile again at its first ping.
+    """
+    return [np.array(np.broadcast_to(array, shape), dtype=np.float64).ravel() for array in arrays]
+
+
 def _flag(reason: np.ndarray, mask, code: int) -> None:
     """Set ``code`` where ``mask`` (broadcastable to ``reason``) holds and no earlier check has failed."""
     reason[(reason == OK) & mask] = code
@@ -828,7 +837,7 @@ def horizontal_path(d, dz) -> ScalarEstimate:
     d = _real_array("d", d, "horizontal_path")
     dz = _real_array("dz", dz, "horizontal_path")
     shape = _shape("horizontal_path", d=d, dz=dz)
-    value, reason = _horizontal_rows(np.broadcast_to(d, shape).ravel(), np.broadcast_to(dz, shape).ravel())
+    value, reason = _horizontal_rows(*_flat_copies(shape, d, dz))
     return ScalarEstimate(value.reshape(shape), reason.reshape(shape) == OK, reason.reshape(shape))
 
 
@@ -977,8 +986,7 @@ def path_covariance(d1, d2, sigma_tof, speed_of_sound, sigma_speed=0.0) -> np.nd
             and np.all(np.isfinite(speed) & (speed > 0))):
         raise ValueError("path_covariance: need sigma_tof >= 0, sigma_speed >= 0 and speed_of_sound > 0, all finite")
     shape = _shape("path_covariance", d1=d1, d2=d2, sigma_tof=sigma_tof, speed=speed, sigma_speed=sigma_speed)
-    flat = [np.broadcast_to(value, shape).ravel() for value in (d1, d2, sigma_tof, speed, sigma_speed)]
-    return _path_covariance_rows(*flat).reshape(shape + (2, 2))
+    return _path_covariance_rows(*_flat_copies(shape, d1, d2, sigma_tof, speed, sigma_speed)).reshape(shape + (2, 2))
 
 
 @kernel

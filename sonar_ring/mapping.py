@@ -1036,12 +1036,13 @@ class LandmarkMap:
 
     def _screen(self, landmarks: Landmarks, sensor: np.ndarray) -> Sightings:
         """The usable landmarks, with the unusable ones counted by kind."""
-        position = np.ascontiguousarray(landmarks.position, dtype=float)
-        segment = np.ascontiguousarray(landmarks.segment, dtype=float)
+        # Copies: landmarks decoded from a message are read-only views, another type to numba.
+        position = np.array(landmarks.position, dtype=float)
+        segment = np.array(landmarks.segment, dtype=float)
         keep, covariance, information, normal, distance, counts = _screen_rows(
-            np.ascontiguousarray(landmarks.landmark_class), np.ascontiguousarray(landmarks.valid, dtype=bool),
-            position, np.ascontiguousarray(landmarks.covariance, dtype=float), segment,
-            np.ascontiguousarray(landmarks.normal, dtype=float), sensor[0], sensor[1], self.sighting_sigma ** 2)
+            np.array(landmarks.landmark_class, dtype=np.uint8), np.array(landmarks.valid, dtype=bool), position,
+            np.array(landmarks.covariance, dtype=float), segment, np.array(landmarks.normal, dtype=float),
+            sensor[0], sensor[1], self.sighting_sigma ** 2)
         return Sightings(
             landmark_class=landmarks.landmark_class[keep].astype(np.uint8),
             position=position[keep],

@@ -175,8 +175,10 @@ def classify_ping(layout: Layout, echoes: EchoArrays, hypotheses: Landmarks,
     """
     ping = np.zeros(echoes.n_echoes, dtype=np.int64) if ping is None else np.asarray(ping, dtype=np.int64)
     decided, confidence = _evidence(layout, echoes, settings, ping)
-    pick, label, decided_confidence, edge_row = _picks(hypotheses.landmark_class, hypotheses.echo.astype(np.int64),
-                                                       hypotheses.valid, decided, confidence)
+    # Copies: hypotheses decoded from a message are read-only views, another type to numba.
+    pick, label, decided_confidence, edge_row = _picks(hypotheses.landmark_class.astype(np.uint8),
+                                                       hypotheses.echo.astype(np.int64), hypotheses.valid.astype(bool),
+                                                       decided, confidence)
     labelled = hypotheses.select(pick).with_class(label, decided_confidence)
     # An undecided echo may be an edge placed with the corner model (Browne s7): its
     # covariance carries that model discrepancy, so it stays consistent either way.

@@ -1,9 +1,9 @@
 """Helpers of the tests that run nodes: spinning until a condition, the map's QoS, the executables."""
 
-import os
 import time
 from pathlib import Path
 
+from ament_index_python.packages import get_package_prefix
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy
 
 MAP_QOS = QoSProfile(depth=1, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.TRANSIENT_LOCAL)
@@ -19,5 +19,9 @@ def spin_until(executor, done, timeout):
 
 
 def executable(name):
-    """Path of a node executable of the colcon-built package (``ros2 run sonar_ring NAME``)."""
-    return str(Path(os.environ["AMENT_PREFIX_PATH"].split(":")[0]) / "lib" / "sonar_ring" / name)
+    """Path of a node executable of the colcon-built package, found as ``ros2 run sonar_ring NAME`` finds it.
+
+    The ament index, not the first entry of ``AMENT_PREFIX_PATH``: sourcing the
+    environment twice puts the venv, which holds no sonar_ring, first.
+    """
+    return str(Path(get_package_prefix("sonar_ring")) / "lib" / "sonar_ring" / name)

@@ -1,11 +1,18 @@
 """Tests of the numba kernels' mechanics (sonar_ring.compiled); their numbers are tested with their modules."""
 
+import dataclasses
+
 import numba
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
-from sonar_ring import localise, mapping
+from sonar_ring import classify, localise, mapping, pipeline
+from sonar_ring import echoes as echoes_module
+from sonar_ring.compiled import _DISPATCHERS
+from sonar_ring.echoes import screen_ping
+from sonar_ring.geometry import load_layout
+from sonar_ring.simulate import Noise, Simulator, load_scene
 
 
 def test_a_kernel_becomes_its_dispatcher_and_matches_its_python_source():
@@ -42,3 +49,42 @@ def test_error_handling():
     # Arguments of the wrong kind are refused by the type checker, with the kernel named.
     with pytest.raises(numba.core.errors.TypingError, match="_inverse"):
         mapping._inverse("not an array")
+
+
+def _read_only(arrays):
+    """``arrays`` (a dataclass of numpy arrays) with every array a read-only view, as decoded from a message."""
+    views = {}
+    for field in dataclasses.fields(arrays):
+        value = getattr(arrays, field.name)
+        if isinstance(value, np.ndarray):
+            value = value.view()
+            value.flags.writeable = False
+        views[field.name] = value
+    return type(arrays)(**views)
+
+
+@pytest.mark.parametrize("layout_name", ["browne_ring", "barshan_kuc_pair", "kreczmer_triad"])
+def test_load_kernels_leaves_nothing_to_compile_at_the_first_ping(layout_name):
+    """After the modules' load_kernels, a ping through the nodes' steps compiles no new signature.
+
+    A signature compiled at the first ping stalls that ping for seconds; a read-only
+    array (a view of a message's buffer) is another type to numba than a writable one.
+    """
+    for module in (echoes_module, localise, classify, pipeline, mapping):
+        module.load_kernels()
+    compiled = {key: len(dispatcher.signatures) for key, dispatcher in _DISPATCHERS.items()}
+    layout = load_layout(layout_name)
+    scene = load_scene("barshan_kuc_bench" if layout.kind == "pair" else "room")
+    times, poses = scene.trajectory.poses(layout.ping_rate)
+    ping = Simulator(scene, layout).run(poses[:1], times[:1], noise=Noise(tof=1e-6), rng=np.random.default_rng(0))[0]
+    received = _read_only(ping.echoes)
+    screened = screen_ping(received, layout).echoes
+    hypotheses = pipeline.localise_ping(layout, _read_only(screened))
+    labelled = pipeline.classify_ping(layout, _read_only(screened), _read_only(hypotheses.select(hypotheses.valid)))
+    landmark_map = mapping.LandmarkMap()
+    landmark_map.update(_read_only(labelled), (0.0, 0.0, 0.0))
+    landmark_map.update(_read_only(labelled), (0.01, 0.0, 0.0))
+    assert len(labelled) > 0
+    grown = {key: (compiled.get(key, 0), len(dispatcher.signatures)) for key, dispatcher in _DISPATCHERS.items()
+             if len(dispatcher.signatures) != compiled.get(key, 0)}
+    assert grown == {}, f"compiled at the first ping (kernel: signatures before, after): {grown}"
