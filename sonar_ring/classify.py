@@ -115,6 +115,12 @@ def _positive_finite(name, value):
     return array
 
 
+def _check_significance(z) -> None:
+    """Refuse a consistency test's significance ``z`` unless it is one finite number > 0."""
+    if not (np.ndim(z) == 0 and np.isfinite(z) and z > 0):
+        raise ValueError(f"z must be a finite number > 0, got {z!r}")
+
+
 def _beam_and_noise(theta0, sigma_rel, margin_rule):
     """Validate the beam half-angle, relative noise and margin rule; return ``sqrt(-ln(1 - 6 sigma))``."""
     if not (np.ndim(theta0) == 0 and np.isfinite(theta0) and 0 < theta0 < np.pi / 2):
@@ -572,8 +578,7 @@ def geometric_consistency(transmitter, receivers, paths, sigma_path, z=CONSISTEN
         Decisions, confidences, chi-squares and both fitted positions.  Echoes with
         fewer than three usable receivers are UNKNOWN with zero confidence.
     """
-    if not (np.ndim(z) == 0 and np.isfinite(z) and z > 0):
-        raise ValueError(f"z must be a finite number > 0, got {z!r}")
+    _check_significance(z)
     receivers = np.asarray(receivers, dtype=float)
     if receivers.ndim != 3 or receivers.shape[-1] != 2:
         raise ValueError(f"receivers must have shape (N, K, 2), got {receivers.shape}")
@@ -596,7 +601,11 @@ def geometric_consistency(transmitter, receivers, paths, sigma_path, z=CONSISTEN
 
 
 def _decision(image, chi2_specular, edge, chi2_edge, dof, z) -> ConsistencyResult:
-    """The tests of :func:`geometric_consistency` on both models' fits (:func:`_fit_models`' outputs)."""
+    """The tests of :func:`geometric_consistency` on both models' fits (:func:`_fit_models`' outputs).
+
+    ``image`` and ``edge`` (N, 2) m, ``chi2_specular`` and ``chi2_edge`` (N,),
+    ``dof`` (N,) int; ``z`` the significance.
+    """
     tested = dof >= 1
     chi2_specular = np.where(tested, chi2_specular, np.nan)
     chi2_edge = np.where(tested, chi2_edge, np.nan)
@@ -664,8 +673,10 @@ def load_kernels() -> None:
     Loading takes about 0.3 s (numba's start and the cached machine code); a process
     that classifies on a deadline pays it at start: the classifier node, so its first
     ping is not late, and the workers of ``sonar-ring process``, while the main
-    process opens the bag.  Runs each kernel once through the functions that call
-    it, so the argument types are the production ones.
+    process opens the bag.  Runs each kernel with the argument types of production
+    (``test_compiled`` checks that a ping compiles nothing more): the fits through
+    :func:`geometric_consistency`, the ring's kernel with read-only per-group
+    arrays as :attr:`sonar_ring.geometry.Layout.plan` holds them.
     """
     receivers = np.array([[[0.02, 0.04], [0.02, 0.0], [0.02, -0.04]]])
     paths = np.full((1, 3), 2.0)
@@ -851,7 +862,7 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
 
     A group reporting more than :data:`MAX_ECHOES_PER_GROUP` echoes in one ping is
     not tested and joins no other echo: the gate compares every pair of candidate
-    echoes, so its memory would grow with the square of that count, and no
+    echoes, so its time would grow with the square of that count, and no
     reflector geometry produces so many separate echoes in one pair.
 
     Parameters
@@ -879,6 +890,7 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
                          f"{layout.group_transmitters.shape[1]} transmitters per group; geometric "
                          "consistency needs one emitter (use the amplitude rule for transducer pairs)")
     sigma_path = float(_positive_finite("sigma_path", sigma_path))
+    _check_significance(z)
     group = np.asarray(group, dtype=int).reshape(-1)
     n_echoes, k = group.size, layout.receivers_per_group
     paths = np.asarray(paths, dtype=float)

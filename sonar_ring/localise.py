@@ -809,7 +809,6 @@ def load_kernels() -> None:
                   np.zeros((1, 2)), True, 1e-6, 343.0, 0.0, np.arange(len(SOLVERS)))
 
 
-@_quiet
 def horizontal_path(d, dz) -> ScalarEstimate:
     """Exact horizontal path length ``sqrt(d^2 - dz^2)`` for vertically extruded reflectors.
 
@@ -982,11 +981,22 @@ def path_covariance(d1, d2, sigma_tof, speed_of_sound, sigma_speed=0.0) -> np.nd
     sigma_tof = _real_array("sigma_tof", sigma_tof, "path_covariance")
     speed = _real_array("speed_of_sound", speed_of_sound, "path_covariance")
     sigma_speed = _real_array("sigma_speed", sigma_speed, "path_covariance")
-    if not (np.all(np.isfinite(sigma_tof) & (sigma_tof >= 0)) and np.all(np.isfinite(sigma_speed) & (sigma_speed >= 0))
-            and np.all(np.isfinite(speed) & (speed > 0))):
-        raise ValueError("path_covariance: need sigma_tof >= 0, sigma_speed >= 0 and speed_of_sound > 0, all finite")
+    check_path_noise(sigma_tof, speed, sigma_speed, "path_covariance")
     shape = _shape("path_covariance", d1=d1, d2=d2, sigma_tof=sigma_tof, speed=speed, sigma_speed=sigma_speed)
     return _path_covariance_rows(*_flat_copies(shape, d1, d2, sigma_tof, speed, sigma_speed)).reshape(shape + (2, 2))
+
+
+def check_path_noise(sigma_tof, speed_of_sound, sigma_speed, caller: str) -> None:
+    """Refuse the noise parameters of a paths' covariance that make no sense, with ``ValueError``.
+
+    All must be finite, ``sigma_tof`` (s) and ``sigma_speed`` (m/s) >= 0 and
+    ``speed_of_sound`` (m/s) > 0; arrays or scalars.
+    """
+    sigma_tof, speed, sigma_speed = (np.asarray(value, dtype=float) for value in (sigma_tof, speed_of_sound,
+                                                                                   sigma_speed))
+    if not (np.all(np.isfinite(sigma_tof) & (sigma_tof >= 0)) and np.all(np.isfinite(sigma_speed) & (sigma_speed >= 0))
+            and np.all(np.isfinite(speed) & (speed > 0))):
+        raise ValueError(f"{caller}: need sigma_tof >= 0, sigma_speed >= 0 and speed_of_sound > 0, all finite")
 
 
 @kernel

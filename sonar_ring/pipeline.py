@@ -94,6 +94,7 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
     """
     if layout.kind == "triad":
         return _localise_triads(layout, echoes, settings)
+    localise.check_path_noise(settings.sigma_tof, echoes.speed_of_sound, settings.sigma_speed, "localise_ping")
     tx, receivers, dz = _row_geometry(layout, echoes)
     models = np.array([localise.SOLVERS.index(model) for model in settings.models])
     reason, position, normal, covariance, segment, covariance_paths, lost = localise.localise_rows(
@@ -205,7 +206,8 @@ def _picks(landmark_class, echo, valid, decided, confidence):
 
     Hypotheses: ``landmark_class``, ``echo`` (their echo rows) and ``valid``
     (H,); per echo row: the evidence's ``decided`` class and ``confidence`` (N,).
-    An echo takes the hypothesis of its decided class when that one is valid,
+    Hypotheses of an unknown class or of an echo row outside ``[0, N)`` are
+    ignored.  An echo takes the hypothesis of its decided class when that one is valid,
     else the corner model's, else the UNKNOWN one (a triad's), else none.
     Returns, per labelled echo in row order: the hypothesis row (L,), its class
     (the decided one, or UNKNOWN) and confidence (L,), and the row of its valid
@@ -214,7 +216,8 @@ def _picks(landmark_class, echo, valid, decided, confidence):
     count = decided.size
     index = np.full((4, count), -1, dtype=np.int64)  # by class code: UNKNOWN, PLANE, CORNER, EDGE
     for row in range(landmark_class.size):
-        index[landmark_class[row], echo[row]] = row
+        if landmark_class[row] <= EDGE and 0 <= echo[row] < count:  # no other hypothesis names an echo
+            index[landmark_class[row], echo[row]] = row
     pick = np.empty(count, dtype=np.int64)
     label = np.empty(count, dtype=np.uint8)
     label_confidence = np.empty(count)

@@ -14,6 +14,7 @@ from std_msgs.msg import Header
 
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import load_layout
+from sonar_ring.landmarks import Landmarks
 from sonar_ring.ros.classifier import Classifier
 from sonar_ring.ros.convert import echoes_to_msg, landmarks_from_msg, landmarks_to_msg
 from sonar_ring.ros.diagnostics import NodeHealth
@@ -268,6 +269,22 @@ def test_classifier_pairs_each_ping_once(ros):
     assert spin_until(bench.executor, lambda: classifier.health.problems["duplicate_stamp"] == 2, timeout=5)
     assert len(bench.out) == 1
     assert problems(classifier) == {"duplicate_stamp": 2}
+    bench.close()
+
+
+def test_classifier_leaves_out_stray_hypotheses_and_labels_the_rest(ros):
+    classifier = Classifier()
+    bench = Bench(classifier, "echoes", Echoes, "landmarks", LandmarkArray)
+    raw_publisher = bench.peer.create_publisher(LandmarkArray, "landmarks/raw", qos_profile_sensor_data)
+    assert spin_until(bench.executor, lambda: raw_publisher.get_subscription_count() > 0, timeout=10)
+    header = bench.header()
+    hypotheses = landmarks_from_msg(_one_ping_of_landmarks())
+    stray = replace(hypotheses.select([0]), echo=np.array([10**6], dtype=np.uint32))
+    bench.publisher.publish(echoes_to_msg(wall_ping(), header))
+    raw_publisher.publish(landmarks_to_msg(Landmarks.concatenate([hypotheses, stray]), header))
+    assert bench.outputs_settle(1)
+    assert len(landmarks_from_msg(bench.out[0])) > 0
+    assert problems(classifier) == {"stray_hypothesis": 1}
     bench.close()
 
 

@@ -469,6 +469,9 @@ def test_error_handling():
         classify.ring_consistency(ring_layout, [48], np.ones((1, 2)), SIGMA_PATH)
     with pytest.raises(ValueError, match="paths"):
         classify.ring_consistency(ring_layout, [0], np.ones((1, 3)), SIGMA_PATH)
+    for z in (0.0, np.nan, [3.5, 3.5]):
+        with pytest.raises(ValueError, match="z must"):
+            classify.ring_consistency(ring_layout, [0], np.ones((1, 2)), SIGMA_PATH, z=z)
 
     # ... bad data values give UNKNOWN / NaN / zero weight, never an exception.
     result = classify_amplitudes([[[np.nan, 0.5], [0.5, 1.0]], [[np.inf, 0.5], [0.5, 1.0]]], 0.02)

@@ -1,5 +1,7 @@
 """One ping from echoes to labelled landmarks (sonar_ring.pipeline), without ROS."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
@@ -7,7 +9,7 @@ from numpy.testing import assert_allclose, assert_array_equal
 from sonar_ring import localise, pipeline
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import load_layout
-from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN
+from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, Landmarks
 from sonar_ring.simulate import Noise, Simulator, load_scene
 
 CHI2_2DOF_3SIGMA = 11.83  # P(chi2_2 <= 11.83) = 99.73 %
@@ -170,6 +172,18 @@ def test_error_handling():
     empty = EchoArrays(RING.name, 343.0, np.zeros(0, int), np.zeros(0, int), np.empty((0, 2)), np.empty((0, 0)),
                        np.empty((0, 0)))
     assert len(pipeline.classify_ping(RING, empty, pipeline.localise_ping(RING, empty))) == 0
+    # hypotheses naming no echo row of the ping, or no class, are left out (they may come off the network)
+    kept = pipeline.classify_ping(RING, bad, hypotheses)
+    stray = dataclasses.replace(hypotheses.select(np.flatnonzero(hypotheses.valid)[:2]),
+                                echo=np.array([10**6, 2], dtype=np.uint32),
+                                landmark_class=np.array([CORNER, 9], dtype=np.uint8))
+    with_strays = pipeline.classify_ping(RING, bad, Landmarks.concatenate([hypotheses, stray]))
+    assert_array_equal(with_strays.position, kept.position)
+    # noise parameters that make no sense are refused, as by path_covariance
+    for settings, speed in ((pipeline.Settings(sigma_tof=-1e-6), 343.0), (pipeline.Settings(sigma_speed=np.nan), 343.0),
+                            (pipeline.Settings(), 0.0)):
+        with pytest.raises(ValueError, match="localise_ping: need sigma_tof >= 0"):
+            pipeline.localise_ping(RING, dataclasses.replace(bad, speed_of_sound=speed), settings)
 
 
 def test_a_singular_path_covariance_falls_back_to_first_order():

@@ -11,6 +11,7 @@ from __future__ import annotations
 import time
 from collections import OrderedDict
 
+import numpy as np
 from rclpy.qos import qos_profile_sensor_data
 from visualization_msgs.msg import MarkerArray
 
@@ -18,7 +19,7 @@ from sonar_ring import classify, pipeline
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.echoes import load_kernels as load_screening_kernels
 from sonar_ring.geometry import load_layout
-from sonar_ring.landmarks import Landmarks
+from sonar_ring.landmarks import EDGE, Landmarks
 from sonar_ring.msg import Echoes, LandmarkArray
 from sonar_ring.ros.convert import MessageError, landmarks_from_msg, serialize_landmarks
 from sonar_ring.ros.diagnostics import NodeHealth
@@ -96,6 +97,10 @@ class Classifier(SonarNode):
         except MessageError as error:
             self.health.problem("malformed_message", str(error))
             return
+        stray = (hypotheses.echo >= echoes.n_echoes) | (hypotheses.landmark_class > EDGE)
+        if stray.any():  # left out by classify_ping; the rest of the ping is labelled
+            self.health.problem("stray_hypothesis", "landmarks/raw names an echo row or class this ping does not have",
+                                int(np.count_nonzero(stray)))
         self._label(echoes_msg.header, echoes, hypotheses, started)
 
     def on_ping(self, echoes_msg: Echoes, echoes: EchoArrays, hypotheses: Landmarks) -> None:

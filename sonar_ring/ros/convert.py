@@ -64,10 +64,14 @@ class Cdr:
         self.string(frame_id)
 
     def array(self, values: np.ndarray, align: int) -> None:
-        """A sequence: its length in elements (rows of ``values``), then the raw values (aligned even when none)."""
+        """A sequence: its length in elements (rows of ``values``), then the raw values, aligned when there are any.
+
+        Fast CDR aligns no empty sequence, and its reader expects the next field right after the length.
+        """
         self.pack("I", len(values), align=4)
-        self.align(align)
-        self.buffer += np.ascontiguousarray(values).tobytes()
+        if len(values):
+            self.align(align)
+            self.buffer += np.ascontiguousarray(values).tobytes()
 
 
 def serialize_landmarks(landmarks: Landmarks, header) -> bytes:
