@@ -253,11 +253,17 @@ def test_mapper_integrates_a_ping_once_and_refuses_stale_and_future_ones(ros):
     bench.close()
 
 
-def test_classifier_pairs_each_ping_once(ros):
+def _classifier_bench():
+    """A classifier, its bench feeding ``echoes`` and taking ``landmarks``, and a publisher of ``landmarks/raw``."""
     classifier = Classifier()
     bench = Bench(classifier, "echoes", Echoes, "landmarks", LandmarkArray)
     raw_publisher = bench.peer.create_publisher(LandmarkArray, "landmarks/raw", qos_profile_sensor_data)
     assert spin_until(bench.executor, lambda: raw_publisher.get_subscription_count() > 0, timeout=10)
+    return classifier, bench, raw_publisher
+
+
+def test_classifier_pairs_each_ping_once(ros):
+    classifier, bench, raw_publisher = _classifier_bench()
     header = bench.header()
     echoes_msg = echoes_to_msg(wall_ping(), header)
     raw = _one_ping_of_landmarks()
@@ -273,10 +279,7 @@ def test_classifier_pairs_each_ping_once(ros):
 
 
 def test_classifier_leaves_out_stray_hypotheses_and_labels_the_rest(ros):
-    classifier = Classifier()
-    bench = Bench(classifier, "echoes", Echoes, "landmarks", LandmarkArray)
-    raw_publisher = bench.peer.create_publisher(LandmarkArray, "landmarks/raw", qos_profile_sensor_data)
-    assert spin_until(bench.executor, lambda: raw_publisher.get_subscription_count() > 0, timeout=10)
+    classifier, bench, raw_publisher = _classifier_bench()
     header = bench.header()
     hypotheses = landmarks_from_msg(_one_ping_of_landmarks())
     stray = replace(hypotheses.select([0]), echo=np.array([10**6], dtype=np.uint32))
