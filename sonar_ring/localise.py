@@ -320,6 +320,8 @@ def _flat_inputs(caller, tx, rx1, rx2, d1, d2):
 SOLVERS = ("virtual_image", "plane", "corner", "edge", "on_axis")
 """The models :func:`solve_rows` computes, in the order of its ``wanted`` flags and outputs."""
 PLANE_SOLVER = SOLVERS.index("plane")
+NEAR_TRANSMITTER = 0.1
+"""An edge nearer the transmitter than this share of its shorter path gets its position polished (:func:`edge`)."""
 
 
 @kernel
@@ -457,8 +459,31 @@ def solve_rows(tx, rx1, rx2, d1, d2, wanted):
             if edge_reason == OK:
                 normal_offset, path_k = (first, k_first) if first_ahead else (second, k_second)
                 along = difference * (2.0 * path_k - total) / (2.0 * separation)
-                position[3, k, 0] = c_x + along * u_x + normal_offset * n_x
-                position[3, k, 1] = c_y + along * u_y + normal_offset * n_y
+                p_x = c_x + along * u_x + normal_offset * n_x
+                p_y = c_y + along * u_y + normal_offset * n_y
+                # k comes from mu0, a difference of squared lengths that cancels as the edge nears the
+                # transmitter (k << d_n, by about d_n / k): there one Newton step on the path equations.
+                if path_k < NEAR_TRANSMITTER * shortest:
+                    to_t_x, to_t_y = p_x - tx_x, p_y - tx_y
+                    to_1_x, to_1_y = p_x - r1_x, p_y - r1_y
+                    to_2_x, to_2_y = p_x - r2_x, p_y - r2_y
+                    k_t = np.sqrt(to_t_x * to_t_x + to_t_y * to_t_y)
+                    k_1 = np.sqrt(to_1_x * to_1_x + to_1_y * to_1_y)
+                    k_2 = np.sqrt(to_2_x * to_2_x + to_2_y * to_2_y)
+                    j11, j12 = to_t_x / k_t + to_1_x / k_1, to_t_y / k_t + to_1_y / k_1
+                    j21, j22 = to_t_x / k_t + to_2_x / k_2, to_t_y / k_t + to_2_y / k_2
+                    residual_1, residual_2 = k_t + k_1 - a, k_t + k_2 - b
+                    det = j11 * j22 - j12 * j21
+                    step_x = (j22 * residual_1 - j12 * residual_2) / det
+                    step_y = (j11 * residual_2 - j21 * residual_1) / det
+                    # Kept only where it brings the paths closer: near a tangency or at T the step is no better.
+                    new_x, new_y = p_x - step_x, p_y - step_y
+                    new_t = np.sqrt((new_x - tx_x) ** 2 + (new_y - tx_y) ** 2)
+                    new_1 = new_t + np.sqrt((new_x - r1_x) ** 2 + (new_y - r1_y) ** 2) - a
+                    new_2 = new_t + np.sqrt((new_x - r2_x) ** 2 + (new_y - r2_y) ** 2) - b
+                    if max(abs(new_1), abs(new_2)) < max(abs(residual_1), abs(residual_2)):
+                        p_x, p_y = new_x, new_y
+                position[3, k, 0], position[3, k, 1] = p_x, p_y
 
         if wanted[4]:
             on_axis_reason = common
@@ -717,7 +742,10 @@ def edge(tx, rx1, rx2, d1, d2) -> PointEstimate:
     leading coefficient ``a`` vanishes (one root escapes to infinity and is
     discarded; ``a`` vanishes only as ``d_n -> |T - R_n|``).  A root is kept
     when ``0 <= k <= min(d1, d2)`` and ``P`` is in front of the receivers
-    (``p_n > 0``).
+    (``p_n > 0``).  For an edge nearer the transmitter than
+    :data:`NEAR_TRANSMITTER` of the shorter path, ``k`` loses digits to
+    cancellation (about ``d_n / k``); one Newton step on the path equations,
+    kept where it brings the paths closer, restores them.
 
     Parameters
     ----------

@@ -350,6 +350,21 @@ def test_path_below_the_height_difference():
     assert abs(browne.vertical_eq26(d, dz, 0.0) * 2 - exact) > 1e6 * EPS * exact
 
 
+@pytest.mark.parametrize("gap", [1e-1, 1e-2, 2.2e-3, 1e-4, 1e-5])
+def test_an_edge_near_the_transmitter_reproduces_its_paths(gap):
+    """An edge ``gap`` m from a transmitter 1 m beside a 125 mm pair, 1 cm ahead of it (found by hypothesis).
+
+    Its distance k from the transmitter comes out of a difference of squared paths that cancels by
+    about d / k; the Newton step restores the paths to a few ulps.
+    """
+    tx, rx1, rx2 = np.array([0.01 - gap, 1.0]), np.array([0.0, 0.0625]), np.array([0.0, -0.0625])
+    point = np.array([0.01, 1.0])
+    d1, d2 = edge_inputs(tx, rx1, rx2, point)
+    result = loc.edge(tx, rx1, rx2, d1, d2)
+    assert result.valid
+    assert_allclose(edge_inputs(tx, rx1, rx2, result.position), (d1, d2), rtol=4 * EPS, atol=4 * EPS)
+
+
 # --------------------------------------------------------------------------- random configurations
 
 @settings(max_examples=300, deadline=None)
