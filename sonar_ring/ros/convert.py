@@ -74,20 +74,24 @@ class Cdr:
             self.buffer += np.ascontiguousarray(values).tobytes()
 
 
+LANDMARK_ARRAY_FIELDS = (("landmark_class", np.uint8), ("position", np.float64), ("normal", np.float64),
+                         ("bearing", np.float64), ("range", np.float64), ("covariance", np.float64),
+                         ("confidence", np.float32), ("segment", np.float64), ("observations", np.uint32),
+                         ("group", np.uint16), ("echo", np.uint32), ("valid", np.bool_), ("reason", np.uint8))
+"""The sequences of ``sonar_ring/LandmarkArray`` after its header, in order, each with its element type;
+each is the :class:`~sonar_ring.landmarks.Landmarks` attribute of the same name, flattened."""
+
+
 def serialize_landmarks(landmarks: Landmarks, header) -> bytes:
     """A serialized ``sonar_ring/LandmarkArray`` of ``landmarks`` with ``header`` (``std_msgs/Header``).
 
     The message :func:`landmarks_to_msg` builds, as ``rclpy.serialization.serialize_message``
-    writes it (same length, same fields when decoded); publishers take it as it is.
+    writes it (same fields when decoded); publishers take it as it is.
     """
     cdr = Cdr()
     cdr.header(header.stamp.sec, header.stamp.nanosec, header.frame_id)
-    for values, dtype in ((landmarks.landmark_class, "<u1"), (landmarks.position, "<f8"), (landmarks.normal, "<f8"),
-                          (landmarks.bearing, "<f8"), (landmarks.range, "<f8"), (landmarks.covariance, "<f8"),
-                          (landmarks.confidence, "<f4"), (landmarks.segment, "<f8"), (landmarks.observations, "<u4"),
-                          (landmarks.group, "<u2"), (landmarks.echo, "<u4"), (landmarks.valid, "?"),
-                          (landmarks.reason, "<u1")):
-        flat = np.asarray(values, dtype=dtype).reshape(-1)
+    for name, dtype in LANDMARK_ARRAY_FIELDS:
+        flat = np.asarray(getattr(landmarks, name), dtype=np.dtype(dtype).newbyteorder("<")).reshape(-1)
         cdr.array(flat, flat.itemsize)
     return bytes(cdr.buffer)
 
@@ -141,19 +145,10 @@ def echoes_from_msg(msg: Echoes) -> EchoArrays:
 def landmarks_to_msg(landmarks: Landmarks, header) -> LandmarkArray:
     """Build a LandmarkArray message from :class:`~sonar_ring.landmarks.Landmarks`."""
     msg = LandmarkArray(header=header)
-    msg.landmark_class = to_sequence(landmarks.landmark_class, np.uint8)
-    msg.position = to_sequence(landmarks.position, np.float64)
-    msg.normal = to_sequence(landmarks.normal, np.float64)
-    msg.bearing = to_sequence(landmarks.bearing, np.float64)
-    msg.range = to_sequence(landmarks.range, np.float64)
-    msg.covariance = to_sequence(landmarks.covariance, np.float64)
-    msg.confidence = to_sequence(landmarks.confidence, np.float32)
-    msg.segment = to_sequence(landmarks.segment, np.float64)
-    msg.observations = to_sequence(landmarks.observations, np.uint32)
-    msg.group = to_sequence(landmarks.group, np.uint16)
-    msg.echo = to_sequence(landmarks.echo, np.uint32)
-    msg.valid = landmarks.valid.tolist()
-    msg.reason = to_sequence(landmarks.reason, np.uint8)
+    for name, dtype in LANDMARK_ARRAY_FIELDS:
+        values = getattr(landmarks, name)
+        # rclpy keeps bool[] as a list: array.array has no bool type.
+        setattr(msg, name, values.tolist() if dtype is np.bool_ else to_sequence(values, dtype))
     return msg
 
 
