@@ -749,52 +749,75 @@ def _fit(start, receivers, paths, weight, emitter, edge, steps, converged):
     Returns the fitted points (N, 2) and their weighted residual sums of squares (N,).
     Each echo iterates on its own, up to ``steps`` Gauss-Newton steps or until
     its step is below ``converged``, so its fit is the same in any batch.
+
+    The echoes step in lockstep, each pass summing over the receivers for all
+    of them at once: the loop over echoes is then free of dependences and runs
+    in vector registers, where one echo's sums would be a chain of dependent
+    square roots and divisions.  Every echo still adds its receivers in order,
+    so its result is the one it would get alone.
     """
     n_echoes, n_receivers = paths.shape
-    fitted = np.empty((n_echoes, 2))
+    # Receiver-major copies: the echo loop reads each with unit stride.
+    receiver_x = np.ascontiguousarray(receivers[:, :, 0].T)
+    receiver_y = np.ascontiguousarray(receivers[:, :, 1].T)
+    path = np.ascontiguousarray(paths.T)
+    weights = np.ascontiguousarray(weight.T)
+    x, y = start[:, 0].copy(), start[:, 1].copy()
+    emitter_x, emitter_y, emitter_distance = np.zeros(n_echoes), np.zeros(n_echoes), np.zeros(n_echoes)
+    xx, xy, yy = np.empty(n_echoes), np.empty(n_echoes), np.empty(n_echoes)
+    gradient_x, gradient_y, squares = np.empty(n_echoes), np.empty(n_echoes), np.empty(n_echoes)
     chi2 = np.empty(n_echoes)
-    for n in range(n_echoes):
-        x, y = start[n, 0], start[n, 1]
-        step, last = 0, steps
-        while True:
-            xx = xy = yy = gradient_x = gradient_y = squares = 0.0
-            emitter_x = emitter_y = emitter_distance = 0.0
-            if edge:
-                emitter_x, emitter_y = x - emitter[n, 0], y - emitter[n, 1]
-                emitter_distance = np.sqrt(emitter_x * emitter_x + emitter_y * emitter_y)
-            for k in range(n_receivers):
-                w = weight[n, k]
-                if w == 0.0:
-                    continue
-                to_x, to_y = x - receivers[n, k, 0], y - receivers[n, k, 1]
+    step = np.zeros(n_echoes, dtype=np.int64)
+    last = np.full(n_echoes, steps, dtype=np.int64)
+    active = np.ones(n_echoes, dtype=np.bool_)
+    for _ in range(steps + 1):  # an echo sums at most steps + 1 times: once per step and at its final point
+        xx[:] = xy[:] = yy[:] = gradient_x[:] = gradient_y[:] = squares[:] = 0.0
+        if edge:
+            for n in range(n_echoes):
+                emitter_x[n], emitter_y[n] = x[n] - emitter[n, 0], y[n] - emitter[n, 1]
+                emitter_distance[n] = np.sqrt(emitter_x[n] * emitter_x[n] + emitter_y[n] * emitter_y[n])
+        for k in range(n_receivers):
+            for n in range(n_echoes):
+                w = weights[k, n]
+                to_x, to_y = x[n] - receiver_x[k, n], y[n] - receiver_y[k, n]
                 distance = np.sqrt(to_x * to_x + to_y * to_y)
                 jacobian_x, jacobian_y = to_x / distance, to_y / distance
                 if edge:
-                    distance += emitter_distance
-                    jacobian_x += emitter_x / emitter_distance
-                    jacobian_y += emitter_y / emitter_distance
-                residual = distance - paths[n, k]
-                xx += w * jacobian_x * jacobian_x
-                xy += w * jacobian_x * jacobian_y
-                yy += w * jacobian_y * jacobian_y
-                gradient_x += w * jacobian_x * residual
-                gradient_y += w * jacobian_y * residual
-                squares += w * residual * residual
-            chi2[n] = squares
-            if step == last:
-                break
-            det = xx * yy - xy * xy
+                    distance += emitter_distance[n]
+                    jacobian_x += emitter_x[n] / emitter_distance[n]
+                    jacobian_y += emitter_y[n] / emitter_distance[n]
+                residual = distance - path[k, n]
+                used = w != 0.0  # a receiver left out adds nothing, not 0 * NaN
+                xx[n] += w * jacobian_x * jacobian_x if used else 0.0
+                xy[n] += w * jacobian_x * jacobian_y if used else 0.0
+                yy[n] += w * jacobian_y * jacobian_y if used else 0.0
+                gradient_x[n] += w * jacobian_x * residual if used else 0.0
+                gradient_y[n] += w * jacobian_y * residual if used else 0.0
+                squares[n] += w * residual * residual if used else 0.0
+        moving = False
+        for n in range(n_echoes):
+            if not active[n]:
+                continue
+            chi2[n] = squares[n]
+            active[n] = False
+            if step[n] == last[n]:
+                continue
+            det = xx[n] * yy[n] - xy[n] * xy[n]
             if not (np.isfinite(det) and det != 0.0):
-                break
-            step_x = (yy * gradient_x - xy * gradient_y) / det
-            step_y = (xx * gradient_y - xy * gradient_x) / det
+                continue
+            step_x = (yy[n] * gradient_x[n] - xy[n] * gradient_y[n]) / det
+            step_y = (xx[n] * gradient_y[n] - xy[n] * gradient_x[n]) / det
             if not (np.isfinite(step_x) and np.isfinite(step_y)):
-                break
-            x, y = x - step_x, y - step_y
-            step += 1
+                continue
+            x[n], y[n] = x[n] - step_x, y[n] - step_y
+            step[n] += 1
             if abs(step_x) <= converged and abs(step_y) <= converged:
-                last = step  # one more pass, for the chi-square at the final point
-        fitted[n, 0], fitted[n, 1] = x, y
+                last[n] = step[n]  # one more pass, for the chi-square at the final point
+            active[n] = moving = True
+        if not moving:
+            break
+    fitted = np.empty((n_echoes, 2))
+    fitted[:, 0], fitted[:, 1] = x, y
     return fitted, chi2
 
 
