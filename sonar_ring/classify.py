@@ -606,28 +606,45 @@ def _decision(image, chi2_specular, edge, chi2_edge, dof, z) -> ConsistencyResul
     ``image`` and ``edge`` (N, 2) m, ``chi2_specular`` and ``chi2_edge`` (N,),
     ``dof`` (N,) int; ``z`` the significance.
     """
-    tested = dof >= 1
-    chi2_specular = np.where(tested, chi2_specular, np.nan)
-    chi2_edge = np.where(tested, chi2_edge, np.nan)
-    difference = chi2_specular - chi2_edge
-    fit_limit = _chi2_upper_quantile(np.maximum(dof, 1), z)
+    cls, specular, margin, chi2_specular, chi2_edge, image, edge = _decide(image, chi2_specular, edge, chi2_edge,
+                                                                            dof, float(z))
+    return ConsistencyResult(cls=cls, specular=specular, margin=margin, confidence=confidence_from_margin(margin),
+                             chi2_specular=chi2_specular, chi2_edge=chi2_edge, dof=dof, virtual_image=image,
+                             edge_position=edge)
+
+
+@kernel
+def _decide(image, chi2_specular, edge, chi2_edge, dof, z):
+    """Per echo, the two tests of :func:`geometric_consistency` on its fits (see :func:`_decision`).
+
+    An echo is tested when ``dof >= 1``: EDGE when ``chi2_specular - chi2_edge > z^2`` and
+    the edge fits (``chi2_edge`` within :func:`_chi2_upper_quantile`), specular in the
+    mirror case.  Returns the class (N,) uint8, specular (N,) bool, the margin
+    (N,), and the chi-squares and fitted points, NaN where untested.
+    """
+    n_echoes = dof.size
+    cls = np.full(n_echoes, UNKNOWN, dtype=np.uint8)
+    specular = np.zeros(n_echoes, dtype=np.bool_)
+    margin = np.zeros(n_echoes)
+    tested_specular, tested_edge = np.full(n_echoes, np.nan), np.full(n_echoes, np.nan)
+    tested_image, tested_point = np.full((n_echoes, 2), np.nan), np.full((n_echoes, 2), np.nan)
     threshold = z * z
-    is_edge = tested & (difference > threshold) & (chi2_edge <= fit_limit)
-    is_specular = tested & (-difference > threshold) & (chi2_specular <= fit_limit)
-    decided = is_edge | is_specular
-    statistic = np.abs(np.where(decided, difference, 1.0))
-    margin = np.where(decided, (statistic - threshold) / (2.0 * np.sqrt(statistic)), 0.0)
-    return ConsistencyResult(
-        cls=np.where(is_edge, EDGE, UNKNOWN).astype(np.uint8),
-        specular=is_specular,
-        margin=margin,
-        confidence=confidence_from_margin(margin),
-        chi2_specular=chi2_specular,
-        chi2_edge=chi2_edge,
-        dof=dof,
-        virtual_image=np.where(tested[:, None], image, np.nan),
-        edge_position=np.where(tested[:, None], edge, np.nan),
-    )
+    for n in range(n_echoes):
+        if dof[n] < 1:
+            continue
+        tested_specular[n], tested_edge[n] = chi2_specular[n], chi2_edge[n]
+        tested_image[n], tested_point[n] = image[n], edge[n]
+        difference = chi2_specular[n] - chi2_edge[n]
+        fit_limit = _chi2_upper_quantile(dof[n], z)
+        is_edge = difference > threshold and chi2_edge[n] <= fit_limit
+        is_specular = -difference > threshold and chi2_specular[n] <= fit_limit
+        if is_edge or is_specular:
+            statistic = abs(difference)
+            margin[n] = (statistic - threshold) / (2.0 * np.sqrt(statistic))
+            specular[n] = is_specular
+            if is_edge:
+                cls[n] = EDGE
+    return cls, specular, margin, tested_specular, tested_edge, tested_image, tested_point
 
 
 @kernel
@@ -821,13 +838,13 @@ def _fit(start, receivers, paths, weight, emitter, edge, steps, converged):
     return fitted, chi2
 
 
+@kernel
 def _chi2_upper_quantile(dof, z):
-    """Upper quantile of chi-square at the standard normal deviate ``z`` (Wilson-Hilferty).
+    """Upper quantile of chi-square with ``dof`` (>= 1) degrees of freedom at ``z`` (Wilson-Hilferty).
 
-    For z = 3 to 3.5 it is at most 6 % above the exact quantile (slightly lenient, worst
-    for one degree of freedom).
+    ``z`` is a standard normal deviate.  For z = 3 to 3.5 it is at most 6 % above the exact
+    quantile (slightly lenient, worst for one degree of freedom).
     """
-    dof = np.asarray(dof, dtype=float)
     scale = 2.0 / (9.0 * dof)
     return dof * (1.0 - scale + z * np.sqrt(scale)) ** 3
 
