@@ -95,12 +95,15 @@ def test_driver_hands_on_the_arrays_its_message_carries(ros):
     driver = Driver(parameter_overrides=[Parameter("layout", value="barshan_kuc_pair"),
                                          Parameter("scene", value="barshan_kuc_bench"),
                                          Parameter("ping_rate", value=50.0)])
-    handed = []
-    driver.handoff = lambda message, echoes: handed.append((message, echoes))
+    handed, published = [], []
+    driver.handoff = lambda header, echoes: handed.append((header, echoes))
+    publish = driver._echo_publisher.publish
+    driver._echo_publisher.publish = lambda message: (published.append(message), publish(message))
     executor = SingleThreadedExecutor()
     executor.add_node(driver)
-    assert spin_until(executor, lambda: len(handed) >= 3, timeout=10)
-    for message, echoes in handed:
+    assert spin_until(executor, lambda: len(published) >= 3, timeout=10)
+    for (header, echoes), message in zip(handed, published, strict=False):
+        assert header == message.header
         decoded = echoes_from_msg(message)
         assert echoes.n_echoes > 0 and echoes.amplitude.dtype == np.float32
         for name in ("group", "transmitter", "tof", "amplitude", "phase_delay"):

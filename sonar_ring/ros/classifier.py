@@ -13,6 +13,7 @@ from collections import OrderedDict
 
 import numpy as np
 from rclpy.qos import qos_profile_sensor_data
+from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
 from sonar_ring import classify, pipeline
@@ -103,12 +104,12 @@ class Classifier(SonarNode):
                                 int(np.count_nonzero(stray)))
         self._label(echoes_msg.header, echoes, hypotheses, started)
 
-    def on_ping(self, echoes_msg: Echoes, echoes: EchoArrays, hypotheses: Landmarks) -> None:
-        """A ping from the localiser in this process: its echoes (message and screened arrays) and valid hypotheses."""
+    def on_ping(self, header: Header, echoes: EchoArrays, hypotheses: Landmarks) -> None:
+        """A ping from the localiser in this process: its echoes' header, screened arrays and valid hypotheses."""
         started = time.perf_counter()
         self.health.received()
-        if self._gates["echoes"].admit(echoes_msg.header):
-            self._label(echoes_msg.header, echoes, hypotheses, started)
+        if self._gates["echoes"].admit(header):
+            self._label(header, echoes, hypotheses, started)
 
     def _label(self, header, echoes: EchoArrays, hypotheses: Landmarks, started: float) -> None:
         labelled = pipeline.classify_ping(self.layout, echoes, hypotheses, self.settings)

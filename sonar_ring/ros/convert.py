@@ -111,6 +111,23 @@ def echoes_to_msg(echoes: EchoArrays, header) -> Echoes:
     return msg
 
 
+ECHO_SEQUENCE_TYPES = {"group": np.uint16, "transmitter": np.uint8, "tof": np.float64, "amplitude": np.float32,
+                       "phase_delay": np.float64}
+"""Element type of each sequence of ``sonar_ring/Echoes``, by its :class:`~sonar_ring.echoes.EchoArrays` field."""
+
+
+def as_message_types(echoes: EchoArrays) -> EchoArrays:
+    """``echoes`` with each array in the type of its message field (float32 amplitudes, ...).
+
+    What :func:`echoes_from_msg` gives for ``echoes_to_msg(echoes, header)``, without
+    building the message: so a ping handed over in one process is the ping the
+    next node would decode.
+    """
+    return EchoArrays(layout=str(echoes.layout), speed_of_sound=float(echoes.speed_of_sound),
+                      **{name: np.asarray(getattr(echoes, name), dtype=dtype)
+                         for name, dtype in ECHO_SEQUENCE_TYPES.items()})
+
+
 def echoes_from_msg(msg: Echoes) -> EchoArrays:
     """Arrays of an Echoes message, checked for consistent lengths.
 

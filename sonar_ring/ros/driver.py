@@ -31,7 +31,7 @@ from sonar_ring.geometry import load_layout, speed_of_sound
 from sonar_ring.landmarks import make_landmarks
 from sonar_ring.msg import Echoes
 from sonar_ring.msg import LandmarkArray as LandmarkArrayMsg
-from sonar_ring.ros.convert import MessageError, echoes_from_msg, echoes_to_msg, landmarks_to_msg
+from sonar_ring.ros.convert import MessageError, as_message_types, echoes_from_msg, echoes_to_msg, landmarks_to_msg
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import FUTURE_TOLERANCE, InputGate, screened
 from sonar_ring.ros.node import SonarNode
@@ -225,12 +225,11 @@ class Driver(SonarNode):
                              self.params["speed_of_sound"] or DEFAULT_SPEED_OF_SOUND)
         if kept is None:
             return 0.0
-        message = echoes_to_msg(kept, header)
-        # The message's own arrays (float32 amplitudes, ...): what the next node would decode, so composed and
+        # The message's own types (float32 amplitudes, ...): what the next node would decode, so composed and
         # separate nodes, and `sonar-ring process`, give the same landmarks.
-        downstream = self.pass_on(message, echoes_from_msg(message))
+        downstream = self.pass_on(header, as_message_types(kept))
         # After the hand-off: the landmarks of a ping matter more than its echoes and ranges being first.
-        self._echo_publisher.publish(message)
+        self._echo_publisher.publish(echoes_to_msg(kept, header))
         self.pings_published += 1
         if self.params["publish_range"]:
             self._ranges.publish(kept, header)

@@ -13,6 +13,7 @@ import time
 import numpy as np
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.subscription import MessageInfo
+from std_msgs.msg import Header
 
 from sonar_ring import localise, pipeline
 from sonar_ring.echoes import EchoArrays
@@ -91,24 +92,24 @@ class Localiser(SonarNode):
             return
         echoes = check_echoes(msg, self.layout, self.health)
         if echoes is not None:
-            self._localise(msg, echoes, started)
+            self._localise(msg.header, echoes, started)
 
-    def on_ping(self, msg: Echoes, echoes: EchoArrays) -> None:
-        """A ping from the driver in this process: ``msg`` as published, ``echoes`` its screened arrays."""
+    def on_ping(self, header: Header, echoes: EchoArrays) -> None:
+        """A ping from the driver in this process: the header it publishes and the screened arrays."""
         started = time.perf_counter()
         self.health.received()
-        if self._gate.admit(msg.header):
-            self._localise(msg, echoes, started)
+        if self._gate.admit(header):
+            self._localise(header, echoes, started)
 
-    def _localise(self, msg: Echoes, echoes: EchoArrays, started: float) -> None:
+    def _localise(self, header: Header, echoes: EchoArrays, started: float) -> None:
         hypotheses = pipeline.localise_ping(self.layout, echoes, self.settings)
         invalid = hypotheses.reason[~hypotheses.valid]
         for code, count in zip(*np.unique(invalid, return_counts=True), strict=True):
             self.health.note(f"invalid hypothesis: {localise.REASONS[int(code)]}", int(count))
         usable = hypotheses.select(hypotheses.valid)
         # The labelled landmarks, not these hypotheses, are what a ping is for: in one process they go first.
-        downstream = self.pass_on(msg, echoes, usable)
-        self._publisher.publish(serialize_landmarks(usable, msg.header))
+        downstream = self.pass_on(header, echoes, usable)
+        self._publisher.publish(serialize_landmarks(usable, header))
         self.health.processed(time.perf_counter() - started - downstream)
 
 
