@@ -105,7 +105,11 @@ class Classifier(SonarNode):
         self._label(echoes_msg.header, echoes, hypotheses, started)
 
     def on_ping(self, header: Header, echoes: EchoArrays, hypotheses: Landmarks) -> None:
-        """A ping from the localiser in this process: its echoes' header, screened arrays and valid hypotheses."""
+        """A ping from the localiser in this process: its echoes' header, screened arrays and hypotheses.
+
+        The hypotheses may include invalid ones: :func:`sonar_ring.pipeline.classify_ping`
+        labels from the valid ones only, as it does for ``landmarks/raw``, which holds those alone.
+        """
         started = time.perf_counter()
         self.health.received()
         if self._gates["echoes"].admit(header):

@@ -103,13 +103,13 @@ class Localiser(SonarNode):
 
     def _localise(self, header: Header, echoes: EchoArrays, started: float) -> None:
         hypotheses = pipeline.localise_ping(self.layout, echoes, self.settings)
+        # The labelled landmarks, not these hypotheses, are what a ping is for: in one process they go first.
+        # The classifier labels from the valid ones only, so the invalid ones need not be taken out first.
+        downstream = self.pass_on(header, echoes, hypotheses)
         invalid = hypotheses.reason[~hypotheses.valid]
         for code, count in zip(*np.unique(invalid, return_counts=True), strict=True):
             self.health.note(f"invalid hypothesis: {localise.REASONS[int(code)]}", int(count))
-        usable = hypotheses.select(hypotheses.valid)
-        # The labelled landmarks, not these hypotheses, are what a ping is for: in one process they go first.
-        downstream = self.pass_on(header, echoes, usable)
-        self._publisher.publish(serialize_landmarks(usable, header))
+        self._publisher.publish(serialize_landmarks(hypotheses.select(hypotheses.valid), header))
         self.health.processed(time.perf_counter() - started - downstream)
 
 
