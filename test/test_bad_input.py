@@ -8,6 +8,7 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
+from rclpy.serialization import serialize_message
 from ros_harness import spin_until
 from sonar_ring.msg import Echoes, LandmarkArray
 from std_msgs.msg import Header
@@ -154,6 +155,7 @@ def test_localiser_uses_the_valid_rows_of_a_ping_and_refuses_bad_headers(ros):
     assert set(hypotheses.echo) == set(range(1, good.n_echoes)), "row 0 (one TOF left) gives no pair hypothesis"
     assert problems(localiser) == {"unknown_group": 1, "unknown_transmitter": 1, "not_finite_tof": 1}
 
+    bench.send(serialize_message(echoes_to_msg(good, bench.header()))[:100])  # cut short: not a message
     bench.send(echoes_to_msg(good, bench.header(frame_id="")))
     bench.send(echoes_to_msg(good, bench.header(frame_id="base_link")))
     bench.send(echoes_to_msg(replace(good, layout="kreczmer_triad"), bench.header()))
@@ -161,8 +163,9 @@ def test_localiser_uses_the_valid_rows_of_a_ping_and_refuses_bad_headers(ros):
     bench.send(duplicate)
     assert bench.outputs_settle(2)
     assert {reason: n for reason, n in problems(localiser).items() if "frame" in reason or "layout" in reason
-            or "stamp" in reason} == {"empty_frame_id": 1, "wrong_frame_id": 1, "layout_mismatch": 1,
-                                      "duplicate_stamp": 1}
+            or "stamp" in reason or "malformed" in reason} == {"malformed_message": 1, "empty_frame_id": 1,
+                                                               "wrong_frame_id": 1, "layout_mismatch": 1,
+                                                               "duplicate_stamp": 1}
     result = localiser.set_parameters([Parameter("future_tolerance", value=-1.0)])[0]
     assert not result.successful and localiser.get_parameter("future_tolerance").value == 1.0
     bench.close()

@@ -5,16 +5,26 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import rclpy
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from message_samples import SAMPLE_NAMES, sample_arrays, sample_message
 from numpy.testing import assert_array_equal
 from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.serialization import serialize_message
 from sonar_ring.msg import Echoes, Landmark, LandmarkArray
 
-from sonar_ring.ros.convert import MessageError, echoes_from_msg
+from sonar_ring.ros.bag import typestore
+from sonar_ring.ros.convert import MessageError, echoes_from_cdr
 
 pytestmark = pytest.mark.ros
+
+
+def decoded(message):
+    """The arrays of an Echoes message object, through rclpy's serialization and :func:`echoes_from_cdr`."""
+    return echoes_from_cdr(serialize_message(message))[1]
 
 
 def assert_same_echoes(received, expected):
@@ -22,6 +32,8 @@ def assert_same_echoes(received, expected):
     assert received.speed_of_sound == expected.speed_of_sound
     for field in ("group", "transmitter", "tof", "amplitude", "phase_delay"):
         assert_array_equal(getattr(received, field), getattr(expected, field), err_msg=field)
+        assert getattr(received, field).dtype == getattr(expected, field).dtype, field
+        assert getattr(received, field).shape == getattr(expected, field).shape, field
 
 
 def test_generated_interfaces_have_documented_fields():
@@ -45,27 +57,80 @@ def test_message_constants_are_the_core_codes():
 
 @pytest.mark.parametrize("name", SAMPLE_NAMES)
 def test_arrays_round_trip_through_a_message(name):
-    expected = sample_arrays(name)
-    assert_same_echoes(echoes_from_msg(sample_message(name)), expected)
+    message = sample_message(name)
+    header, echoes = echoes_from_cdr(serialize_message(message))
+    assert header == message.header
+    assert_same_echoes(echoes, sample_arrays(name))
+    assert echoes.tof.flags.writeable and echoes.tof.flags.aligned
+
+
+@pytest.mark.parametrize("little_endian", [True, False])
+def test_cdr_of_another_writer_in_either_byte_order_decodes(little_endian):
+    """rosbags' serializer, not rclpy's, in both byte orders CDR allows."""
+    store = typestore()
+    message = sample_message("triad")
+    ours = store.deserialize_cdr(serialize_message(message), "sonar_ring/msg/Echoes")
+    data = store.serialize_cdr(ours, "sonar_ring/msg/Echoes", little_endian=little_endian)
+    header, echoes = echoes_from_cdr(bytes(data))
+    assert header == message.header
+    assert_same_echoes(echoes, sample_arrays("triad"))
+    assert echoes.tof.dtype.isnative
 
 
 def test_error_handling():
     message = sample_message("ring")
     message.tof = message.tof[:-1]
     with pytest.raises(MessageError, match=r"tof has 287 values, expected 288 for 144 echoes of 2 receivers"):
-        echoes_from_msg(message)
+        decoded(message)
     message = sample_message("triad")
     message.phase_delay = message.phase_delay[:3]
     with pytest.raises(MessageError, match="phase_delay has 3 values, expected 0 or 10"):
-        echoes_from_msg(message)
+        decoded(message)
     message = sample_message("ring")
     message.receivers_per_group = 1
     with pytest.raises(MessageError, match="receivers_per_group must be >= 2"):
-        echoes_from_msg(message)
+        decoded(message)
     message = sample_message("ring")
     message.transmitter = message.transmitter[:10]
     with pytest.raises(MessageError, match="transmitter has 10 values"):
-        echoes_from_msg(message)
+        decoded(message)
+
+    data = serialize_message(sample_message("triad"))
+    for end in range(len(data)):  # cut anywhere: never a ping, never another exception
+        with pytest.raises(MessageError, match="sonar_ring/Echoes"):
+            echoes_from_cdr(data[:end])
+    with pytest.raises(MessageError, match="not plain CDR"):
+        echoes_from_cdr(b"\x00\x07\x00\x00" + data[4:])  # XCDR2
+    frame_length = 4 + 8  # encapsulation, stamp: then the frame_id's length
+    huge = bytearray(data)
+    huge[frame_length:frame_length + 4] = (2**32 - 1).to_bytes(4, "little")
+    with pytest.raises(MessageError, match="runs past the end"):
+        echoes_from_cdr(bytes(huge))
+    not_utf8 = bytearray(data)
+    not_utf8[frame_length + 4] = 0xFF
+    with pytest.raises(MessageError, match="not UTF-8"):
+        echoes_from_cdr(bytes(not_utf8))
+    unterminated = bytearray(data)
+    length = int.from_bytes(data[frame_length:frame_length + 4], "little")
+    unterminated[frame_length + 4 + length - 1] = ord("x")
+    with pytest.raises(MessageError, match="lacks its NUL"):
+        echoes_from_cdr(bytes(unterminated))
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.tuples(st.integers(0, 10**6), st.integers(1, 255)), min_size=1, max_size=8))
+def test_damaged_cdr_gives_a_ping_or_a_message_error(flips):
+    data = bytearray(serialize_message(sample_message("triad")))
+    for where, mask in flips:
+        data[where % len(data)] ^= mask
+    try:
+        _, echoes = echoes_from_cdr(bytes(data))
+    except MessageError:
+        return
+    n, k = echoes.tof.shape
+    assert echoes.group.shape == echoes.transmitter.shape == (n,) and k >= 2
+    assert echoes.amplitude.shape in ((n, k), (n, 0)) and echoes.phase_delay.shape in ((n, k - 1), (n, 0))
+    assert [echoes.group.dtype, echoes.tof.dtype, echoes.amplitude.dtype] == [np.uint16, np.float64, np.float32]
 
 
 def test_messages_cross_processes_intact_over_dds():
@@ -86,7 +151,7 @@ def test_messages_cross_processes_intact_over_dds():
             sent = sample_message(name)
             assert (message.header.stamp.sec, message.header.stamp.nanosec) == (sent.header.stamp.sec, 123456789)
             assert message.receivers_per_group == sent.receivers_per_group
-            assert_same_echoes(echoes_from_msg(message), sample_arrays(name))
+            assert_same_echoes(decoded(message), sample_arrays(name))
         assert len(received["sample/large"].tof) == 100_000
     finally:
         rclpy.shutdown()

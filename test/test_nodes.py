@@ -10,12 +10,13 @@ import rclpy
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
+from rclpy.serialization import serialize_message
 from ros_harness import MAP_QOS, executable, spin_until
 from sonar_ring.msg import LandmarkArray
 from visualization_msgs.msg import Marker, MarkerArray
 
 from sonar_ring.ros.classifier import Classifier
-from sonar_ring.ros.convert import echoes_from_msg, landmarks_from_msg
+from sonar_ring.ros.convert import echoes_from_cdr, landmarks_from_msg
 from sonar_ring.ros.driver import Driver
 from sonar_ring.ros.graph import NODES, compose
 from sonar_ring.ros.localiser import Localiser
@@ -104,7 +105,7 @@ def test_driver_hands_on_the_arrays_its_message_carries(ros):
     assert spin_until(executor, lambda: len(published) >= 3, timeout=10)
     for (header, echoes), message in zip(handed, published, strict=False):
         assert header == message.header
-        decoded = echoes_from_msg(message)
+        decoded = echoes_from_cdr(serialize_message(message))[1]
         assert echoes.n_echoes > 0 and echoes.amplitude.dtype == np.float32
         for name in ("group", "transmitter", "tof", "amplitude", "phase_delay"):
             assert np.array_equal(getattr(echoes, name), getattr(decoded, name), equal_nan=True), name

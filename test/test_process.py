@@ -22,7 +22,7 @@ from visualization_msgs.msg import MarkerArray
 from sonar_ring.cli import main
 from sonar_ring.ros import demo
 from sonar_ring.ros.bag import TOPIC, BagWriter
-from sonar_ring.ros.convert import echoes_from_msg, landmarks_from_msg
+from sonar_ring.ros.convert import echoes_from_cdr, landmarks_from_msg
 from sonar_ring.ros.offline import SIM_START_NS
 
 pytestmark = pytest.mark.ros
@@ -89,7 +89,7 @@ def test_record_sim_writes_the_drivers_topics_on_trajectory_time(sim_bag):
     first = deserialize_message(messages["/echoes"][0][1], Echoes)
     assert first.header.frame_id == "sonar_ring" and first.layout == "browne_ring"
     assert first.header.stamp.sec * 10**9 + first.header.stamp.nanosec == SIM_START_NS
-    assert echoes_from_msg(first).n_echoes > 10
+    assert echoes_from_cdr(messages["/echoes"][0][1])[1].n_echoes > 10
 
 
 def test_process_of_a_simulated_bag_finds_the_true_reflectors(sim_bag, tmp_path, capsys):
@@ -174,7 +174,7 @@ def test_process_reports_unknown_and_wrong_topics_and_goes_on(sim_bag, tmp_path,
     assert f"processed {PINGS} pings" in printed
 
 
-def test_undecodable_and_misfit_messages_are_counted_not_fatal(sim_bag, tmp_path, capsys):
+def test_malformed_and_misfit_messages_are_counted_not_fatal(sim_bag, tmp_path, capsys):
     bag = tmp_path / "bad"
     _, source = read_bag(sim_bag)
     wrong_layout = deserialize_message(source["/echoes"][1][1], Echoes)
@@ -189,7 +189,7 @@ def test_undecodable_and_misfit_messages_are_counted_not_fatal(sim_bag, tmp_path
                                  "--layout", "browne_ring")
     assert code == 0, err
     assert "processed 6 pings" in printed
-    assert "refused: 1 layout_mismatch, 1 undecodable_message" in printed
+    assert "refused: 1 layout_mismatch, 1 malformed_message" in printed
     assert len(read_bag(tmp_path / "out")[1]["/landmarks"]) == 4
 
 

@@ -24,7 +24,7 @@ from sonar_ring.landmarks import EDGE, Landmarks
 from sonar_ring.msg import Echoes, LandmarkArray
 from sonar_ring.ros.convert import MessageError, landmarks_from_msg, serialize_landmarks
 from sonar_ring.ros.diagnostics import NodeHealth
-from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, check_echoes
+from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, check_echoes, take_echoes
 from sonar_ring.ros.localiser import settings_from
 from sonar_ring.ros.markers import landmark_markers, serialize_markers
 from sonar_ring.ros.node import SonarNode
@@ -66,31 +66,37 @@ class Classifier(SonarNode):
         self._gates = {kind: InputGate(self, self.health, topic, self.params)
                        for kind, topic in (("echoes", "echoes"), ("raw", "landmarks/raw"))}
         self.ping_inputs = (
-            self.create_subscription(Echoes, "echoes", lambda m, i: self._arrived("echoes", m, i),
-                                     qos_profile_sensor_data),
-            self.create_subscription(LandmarkArray, "landmarks/raw", lambda m, i: self._arrived("raw", m, i),
+            self.create_subscription(Echoes, "echoes", self._echoes_arrived, qos_profile_sensor_data, raw=True),
+            self.create_subscription(LandmarkArray, "landmarks/raw", self._hypotheses_arrived,
                                      qos_profile_sensor_data))
 
     def _on_change(self, changed: dict) -> None:
         self.settings = settings_from(self.params)
 
-    def _arrived(self, kind: str, msg, info=None) -> None:
-        if not self._gates[kind].admit(msg.header, info):
-            return
-        key = (msg.header.stamp.sec, msg.header.stamp.nanosec, msg.header.frame_id)
+    def _echoes_arrived(self, data: bytes, info) -> None:
+        taken = take_echoes(data, info, self._gates["echoes"], self.health)
+        if taken is not None:
+            self._arrived("echoes", *taken)
+
+    def _hypotheses_arrived(self, msg: LandmarkArray, info) -> None:
+        if self._gates["raw"].admit(msg.header, info):
+            self._arrived("raw", msg.header, msg)
+
+    def _arrived(self, kind: str, header: Header, value) -> None:
+        key = (header.stamp.sec, header.stamp.nanosec, header.frame_id)
         halves = self._pending.setdefault(key, {})
-        halves[kind] = msg
+        halves[kind] = value
         if len(halves) == 2:
             del self._pending[key]
-            self._classify(halves["echoes"], halves["raw"])
+            self._classify(header, halves["echoes"], halves["raw"])
         while len(self._pending) > PENDING_LIMIT:
             _, dropped = self._pending.popitem(last=False)
             self.health.problem("unpaired_" + "_".join(sorted(dropped)), "no matching ping arrived")
 
-    def _classify(self, echoes_msg: Echoes, raw_msg: LandmarkArray) -> None:
+    def _classify(self, header: Header, echoes: EchoArrays, raw_msg: LandmarkArray) -> None:
         started = time.perf_counter()
         self.health.received()
-        echoes = check_echoes(echoes_msg, self.layout, self.health)
+        echoes = check_echoes(header, echoes, self.layout, self.health)
         if echoes is None:
             return
         try:
@@ -102,7 +108,7 @@ class Classifier(SonarNode):
         if stray.any():  # left out by classify_ping; the rest of the ping is labelled
             self.health.problem("stray_hypothesis", "landmarks/raw names an echo row or class this ping does not have",
                                 int(np.count_nonzero(stray)))
-        self._label(echoes_msg.header, echoes, hypotheses, started)
+        self._label(header, echoes, hypotheses, started)
 
     def on_ping(self, header: Header, echoes: EchoArrays, hypotheses: Landmarks) -> None:
         """A ping from the localiser in this process: its echoes' header, screened arrays and hypotheses.

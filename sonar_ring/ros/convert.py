@@ -1,11 +1,14 @@
 """numpy arrays <-> sonar_ring messages, without a copy per element.
 
-rclpy stores primitive sequences as ``array.array``; building one from a numpy
-buffer costs well under a microsecond for a ping, where assigning the numpy array
-itself makes rclpy check every element (tens of microseconds).  What the nodes
-publish on every ping is written straight into its serialized form
-(:class:`Cdr`, :func:`serialize_landmarks`): a message object would still be
-converted field by field when published.
+The pings the nodes take are read straight from their serialized form
+(:class:`CdrReader`, :func:`echoes_from_cdr`), and what they publish on every
+ping is written straight into it (:class:`Cdr`, :func:`serialize_landmarks`): a
+message object is built, or converted, field by field in Python, which costs
+little back to back but several times more in a process that waited 33 ms for
+its ping.  For code that builds message objects, rclpy stores primitive
+sequences as ``array.array``; building one from a numpy buffer costs well
+under a microsecond for a ping, where assigning the numpy array itself makes
+rclpy check every element (tens of microseconds).
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ import array
 import struct
 
 import numpy as np
+from builtin_interfaces.msg import Time
+from std_msgs.msg import Header
 
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.landmarks import Landmarks, make_landmarks
@@ -74,6 +79,69 @@ class Cdr:
             self.buffer += np.ascontiguousarray(values).tobytes()
 
 
+class CdrReader:
+    """Reads CDR as :class:`Cdr` writes it (little- or big-endian), from the start of a serialized message.
+
+    Every read checks that the bytes are there: a message cut short or with a
+    length that runs past its end raises :class:`MessageError`, naming ``what``.
+    """
+
+    _ENCAPSULATIONS = {b"\x00\x01": "<", b"\x00\x00": ">"}
+
+    def __init__(self, data: bytes, what: str) -> None:
+        self.data, self.what, self.offset = data, what, 4
+        self.order = self._ENCAPSULATIONS.get(bytes(data[:2]))
+        if self.order is None or len(data) < 4:
+            raise MessageError(f"{what}: not plain CDR (encapsulation {bytes(data[:4])!r})")
+
+    def align(self, size: int) -> None:
+        """Skip the padding up to the next multiple of ``size`` bytes."""
+        self.offset += -(self.offset - 4) % size
+
+    def unpack(self, fmt: str, align: int) -> tuple:
+        """Values by the :mod:`struct` format ``fmt``, after aligning to ``align`` bytes."""
+        self.align(align)
+        fmt = self.order + fmt
+        try:
+            values = struct.unpack_from(fmt, self.data, self.offset)
+        except struct.error:
+            raise MessageError(f"{self.what}: ends at byte {len(self.data)}, inside a field at {self.offset}") from None
+        self.offset += struct.calcsize(fmt)
+        return values
+
+    def string(self) -> str:
+        """A string: its length with the NUL, the UTF-8 bytes and the NUL."""
+        (size,) = self.unpack("I", align=4)
+        end = self.offset + size
+        if size == 0 or end > len(self.data) or self.data[end - 1] != 0:
+            raise MessageError(f"{self.what}: a string of {size} bytes at {self.offset} runs past the end "
+                               "or lacks its NUL")
+        try:
+            text = bytes(self.data[self.offset:end - 1]).decode()
+        except UnicodeDecodeError as error:
+            raise MessageError(f"{self.what}: a string at {self.offset} is not UTF-8 ({error})") from None
+        self.offset = end
+        return text
+
+    def header(self) -> Header:
+        """A ``std_msgs/Header``."""
+        sec, nanosec = self.unpack("iI", align=4)
+        return Header(stamp=Time(sec=sec, nanosec=nanosec), frame_id=self.string())
+
+    def array(self, dtype) -> np.ndarray:
+        """A sequence of ``dtype`` as a native-endian, aligned, writable array of its own."""
+        (count,) = self.unpack("I", align=4)
+        dtype = np.dtype(dtype)
+        if count:
+            self.align(dtype.itemsize)
+        if count * dtype.itemsize > len(self.data) - self.offset:
+            raise MessageError(f"{self.what}: a sequence of {count} values at {self.offset} runs past the end "
+                               f"({len(self.data)} bytes)")
+        values = np.frombuffer(self.data, dtype.newbyteorder(self.order), count, self.offset).astype(dtype)
+        self.offset += count * dtype.itemsize
+        return values
+
+
 LANDMARK_ARRAY_FIELDS = (("landmark_class", np.uint8), ("position", np.float64), ("normal", np.float64),
                          ("bearing", np.float64), ("range", np.float64), ("covariance", np.float64),
                          ("confidence", np.float32), ("segment", np.float64), ("observations", np.uint32),
@@ -111,52 +179,50 @@ def echoes_to_msg(echoes: EchoArrays, header) -> Echoes:
     return msg
 
 
-ECHO_SEQUENCE_TYPES = {"group": np.uint16, "transmitter": np.uint8, "tof": np.float64, "amplitude": np.float32,
-                       "phase_delay": np.float64}
-"""Element type of each sequence of ``sonar_ring/Echoes``, by its :class:`~sonar_ring.echoes.EchoArrays` field."""
+ECHO_SEQUENCES = (("group", np.uint16), ("transmitter", np.uint8), ("tof", np.float64), ("amplitude", np.float32),
+                  ("phase_delay", np.float64))
+"""The sequences of ``sonar_ring/Echoes``, in order, each with its element type; each is the
+:class:`~sonar_ring.echoes.EchoArrays` attribute of the same name, flattened."""
 
 
 def as_message_types(echoes: EchoArrays) -> EchoArrays:
     """``echoes`` with each array in the type of its message field (float32 amplitudes, ...).
 
-    What :func:`echoes_from_msg` gives for ``echoes_to_msg(echoes, header)``, without
-    building the message: so a ping handed over in one process is the ping the
-    next node would decode.
+    What :func:`echoes_from_cdr` gives for ``echoes_to_msg(echoes, header)`` once
+    serialized, without building the message: so a ping handed over in one
+    process is the ping the next node would decode.
     """
     return EchoArrays(layout=str(echoes.layout), speed_of_sound=float(echoes.speed_of_sound),
-                      **{name: np.asarray(getattr(echoes, name), dtype=dtype)
-                         for name, dtype in ECHO_SEQUENCE_TYPES.items()})
+                      **{name: np.asarray(getattr(echoes, name), dtype=dtype) for name, dtype in ECHO_SEQUENCES})
 
 
-def echoes_from_msg(msg: Echoes) -> EchoArrays:
-    """Arrays of an Echoes message, checked for consistent lengths.
+def echoes_from_cdr(data: bytes) -> tuple[Header, EchoArrays]:
+    """The header and arrays of a serialized ``sonar_ring/Echoes`` (as a raw subscription or a bag gives it).
 
-    Raises :class:`MessageError` when the array lengths do not fit N echoes of K
-    receivers (the text gives the lengths found and expected).
+    Raises :class:`MessageError` when the bytes are not a whole message, or when
+    its array lengths do not fit N echoes of K receivers (the text gives the
+    lengths found and expected).  The arrays have their fields' types (float32
+    amplitudes), native byte order, and are writable copies.
     """
-    k = int(msg.receivers_per_group)
-    group = from_sequence(msg.group, np.uint16)
-    n = group.shape[0]
+    reader = CdrReader(data, "sonar_ring/Echoes")
+    header = reader.header()
+    layout = reader.string()
+    (speed_of_sound,) = reader.unpack("d", align=8)
+    (k,) = reader.unpack("B", align=1)
+    arrays = {name: reader.array(dtype) for name, dtype in ECHO_SEQUENCES}
+    n = len(arrays["group"])
     if k < 2:
         raise MessageError(f"receivers_per_group must be >= 2, got {k}")
-    lengths = {"transmitter": (len(msg.transmitter), (n,)), "tof": (len(msg.tof), (n * k,)),
-               "amplitude": (len(msg.amplitude), (0, n * k)),
-               "phase_delay": (len(msg.phase_delay), (0, n * (k - 1)))}
-    for name, (found, allowed) in lengths.items():
-        if found not in allowed:
-            expected = " or ".join(str(a) for a in allowed)
-            raise MessageError(f"{name} has {found} values, expected {expected} for {n} echoes of {k} receivers")
-    amplitude = from_sequence(msg.amplitude, np.float32).reshape(n, -1 if len(msg.amplitude) else 0)
-    phase = from_sequence(msg.phase_delay, np.float64).reshape(n, -1 if len(msg.phase_delay) else 0)
-    return EchoArrays(
-        layout=msg.layout,
-        speed_of_sound=float(msg.speed_of_sound),
-        group=group,
-        transmitter=from_sequence(msg.transmitter, np.uint8),
-        tof=from_sequence(msg.tof, np.float64).reshape(n, k),
-        amplitude=amplitude,
-        phase_delay=phase,
-    )
+    allowed = {"transmitter": (n,), "tof": (n * k,), "amplitude": (0, n * k), "phase_delay": (0, n * (k - 1))}
+    for name, lengths in allowed.items():
+        if len(arrays[name]) not in lengths:
+            expected = " or ".join(str(length) for length in lengths)
+            raise MessageError(f"{name} has {len(arrays[name])} values, expected {expected} for {n} echoes of {k} "
+                               "receivers")
+    arrays["tof"] = arrays["tof"].reshape(n, k)
+    for name in ("amplitude", "phase_delay"):
+        arrays[name] = arrays[name].reshape(n, -1 if len(arrays[name]) else 0)
+    return header, EchoArrays(layout=layout, speed_of_sound=speed_of_sound, **arrays)
 
 
 def landmarks_to_msg(landmarks: Landmarks, header) -> LandmarkArray:

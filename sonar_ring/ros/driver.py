@@ -31,9 +31,9 @@ from sonar_ring.geometry import load_layout, speed_of_sound
 from sonar_ring.landmarks import make_landmarks
 from sonar_ring.msg import Echoes
 from sonar_ring.msg import LandmarkArray as LandmarkArrayMsg
-from sonar_ring.ros.convert import MessageError, as_message_types, echoes_from_msg, echoes_to_msg, landmarks_to_msg
+from sonar_ring.ros.convert import as_message_types, echoes_to_msg, landmarks_to_msg
 from sonar_ring.ros.diagnostics import NodeHealth
-from sonar_ring.ros.inputs import FUTURE_TOLERANCE, InputGate, screened
+from sonar_ring.ros.inputs import FUTURE_TOLERANCE, InputGate, screened, take_echoes
 from sonar_ring.ros.node import SonarNode
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.ranges import RangeOutput, publish_group_frames
@@ -97,7 +97,7 @@ class Driver(SonarNode):
             self._start_simulator()
         elif source == "topic":
             self._gate = InputGate(self, self.health, "tof_in", self.params, frame_param=None)
-            self.create_subscription(Echoes, "tof_in", self._on_topic, qos_profile_sensor_data)
+            self.create_subscription(Echoes, "tof_in", self._on_topic, qos_profile_sensor_data, raw=True)
         else:
             self._start_hardware()
 
@@ -142,18 +142,14 @@ class Driver(SonarNode):
             self._pose_index = 0
             self._laps_left -= 1
 
-    def _on_topic(self, msg: Echoes, info: MessageInfo) -> None:
+    def _on_topic(self, data: bytes, info: MessageInfo) -> None:
         started = time.perf_counter()
         self.health.received()
-        if not self._gate.admit(msg.header, info):
+        taken = take_echoes(data, info, self._gate, self.health)
+        if taken is None:
             return
-        try:
-            echoes = echoes_from_msg(msg)
-        except MessageError as error:
-            self.health.problem("malformed_message", str(error))
-            return
-        header = Header(stamp=msg.header.stamp, frame_id=self.params["frame_id"])
-        downstream = self._publish(echoes, header)
+        header = Header(stamp=taken[0].stamp, frame_id=self.params["frame_id"])
+        downstream = self._publish(taken[1], header)
         self.health.processed(time.perf_counter() - started - downstream)
 
     def _start_hardware(self) -> None:

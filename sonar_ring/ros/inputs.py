@@ -22,7 +22,10 @@ faster than the node works are dropped by the bounded subscription queue
 (depth 5, sensor-data QoS), never queued without bound, and this is where they
 are counted.
 
-:func:`check_echoes` then takes what is usable of an ``Echoes`` ping
+The nodes subscribe to ``Echoes`` serialized: :func:`take_echoes` decodes
+a message (:func:`~sonar_ring.ros.convert.echoes_from_cdr`; bytes that are not a
+whole message count as ``malformed_message``) and puts it through the gate, and
+:func:`check_echoes` then takes what is usable of the ping
 (:func:`sonar_ring.echoes.screen_ping`): a bad row or value is dropped and
 counted, the rest of the ping is still used.
 """
@@ -33,10 +36,10 @@ from collections import OrderedDict
 from collections.abc import Callable
 
 from rclpy.node import Node
+from std_msgs.msg import Header
 
 from sonar_ring.echoes import EchoArrays, screen_ping
-from sonar_ring.msg import Echoes
-from sonar_ring.ros.convert import MessageError, echoes_from_msg
+from sonar_ring.ros.convert import MessageError, echoes_from_cdr
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.params import Param
 
@@ -94,8 +97,7 @@ class InputGate:
         ``info`` is the ``MessageInfo`` rclpy passes to a two-argument
         subscription callback; with it, messages lost before this one are counted.
         """
-        if info is not None:
-            self._count_lost(info)
+        self.count_lost(info)
         reason, detail = self._refusal(header)
         if reason:
             self._health.problem(reason, f"{self._topic}: {detail}")
@@ -127,7 +129,10 @@ class InputGate:
         self._last_stamp = stamp
         return "", ""
 
-    def _count_lost(self, info) -> None:
+    def count_lost(self, info) -> None:
+        """Count the messages lost before the one ``info`` (its ``MessageInfo``, or None) came with."""
+        if info is None:
+            return
         sequence = info.get("publication_sequence_number")
         publisher = info.get("publisher_gid")
         if sequence is None or publisher is None:
@@ -142,25 +147,34 @@ class InputGate:
                                  "than this node works", count=sequence - last - 1)
 
 
-def check_echoes(msg: Echoes, layout, health: NodeHealth) -> EchoArrays | None:
-    """The usable part of an Echoes ping, or None after counting why nothing is.
+def take_echoes(data: bytes, info, gate: InputGate, health: NodeHealth) -> tuple[Header, EchoArrays] | None:
+    """A serialized Echoes message decoded and admitted by ``gate``, or None after counting why not.
 
-    A message whose arrays do not fit together (``malformed_message``), of
-    another layout (``layout_mismatch``) or that the layout cannot read (see
-    :func:`sonar_ring.echoes.screen_ping`) is refused whole; bad rows and values
-    are dropped and counted, and the rest of the ping is returned.  Nodes that
-    screen the same message keep the same rows, so row indices (``echo``)
-    agree between the localiser and the classifier.
+    ``info`` is the message's ``MessageInfo`` (or None); the messages lost before
+    it are counted even when it does not decode.
     """
     try:
-        echoes = echoes_from_msg(msg)
+        header, echoes = echoes_from_cdr(data)
     except MessageError as error:
+        gate.count_lost(info)
         health.problem("malformed_message", str(error))
         return None
-    if msg.layout != layout.name:
-        health.problem("layout_mismatch", f"echoes of layout {msg.layout!r}, this node runs {layout.name!r}")
+    return (header, echoes) if gate.admit(header, info) else None
+
+
+def check_echoes(header: Header, echoes: EchoArrays, layout, health: NodeHealth) -> EchoArrays | None:
+    """The usable part of a decoded Echoes ping (:func:`take_echoes`), or None after counting why nothing is.
+
+    A ping of another layout (``layout_mismatch``) or that the layout cannot
+    read (see :func:`sonar_ring.echoes.screen_ping`) is refused whole; bad rows
+    and values are dropped and counted, and the rest of the ping is returned.
+    Nodes that screen the same message keep the same rows, so row indices
+    (``echo``) agree between the localiser and the classifier.
+    """
+    if echoes.layout != layout.name:
+        health.problem("layout_mismatch", f"echoes of layout {echoes.layout!r}, this node runs {layout.name!r}")
         return None
-    return screened(echoes, layout, health, f"ping at {msg.header.stamp.sec}.{msg.header.stamp.nanosec:09d}")
+    return screened(echoes, layout, health, f"ping at {header.stamp.sec}.{header.stamp.nanosec:09d}")
 
 
 def screened(echoes: EchoArrays, layout, health: NodeHealth, where: str) -> EchoArrays | None:

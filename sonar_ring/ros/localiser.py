@@ -22,7 +22,7 @@ from sonar_ring.geometry import load_layout
 from sonar_ring.msg import Echoes, LandmarkArray
 from sonar_ring.ros.convert import serialize_landmarks
 from sonar_ring.ros.diagnostics import NodeHealth
-from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, check_echoes
+from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, check_echoes, take_echoes
 from sonar_ring.ros.node import SonarNode
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.run import spin
@@ -80,19 +80,21 @@ class Localiser(SonarNode):
         self.health = NodeHealth(self, hardware_id=self.layout.name)
         self._publisher = self.create_publisher(LandmarkArray, "landmarks/raw", qos_profile_sensor_data)
         self._gate = InputGate(self, self.health, "echoes", self.params)
-        self.ping_inputs = (self.create_subscription(Echoes, "echoes", self._on_echoes, qos_profile_sensor_data),)
+        self.ping_inputs = (self.create_subscription(Echoes, "echoes", self._on_echoes, qos_profile_sensor_data,
+                                                     raw=True),)
 
     def _on_change(self, changed: dict) -> None:
         self.settings = settings_from(self.params)
 
-    def _on_echoes(self, msg: Echoes, info: MessageInfo) -> None:
+    def _on_echoes(self, data: bytes, info: MessageInfo) -> None:
         started = time.perf_counter()
         self.health.received()
-        if not self._gate.admit(msg.header, info):
+        taken = take_echoes(data, info, self._gate, self.health)
+        if taken is None:
             return
-        echoes = check_echoes(msg, self.layout, self.health)
+        echoes = check_echoes(*taken, self.layout, self.health)
         if echoes is not None:
-            self._localise(msg.header, echoes, started)
+            self._localise(taken[0], echoes, started)
 
     def on_ping(self, header: Header, echoes: EchoArrays) -> None:
         """A ping from the driver in this process: the header it publishes and the screened arrays."""

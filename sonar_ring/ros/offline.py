@@ -3,7 +3,8 @@
 :func:`process_bag` runs the localiser, classifier and mapper over the echoes
 recorded in a bag and writes what they publish to a new bag;
 :func:`record_sim` writes what the driver's simulator source publishes.
-Both call the functions the nodes call -- :func:`sonar_ring.ros.inputs.check_echoes`,
+Both call the functions the nodes call -- :func:`sonar_ring.ros.inputs.take_echoes` and
+:func:`~sonar_ring.ros.inputs.check_echoes`,
 :mod:`sonar_ring.pipeline`, :mod:`sonar_ring.ros.convert`,
 :mod:`sonar_ring.ros.markers`, the mapper's :func:`~sonar_ring.ros.mapper.integrate`
 (in its two halves, :func:`~sonar_ring.ros.mapper.sightings_at` and
@@ -43,17 +44,17 @@ from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import Header
 
 from sonar_ring import classify, localise, mapping, pipeline
+from sonar_ring.echoes import EchoArrays
 from sonar_ring.echoes import load_kernels as load_screening_kernels
 from sonar_ring.geometry import Layout, LayoutError, config_path, load_layout
 from sonar_ring.landmarks import CLASS_NAMES, Landmarks
 from sonar_ring.mapping import LandmarkMap, Sightings
-from sonar_ring.msg import Echoes
 from sonar_ring.progress import Progress
 from sonar_ring.ros import classifier, localiser, mapper
 from sonar_ring.ros.bag import TOPIC, BagError, BagReader, BagWriter, absolute, range_topics
-from sonar_ring.ros.convert import echoes_to_msg, serialize_landmarks
+from sonar_ring.ros.convert import MessageError, echoes_from_cdr, echoes_to_msg, serialize_landmarks
 from sonar_ring.ros.driver import DEFAULT_SPEED_OF_SOUND, odometry_message, truth_message, usable_echoes
-from sonar_ring.ros.inputs import InputGate, check_echoes, stamp_ns
+from sonar_ring.ros.inputs import InputGate, check_echoes, stamp_ns, take_echoes
 from sonar_ring.ros.markers import landmark_markers, serialize_markers
 from sonar_ring.ros.params import file_values
 from sonar_ring.ros.ranges import range_messages
@@ -202,31 +203,33 @@ class PingStage:
                    values["classifier"]["marker_lifetime"], mapper.new_map(values["mapper"]),
                    tuple(values["mapper"]["sensor_offset"]))
 
-    def run(self, messages: list[Echoes], poses: list) -> list[PingOutput]:
-        """Check, localise, classify and draw Echoes messages, as the two nodes do, one output per message.
+    def run(self, pings: list[tuple[Header, EchoArrays]], poses: list) -> list[PingOutput]:
+        """Check, localise, classify and draw decoded Echoes messages, as the two nodes do, one output per message.
 
-        ``poses`` holds each message's robot pose (x, y, yaw) in ``odom``, or None
+        ``pings`` holds each message's header and arrays (:func:`~sonar_ring.ros.convert.echoes_from_cdr`),
+        ``poses`` each message's robot pose (x, y, yaw) in ``odom``, or None
         where the mapper has none; with one the output carries its sightings.
 
         The checked pings go through :func:`sonar_ring.pipeline.label_pings`
         together, which gives each ping what the nodes give it alone.
         """
-        tallies = [Tally() for _ in messages]
-        checked = [check_echoes(msg, self.layout, tally) for msg, tally in zip(messages, tallies, strict=True)]
+        tallies = [Tally() for _ in pings]
+        checked = [check_echoes(header, echoes, self.layout, tally)
+                   for (header, echoes), tally in zip(pings, tallies, strict=True)]
         usable = [index for index, echoes in enumerate(checked) if echoes is not None]
         # The messages carry the arrays' own dtypes, so the nodes' message round trips are lossless and skipped.
         labels = dict(zip(usable, pipeline.label_pings(self.layout, [checked[i] for i in usable],
                                                        self.localiser_settings, self.classifier_settings),
                           strict=True))
         outputs = []
-        for index, (msg, tally) in enumerate(zip(messages, tallies, strict=True)):
+        for index, ((header, _), tally) in enumerate(zip(pings, tallies, strict=True)):
             if index not in labels:
                 outputs.append(PingOutput(dict(tally.problems), dict(tally.notes)))
                 continue
             hypotheses, labelled = labels[index]
-            data = (serialize_landmarks(hypotheses, msg.header),
-                    serialize_landmarks(labelled, msg.header),
-                    serialize_markers(landmark_markers(labelled, "landmarks", self.marker_lifetime), msg.header))
+            data = (serialize_landmarks(hypotheses, header),
+                    serialize_landmarks(labelled, header),
+                    serialize_markers(landmark_markers(labelled, "landmarks", self.marker_lifetime), header))
             sightings = None if poses[index] is None else mapper.sightings_at(self.screening, labelled, poses[index],
                                                                               self.sensor_offset)
             per_class = np.bincount(labelled.landmark_class, minlength=len(CLASS_NAMES))
@@ -251,7 +254,7 @@ def _start_worker(stage: PingStage) -> None:
 
 
 def _work(batch: list[bytes], poses: list) -> list[PingOutput]:
-    return _worker_stage.run([deserialize_message(data, Echoes) for data in batch], poses)
+    return _worker_stage.run([echoes_from_cdr(data) for data in batch], poses)
 
 
 @contextlib.contextmanager
@@ -273,9 +276,10 @@ def stage_workers(stage: PingStage, jobs: int):
 
 def ordered_map(stage: PingStage, items, workers: ProcessPoolExecutor | None, jobs: int, meanwhile=None,
                 batch: int = 64):
-    """``(item, output)`` for ``(message, data, pose, item)`` in ``items``, in order: the stage's output.
+    """``(item, output)`` for ``(ping, data, pose, item)`` in ``items``, in order: the stage's output.
 
-    The output is that of ``message`` with the robot at ``pose`` (:meth:`PingStage.run`).
+    The output is that of ``ping`` (header and arrays decoded from the serialized
+    message ``data``) with the robot at ``pose`` (:meth:`PingStage.run`).
 
     The stage runs on ``batch`` messages at a time (:meth:`PingStage.run`).
     Without ``workers`` it runs here; with them (:func:`stage_workers`) the
@@ -290,7 +294,7 @@ def ordered_map(stage: PingStage, items, workers: ProcessPoolExecutor | None, jo
         if meanwhile:
             meanwhile()
         for chunk in chunks:
-            outputs = stage.run([message for message, *_ in chunk], [pose for *_, pose, _ in chunk])
+            outputs = stage.run([ping for ping, *_ in chunk], [pose for *_, pose, _ in chunk])
             yield from zip([item for *_, item in chunk], outputs, strict=True)
         return
     pending = deque()
@@ -344,15 +348,13 @@ class OfflineGraph:
         self._map_changed = False
         self.per_class = np.zeros(len(CLASS_NAMES), dtype=np.int64)
 
-    def admit(self, time_ns: int, data: bytes) -> Echoes | None:
-        """The Echoes message recorded at bag time ``time_ns`` (ns), or None when the localiser would refuse it."""
-        try:
-            msg = deserialize_message(data, Echoes)
-        except Exception:  # rclpy raises a bare RuntimeError/TypeError for CDR it cannot decode
-            self._tally.problem("undecodable_message")
-            return None
+    def admit(self, time_ns: int, data: bytes) -> tuple[Header, EchoArrays] | None:
+        """The header and arrays of the Echoes message recorded at bag time ``time_ns`` (ns).
+
+        None when the localiser would refuse it (:func:`~sonar_ring.ros.inputs.take_echoes`).
+        """
         self._clock.nanoseconds = time_ns
-        return msg if self._gate.admit(msg.header) else None
+        return take_echoes(data, None, self._gate, self._tally)
 
     def take(self, time_ns: int, no_pose, output: PingOutput) -> None:
         """Write a ping's outputs at ``time_ns`` and add its landmarks to the map (and the map ticks before it).
@@ -468,8 +470,8 @@ def _layout_of(bag: BagReader, connections, layout):
         return load_layout(layout)
     for _, _, data in bag.messages(connections):
         try:
-            name = deserialize_message(data, Echoes).layout
-        except Exception:  # see OfflineGraph.ping; the next message may be readable
+            name = echoes_from_cdr(data)[1].layout
+        except MessageError:  # the next message may be readable
             continue
         try:
             return load_layout(name)
@@ -552,10 +554,10 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
                 for connection, time_ns, data in bag.messages(echo_connections):
                     times.append(time_ns)
                     graph = graphs[connection.topic]
-                    message = graph.admit(time_ns, data)
-                    if message is not None:
-                        pose, no_pose = graph.robot_pose(message.header)
-                        yield message, data, pose, (graph, time_ns, no_pose)
+                    ping = graph.admit(time_ns, data)
+                    if ping is not None:
+                        pose, no_pose = graph.robot_pose(ping[0])
+                        yield ping, data, pose, (graph, time_ns, no_pose)
                     if bar:
                         bar.update(len(times))
 
