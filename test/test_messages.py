@@ -15,9 +15,11 @@ from numpy.testing import assert_array_equal
 from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.serialization import serialize_message
 from sonar_ring.msg import Echoes, Landmark, LandmarkArray
+from std_msgs.msg import Header
 
+from sonar_ring.echoes import EchoArrays
 from sonar_ring.ros.bag import typestore
-from sonar_ring.ros.convert import MessageError, echoes_from_cdr
+from sonar_ring.ros.convert import MessageError, as_message_types, echoes_from_cdr, echoes_to_msg
 
 pytestmark = pytest.mark.ros
 
@@ -62,6 +64,23 @@ def test_arrays_round_trip_through_a_message(name):
     assert header == message.header
     assert_same_echoes(echoes, sample_arrays(name))
     assert echoes.tof.flags.writeable and echoes.tof.flags.aligned
+
+
+@pytest.mark.parametrize("name", [*SAMPLE_NAMES, "empty triad"])
+def test_arrays_in_message_types_are_what_the_message_decodes_to(name):
+    """What the driver hands on in one process is what a node decodes from its message."""
+    if name == "empty triad":
+        arrays = EchoArrays("kreczmer_triad", 343.0, np.empty(0, np.uint16), np.empty(0, np.uint8), np.empty((0, 3)),
+                            np.empty((0, 3), np.float32), np.empty((0, 2)))
+    else:
+        arrays = sample_arrays(name)
+    assert_same_echoes(as_message_types(arrays), decoded(echoes_to_msg(arrays, Header(frame_id="f"))))
+
+
+def test_a_string_is_cut_at_a_nul_inside_as_rclpy_reads_it():
+    data = serialize_message(echoes_to_msg(sample_arrays("triad"), Header(frame_id="sonar\x01ring")))
+    header, _ = echoes_from_cdr(data.replace(b"sonar\x01ring", b"sonar\x00ring"))
+    assert header.frame_id == "sonar"
 
 
 @pytest.mark.parametrize("little_endian", [True, False])

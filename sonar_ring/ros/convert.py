@@ -110,14 +110,14 @@ class CdrReader:
         return values
 
     def string(self) -> str:
-        """A string: its length with the NUL, the UTF-8 bytes and the NUL."""
+        """A string: its length with the NUL, the UTF-8 bytes and the NUL; cut at a NUL inside, as rclpy does."""
         (size,) = self.unpack("I", align=4)
         end = self.offset + size
         if size == 0 or end > len(self.data) or self.data[end - 1] != 0:
             raise MessageError(f"{self.what}: a string of {size} bytes at {self.offset} runs past the end "
                                "or lacks its NUL")
         try:
-            text = bytes(self.data[self.offset:end - 1]).decode()
+            text = bytes(self.data[self.offset:end - 1]).split(b"\x00", 1)[0].decode()
         except UnicodeDecodeError as error:
             raise MessageError(f"{self.what}: a string at {self.offset} is not UTF-8 ({error})") from None
         self.offset = end
@@ -190,10 +190,14 @@ def as_message_types(echoes: EchoArrays) -> EchoArrays:
 
     What :func:`echoes_from_cdr` gives for ``echoes_to_msg(echoes, header)`` once
     serialized, without building the message: so a ping handed over in one
-    process is the ping the next node would decode.
+    process is the ping the next node would decode -- down to an empty ping's
+    amplitudes and phase delays, which a message carries as no columns.
     """
-    return EchoArrays(layout=str(echoes.layout), speed_of_sound=float(echoes.speed_of_sound),
-                      **{name: np.asarray(getattr(echoes, name), dtype=dtype) for name, dtype in ECHO_SEQUENCES})
+    arrays = {name: np.asarray(getattr(echoes, name), dtype=dtype) for name, dtype in ECHO_SEQUENCES}
+    for name in ("amplitude", "phase_delay"):
+        if arrays[name].size == 0:
+            arrays[name] = arrays[name].reshape(len(arrays["group"]), 0)
+    return EchoArrays(layout=str(echoes.layout), speed_of_sound=float(echoes.speed_of_sound), **arrays)
 
 
 def echoes_from_cdr(data: bytes) -> tuple[Header, EchoArrays]:

@@ -453,7 +453,7 @@ def _read_odometry(bag: BagReader, connections, mapper_values: dict, tally: Tall
     for _, time_ns, data in bag.messages(connections):
         try:
             msg = deserialize_message(data, Odometry)
-        except Exception:  # see OfflineGraph.ping
+        except Exception:  # rclpy raises a bare RuntimeError/TypeError for CDR it cannot decode
             tally.problem("undecodable_odometry")
             continue
         clock.nanoseconds = time_ns
