@@ -121,14 +121,19 @@ def _marker_tail() -> bytes:
 
 _MARKER_TAIL = _marker_tail()
 
+_NO_COLOURS = np.empty((0, 4), dtype=np.float32)
+_NO_COLOURS.flags.writeable = False
+
 
 def _coloured(landmark_class: int, confidence: np.ndarray, repeat: int) -> tuple[tuple, np.ndarray]:
     """Colour by class, alpha by confidence: the marker's colour, and per-point colours where alphas differ."""
     r, g, b = CLASS_COLOURS[landmark_class]
+    if confidence.size == 0:
+        return (r, g, b, 1.0), _NO_COLOURS
     alpha = MIN_ALPHA + (1.0 - MIN_ALPHA) * np.minimum(np.maximum(confidence, 0.0), 1.0)
-    colour = (r, g, b, float(alpha[0]) if alpha.size else 1.0)
-    if alpha.size == 0 or bool(np.all(alpha == alpha[0])):
-        return colour, np.empty((0, 4), dtype=np.float32)
+    colour = (r, g, b, float(alpha[0]))
+    if bool(np.all(alpha == alpha[0])):
+        return colour, _NO_COLOURS
     per_point = np.repeat(alpha, repeat)
     return colour, np.column_stack([np.full((per_point.size, 3), (r, g, b)), per_point]).astype(np.float32)
 
