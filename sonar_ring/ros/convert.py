@@ -164,25 +164,19 @@ def serialize_landmarks(landmarks: Landmarks, header) -> bytes:
     return bytes(cdr.buffer)
 
 
-def echoes_to_msg(echoes: EchoArrays, header) -> Echoes:
-    """Build an Echoes message from arrays; ``header`` is a ``std_msgs/Header``."""
-    n, k = echoes.tof.shape
-    msg = Echoes(header=header, layout=echoes.layout, speed_of_sound=float(echoes.speed_of_sound),
-                 receivers_per_group=k)
-    msg.group = to_sequence(echoes.group, np.uint16)
-    msg.transmitter = to_sequence(echoes.transmitter, np.uint8)
-    msg.tof = to_sequence(echoes.tof, np.float64)
-    if echoes.amplitude.size:
-        msg.amplitude = to_sequence(echoes.amplitude, np.float32)
-    if echoes.phase_delay.size:
-        msg.phase_delay = to_sequence(echoes.phase_delay, np.float64)
-    return msg
-
-
 ECHO_SEQUENCES = (("group", np.uint16), ("transmitter", np.uint8), ("tof", np.float64), ("amplitude", np.float32),
                   ("phase_delay", np.float64))
 """The sequences of ``sonar_ring/Echoes``, in order, each with its element type; each is the
 :class:`~sonar_ring.echoes.EchoArrays` attribute of the same name, flattened."""
+
+
+def echoes_to_msg(echoes: EchoArrays, header) -> Echoes:
+    """Build an Echoes message from arrays; ``header`` is a ``std_msgs/Header``."""
+    msg = Echoes(header=header, layout=echoes.layout, speed_of_sound=float(echoes.speed_of_sound),
+                 receivers_per_group=echoes.tof.shape[1])
+    for name, dtype in ECHO_SEQUENCES:
+        setattr(msg, name, to_sequence(getattr(echoes, name), dtype))
+    return msg
 
 
 def as_message_types(echoes: EchoArrays) -> EchoArrays:
