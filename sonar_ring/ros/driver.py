@@ -148,8 +148,9 @@ class Driver(SonarNode):
         taken = take_echoes(data, info, self._gate, self.health)
         if taken is None:
             return
-        header = Header(stamp=taken[0].stamp, frame_id=self.params["frame_id"])
-        downstream = self._publish(taken[1], header)
+        received, echoes = taken
+        header = Header(stamp=received.stamp, frame_id=self.params["frame_id"])
+        downstream = self._publish(echoes, header)
         self.health.processed(time.perf_counter() - started - downstream)
 
     def _start_hardware(self) -> None:

@@ -92,9 +92,10 @@ class Localiser(SonarNode):
         taken = take_echoes(data, info, self._gate, self.health)
         if taken is None:
             return
-        echoes = check_echoes(*taken, self.layout, self.health)
-        if echoes is not None:
-            self._localise(taken[0], echoes, started)
+        header, echoes = taken
+        usable = check_echoes(header, echoes, self.layout, self.health)
+        if usable is not None:
+            self._localise(header, usable, started)
 
     def on_ping(self, header: Header, echoes: EchoArrays) -> None:
         """A ping from the driver in this process: the header it publishes and the screened arrays."""
