@@ -630,6 +630,46 @@ def localise_rows(tx, rx1, rx2, paths, dz, vertical, sigma_tof, speed, sigma_spe
     return reason, position, normal, covariance, segment, covariance_paths, lost
 
 
+@kernel
+def localise_ping_rows(transmitters, receivers, groups, transmitter, group, tof, speed, vertical, sigma_tof,
+                       sigma_speed, models, model_class):
+    """:func:`localise_rows` of a ping's rows, from the layout's transducers, with the landmark fields it fixes.
+
+    Layout (:class:`sonar_ring.geometry.Layout`): ``transmitters`` (T, 3) and
+    ``receivers`` (R, 3), m, sensor frame; ``groups`` (G, 2) each group's
+    receivers.  Per echo row: its ``transmitter`` and ``group`` indices (N,)
+    and ``tof`` (N, 2), s; ``speed`` m/s makes the paths ``speed * tof``.
+    ``models`` as for :func:`localise_rows`, ``model_class`` (M,) their landmark classes.
+
+    Returns what :func:`localise_rows` returns, then per entry (M N,):
+    ``landmark_class`` (uint8), ``group`` (uint16) and ``echo`` (uint32,
+    the row), and the rows' horizontal ``tx``, ``rx1`` and ``rx2`` (N, 2), m.
+    """
+    count = group.size
+    tx, rx1, rx2 = np.empty((count, 2)), np.empty((count, 2)), np.empty((count, 2))
+    paths, dz = np.empty((count, 2)), np.empty((count, 2))
+    for row in range(count):
+        source = transmitters[transmitter[row]]
+        first, second = receivers[groups[group[row], 0]], receivers[groups[group[row], 1]]
+        for axis in range(2):
+            tx[row, axis], rx1[row, axis], rx2[row, axis] = source[axis], first[axis], second[axis]
+        paths[row, 0], paths[row, 1] = speed * tof[row, 0], speed * tof[row, 1]
+        dz[row, 0], dz[row, 1] = source[2] - first[2], source[2] - second[2]
+    reason, position, normal, covariance, segment, covariance_paths, lost = localise_rows(
+        tx, rx1, rx2, paths, dz, vertical, sigma_tof, speed, sigma_speed, models)
+    size = len(models) * count
+    landmark_class = np.empty(size, dtype=np.uint8)
+    entry_group = np.empty(size, dtype=np.uint16)
+    echo = np.empty(size, dtype=np.uint32)
+    for index in range(len(models)):
+        for row in range(count):
+            landmark_class[index * count + row] = model_class[index]
+            entry_group[index * count + row] = group[row]
+            echo[index * count + row] = row
+    return (reason, position, normal, covariance, segment, covariance_paths, lost, landmark_class, entry_group, echo,
+            tx, rx1, rx2)
+
+
 def _solved(caller, models, tx, rx1, rx2, d1, d2) -> dict:
     """The estimates of ``models`` (names of :data:`SOLVERS`) for inputs of any broadcast shape, by name, in order."""
     shape, *inputs = _flat_inputs(caller, tx, rx1, rx2, d1, d2)
@@ -829,12 +869,13 @@ def load_kernels() -> None:
 
     Loading takes about 0.5 s (numba's start and the cached machine code); a
     process that localises on a deadline pays it at start.  Runs the models
-    alone (:func:`hypotheses`) and for a ping (:func:`localise_rows`, what
+    alone (:func:`hypotheses`) and for a ping (:func:`localise_ping_rows`, what
     ``pipeline.localise_ping`` uses), with the production argument types.
     """
     hypotheses([0.0, 0.0], [0.0, 0.02], [0.0, -0.02], 1.0, 1.0)
-    localise_rows(np.zeros((1, 2)), np.array([[0.0, 0.02]]), np.array([[0.0, -0.02]]), np.ones((1, 2)),
-                  np.zeros((1, 2)), True, 1e-6, 343.0, 0.0, np.arange(len(SOLVERS)))
+    localise_ping_rows(np.zeros((1, 3)), np.array([[0.0, 0.02, 0.0], [0.0, -0.02, 0.0]]), np.array([[0, 1]]),
+                       np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64), np.full((1, 2), 0.006), 343.0, True,
+                       1e-6, 0.0, np.arange(len(SOLVERS)), np.ones(len(SOLVERS), dtype=np.uint8))
 
 
 def horizontal_path(d, dz) -> ScalarEstimate:

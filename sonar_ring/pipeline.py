@@ -72,17 +72,6 @@ class Settings:
                              f"got {list(self.models)}")
 
 
-def _row_geometry(layout: Layout, echoes: EchoArrays):
-    """Transmitter and receivers of every echo row, horizontal, and their height differences.
-
-    Returns ``tx`` (N, 2), ``receivers`` (N, K, 2) in m, and ``dz`` (N, K), the
-    transmitter minus each receiver's height, m.
-    """
-    tx = layout.transmitters[echoes.transmitter.astype(np.int64)]
-    receivers = layout.receivers[layout.groups[echoes.group.astype(np.int64)]]
-    return tx[:, :2], receivers[..., :2], tx[:, None, 2] - receivers[..., 2]
-
-
 def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Settings()) -> Landmarks:
     """Landmark hypotheses for every echo row and enabled model, sensor frame.
 
@@ -95,34 +84,37 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
     if layout.kind == "triad":
         return _localise_triads(layout, echoes, settings)
     localise.check_path_noise(settings.sigma_tof, echoes.speed_of_sound, settings.sigma_speed, "localise_ping")
-    tx, receivers, dz = _row_geometry(layout, echoes)
-    models = np.array([localise.SOLVERS.index(model) for model in settings.models])
-    reason, position, normal, covariance, segment, covariance_paths, lost = localise.localise_rows(
-        np.ascontiguousarray(tx), np.ascontiguousarray(receivers[:, 0]), np.ascontiguousarray(receivers[:, 1]),
-        np.ascontiguousarray(echoes.path_lengths()), np.ascontiguousarray(dz), settings.vertical_correction,
-        float(settings.sigma_tof), float(echoes.speed_of_sound), float(settings.sigma_speed), models)
-    count = echoes.n_echoes
-    # Near the border of the solvable region (|d2 - d1| close to the baseline) a sigma point can
-    # fall outside it while the estimate is valid: first-order covariance there.
-    for index in np.unique(np.flatnonzero(lost) // max(count, 1)):
-        rows = np.flatnonzero(lost[index * count:(index + 1) * count])
-        entries = index * count + rows
-        estimate = localise.PointEstimate(position[entries], np.ones(rows.size, dtype=bool), reason[entries],
-                                          settings.models[index])
-        covariance[entries] = localise.position_covariance(estimate, tx[rows], receivers[rows, 0], receivers[rows, 1],
-                                                           covariance_paths[rows])
-    return Landmarks(
-        landmark_class=np.repeat(np.array([MODEL_CLASS[model] for model in settings.models], dtype=np.uint8), count),
-        position=position,
-        normal=normal,
-        covariance=covariance,
-        confidence=np.zeros(reason.size, dtype=np.float32),
-        segment=segment,
-        observations=np.ones(reason.size, dtype=np.uint32),
-        group=np.tile(echoes.group, len(models)).astype(np.uint16),
-        echo=np.tile(np.arange(count, dtype=np.uint32), len(models)),
-        valid=reason == localise.OK,
-        reason=reason)
+    models, model_class = _model_codes(settings.models)
+    (reason, position, normal, covariance, segment, covariance_paths, lost, landmark_class, group, echo,
+     tx, rx1, rx2) = localise.localise_ping_rows(
+        layout.transmitters, layout.receivers, layout.groups, echoes.transmitter.astype(np.int64),
+        echoes.group.astype(np.int64), np.ascontiguousarray(echoes.tof, dtype=float), float(echoes.speed_of_sound),
+        settings.vertical_correction, float(settings.sigma_tof), float(settings.sigma_speed), models, model_class)
+    if lost.any():
+        count = echoes.n_echoes
+        # Near the border of the solvable region (|d2 - d1| close to the baseline) a sigma point can
+        # fall outside it while the estimate is valid: first-order covariance there.
+        for index in np.unique(np.flatnonzero(lost) // count):
+            rows = np.flatnonzero(lost[index * count:(index + 1) * count])
+            entries = index * count + rows
+            estimate = localise.PointEstimate(position[entries], np.ones(rows.size, dtype=bool), reason[entries],
+                                              settings.models[index])
+            covariance[entries] = localise.position_covariance(estimate, tx[rows], rx1[rows], rx2[rows],
+                                                               covariance_paths[rows])
+    return Landmarks(landmark_class=landmark_class, position=position, normal=normal, covariance=covariance,
+                     confidence=np.zeros(reason.size, dtype=np.float32), segment=segment,
+                     observations=np.ones(reason.size, dtype=np.uint32), group=group, echo=echo,
+                     valid=reason == localise.OK, reason=reason)
+
+
+@functools.lru_cache(maxsize=8)
+def _model_codes(models: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """The solver index (:data:`sonar_ring.localise.SOLVERS`) and landmark class of each model, shapes (M,).
+
+    Cached for every ping: not to be written to.
+    """
+    return (np.array([localise.SOLVERS.index(model) for model in models], dtype=np.int64),
+            np.array([MODEL_CLASS[model] for model in models], dtype=np.uint8))
 
 
 @functools.lru_cache(maxsize=32)
