@@ -85,10 +85,11 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
         return _localise_triads(layout, echoes, settings)
     localise.check_path_noise(settings.sigma_tof, echoes.speed_of_sound, settings.sigma_speed, "localise_ping")
     models, model_class = _model_codes(settings.models)
+    # Copies (astype): decoded from a message, the arrays are read-only views, another type to numba.
     (reason, position, normal, covariance, segment, covariance_paths, lost, landmark_class, group, echo,
      tx, rx1, rx2) = localise.localise_ping_rows(
         layout.transmitters, layout.receivers, layout.groups, echoes.transmitter.astype(np.int64),
-        echoes.group.astype(np.int64), np.ascontiguousarray(echoes.tof, dtype=float), float(echoes.speed_of_sound),
+        echoes.group.astype(np.int64), echoes.tof.astype(float), float(echoes.speed_of_sound),
         settings.vertical_correction, float(settings.sigma_tof), float(settings.sigma_speed), models, model_class)
     if lost.any():
         count = echoes.n_echoes
