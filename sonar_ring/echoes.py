@@ -6,7 +6,7 @@ Mirrors the ``sonar_ring/Echoes`` message (N echo rows, K receivers per group);
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -56,71 +56,36 @@ class EchoArrays:
         return self.speed_of_sound * self.tof
 
 
-def sanitize(echoes: EchoArrays, n_groups: int, group_transmitters: np.ndarray, max_tof: float):
-    """Keep what is usable of a ping; count what is not, by reason.
-
-    Parameters
-    ----------
-    echoes : EchoArrays
-        A ping as received.
-    n_groups : int
-        Groups of the layout.
-    group_transmitters : ndarray of int, shape (G, M)
-        Transmitters each group reports (``Layout.group_transmitters``).
-    max_tof : float
-        Longest time of flight the sensor can report, s (from its maximum range).
-
-    Returns
-    -------
-    kept : EchoArrays
-        Rows with a known group and transmitter; TOFs that are not finite,
-        not positive or longer than ``max_tof`` replaced by NaN (a missed echo);
-        rows left without any TOF dropped.
-    problems : dict of str to int
-        ``unknown_group``, ``unknown_transmitter``, ``not_finite_tof``,
-        ``not_positive_tof``, ``tof_too_long``, ``empty_row`` -- counts of
-        rows (group, transmitter, empty) or values (TOFs).
-    """
-    tof = np.array(echoes.tof, dtype=float)
-    # Copies (astype): a message's arrays are read-only views, another type to numba.
-    keep, counts = _screen_rows(np.asarray(echoes.group).astype(np.int64),
-                                np.asarray(echoes.transmitter).astype(np.int64), tof, n_groups,
-                                np.ascontiguousarray(group_transmitters, dtype=np.int64), float(max_tof))
-    problems = dict(zip(SANITIZE_PROBLEMS, counts.tolist(), strict=True))
-    kept = EchoArrays(layout=echoes.layout, speed_of_sound=echoes.speed_of_sound, group=echoes.group[keep],
-                      transmitter=echoes.transmitter[keep], tof=tof[keep], amplitude=echoes.amplitude[keep],
-                      phase_delay=echoes.phase_delay[keep])
-    return kept, {reason: n for reason, n in problems.items() if n}
-
-
 def load_kernels() -> None:
-    """Load the compiled row checks of :func:`sanitize` now instead of at the first ping.
+    """Load the compiled row checks of :func:`screen_ping` now instead of at the first ping.
 
     Every node that screens pings calls it at start (the first call of any kernel
     also starts numba, about 0.5 s).
     """
-    _screen_rows(np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64), np.ones((1, 2)), 1,
+    _screen_rows(np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64), np.ones((1, 2)), np.zeros((1, 1)), 1,
                  np.zeros((1, 1), dtype=np.int64), 1.0)
 
 
-SANITIZE_PROBLEMS = ("unknown_group", "unknown_transmitter", "not_finite_tof", "not_positive_tof", "tof_too_long",
-                     "empty_row")
-"""What :func:`sanitize` counts, in the order of :func:`_screen_rows`' counts."""
+SCREEN_PROBLEMS = ("unknown_group", "unknown_transmitter", "not_finite_tof", "not_positive_tof", "tof_too_long",
+                   "empty_row", "bad_phase_delay")
+"""What :func:`screen_ping` counts row by row, in the order of :func:`_screen_rows`' counts."""
 
 
 @kernel
-def _screen_rows(group, transmitter, tof, n_groups, group_transmitters, max_tof):
-    """The checks of :func:`sanitize` on each row: which rows to keep, and the problems' counts.
+def _screen_rows(group, transmitter, tof, phase_delay, n_groups, group_transmitters, max_tof):
+    """The row and value checks of :func:`screen_ping`: which rows to keep, and the problems' counts.
 
     ``group`` and ``transmitter`` (N,) int; ``tof`` (N, K) s, in which TOFs that
     are infinite, not positive or longer than ``max_tof`` are set to NaN here;
-    ``group_transmitters`` (G, M).  Returns ``keep`` (N,) bool and the counts of
-    :data:`SANITIZE_PROBLEMS` (6,), TOF values counted only in rows of a known
-    group and transmitter.
+    ``phase_delay`` (N, P) s, in which a kept row's values that are infinite or
+    longer than ``max_tof`` are set to NaN here; ``group_transmitters`` (G, M).
+    Returns ``keep`` (N,) bool and the counts of :data:`SCREEN_PROBLEMS` (7,),
+    TOF values counted only in rows of a known group and transmitter, phase
+    delays only in kept rows.
     """
     n_echoes, n_receivers = tof.shape
     keep = np.zeros(n_echoes, dtype=np.bool_)
-    counts = np.zeros(len(SANITIZE_PROBLEMS), dtype=np.int64)
+    counts = np.zeros(len(SCREEN_PROBLEMS), dtype=np.int64)
     for n in range(n_echoes):
         if not 0 <= group[n] < n_groups:
             counts[0] += 1
@@ -148,6 +113,11 @@ def _screen_rows(group, transmitter, tof, n_groups, group_transmitters, max_tof)
             counts[5] += 1
         else:
             keep[n] = True
+            for column in range(phase_delay.shape[1]):
+                value = phase_delay[n, column]
+                if value == value and not abs(value) <= max_tof:  # NaN: not measured, kept as it is
+                    counts[6] += 1
+                    phase_delay[n, column] = np.nan
     return keep, counts
 
 
@@ -190,10 +160,13 @@ def screen_ping(echoes: EchoArrays, layout) -> Screened:
     ``wrong_receivers_per_group`` (the TOF columns are not the layout's K),
     ``bad_speed_of_sound`` (not finite, or outside 250..450 m/s),
     ``missing_phase_delay`` (a triad ping without K - 1 phase delays per row).
-    Row and value rejections (the rest of the ping is still used): those of
-    :func:`sanitize`, and ``bad_phase_delay`` (a phase delay that is not finite
-    or longer than the longest TOF, replaced by NaN: that echo's bearing is
-    then not computed).
+    Row and value rejections (the rest of the ping is still used), counted by
+    reason: rows of an ``unknown_group`` or ``unknown_transmitter`` (not one of
+    its group's) are dropped; TOFs that are ``not_finite_tof``,
+    ``not_positive_tof`` or ``tof_too_long`` (over :func:`longest_tof`) become
+    NaN, a missed echo, and a row left without any TOF is dropped
+    (``empty_row``); a ``bad_phase_delay`` (not finite, or longer than the
+    longest TOF) becomes NaN: that echo's bearing is then not computed.
 
     Parameters
     ----------
@@ -213,12 +186,12 @@ def screen_ping(echoes: EchoArrays, layout) -> Screened:
     if layout.kind == "triad" and echoes.phase_delay.shape[1] != k - 1:
         return Screened(None, {"missing_phase_delay": 1},
                         f"a triad needs {k - 1} phase delays per row, got {echoes.phase_delay.shape[1]}")
-    longest = longest_tof(layout)
-    kept, problems = sanitize(echoes, layout.n_groups, layout.group_transmitters, longest)
-    phase = np.array(kept.phase_delay, dtype=float)
-    with np.errstate(invalid="ignore"):  # NaN (not measured) compares False and stays NaN
-        bad_phase = ~(np.abs(phase) <= longest) & ~np.isnan(phase)
-    if np.any(bad_phase):
-        phase[bad_phase] = np.nan
-        problems["bad_phase_delay"] = int(np.count_nonzero(bad_phase))
-    return Screened(replace(kept, layout=layout.name, phase_delay=phase), problems)
+    # Copies (np.array, astype): a message's arrays are read-only views, another type to numba.
+    tof, phase_delay = np.array(echoes.tof, dtype=float), np.array(echoes.phase_delay, dtype=float)
+    keep, counts = _screen_rows(np.asarray(echoes.group).astype(np.int64),
+                                np.asarray(echoes.transmitter).astype(np.int64), tof, phase_delay, layout.n_groups,
+                                np.ascontiguousarray(layout.group_transmitters, dtype=np.int64), longest_tof(layout))
+    kept = EchoArrays(layout=layout.name, speed_of_sound=speed, group=echoes.group[keep],
+                      transmitter=echoes.transmitter[keep], tof=tof[keep], amplitude=echoes.amplitude[keep],
+                      phase_delay=phase_delay[keep])
+    return Screened(kept, {reason: n for reason, n in zip(SCREEN_PROBLEMS, counts.tolist(), strict=True) if n})
