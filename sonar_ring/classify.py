@@ -38,7 +38,7 @@ import numpy as np
 
 from sonar_ring.compiled import kernel
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN
-from sonar_ring.localise import horizontal_path
+from sonar_ring.localise import horizontal_path, horizontal_rows
 
 DECISION_MARGIN = 6.0
 """Barshan & Kuc eqs 13-14: one amplitude is *greater* than another only by more than 6 sigma."""
@@ -933,7 +933,7 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
     _check_significance(z)
     group = np.asarray(group, dtype=int).reshape(-1)
     n_echoes, k = group.size, layout.receivers_per_group
-    paths = np.asarray(paths, dtype=float)
+    paths = np.array(paths, dtype=float)  # a copy: writable and contiguous, one type to numba
     if paths.shape != (n_echoes, k):
         raise ValueError(f"paths must have shape {(n_echoes, k)}, got {paths.shape}")
     if np.any((group < 0) | (group >= layout.n_groups)):
@@ -943,8 +943,8 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
         raise ValueError(f"ping must have shape {(n_echoes,)}, got {ping.shape}")
 
     plan = layout.plan
-    horizontal = horizontal_path(paths, plan.height_offset[group, 0]).value  # NaN where invalid
-    fits = _ring_fits(ping.astype(np.int64), group.astype(np.int64), np.ascontiguousarray(paths), horizontal,
+    horizontal = horizontal_rows(paths.ravel(), plan.height_offset[group, 0].ravel())[0].reshape(paths.shape)
+    fits = _ring_fits(ping.astype(np.int64), group.astype(np.int64), paths, horizontal,
                       plan.receivers, plan.transmitters, plan.facing,
                       _ring_slots(plan.yaw.tobytes(), float(layout.beam_half_angle)), sigma_path, float(z),
                       MAX_ECHOES_PER_GROUP)

@@ -905,13 +905,18 @@ def horizontal_path(d, dz) -> ScalarEstimate:
     d = _real_array("d", d, "horizontal_path")
     dz = _real_array("dz", dz, "horizontal_path")
     shape = _shape("horizontal_path", d=d, dz=dz)
-    value, reason = _horizontal_rows(*_flat_copies(shape, d, dz))
+    value, reason = horizontal_rows(*_flat_copies(shape, d, dz))
     return ScalarEstimate(value.reshape(shape), reason.reshape(shape) == OK, reason.reshape(shape))
 
 
 @kernel
-def _horizontal_rows(d, dz):
-    """:func:`_horizontal` of each entry of the flat arrays ``d`` and ``dz`` (N,), m; values and reasons (int8)."""
+def horizontal_rows(d, dz):
+    """:func:`horizontal_path` of each entry of the flat arrays ``d`` and ``dz`` (N,), m: values and reasons (int8).
+
+    Unchecked, for callers that have validated their paths: writable float64
+    arrays of one size (a read-only one is another type to numba).  The value
+    is NaN where the reason is not OK.
+    """
     value = np.empty(d.size)
     reason = np.empty(d.size, dtype=np.int8)
     for entry in range(d.size):
