@@ -173,14 +173,13 @@ def classify_ping(layout: Layout, echoes: EchoArrays, hypotheses: Landmarks,
     pick, label, decided_confidence, edge_row = _picks(hypotheses.landmark_class.astype(np.uint8),
                                                        hypotheses.echo.astype(np.int64), hypotheses.valid.astype(bool),
                                                        decided, confidence)
-    labelled = hypotheses.select(pick).with_class(label, decided_confidence)
+    picked = hypotheses.select(pick)  # new arrays: the covariance may be added to in place
     # An undecided echo may be an edge placed with the corner model (Browne s7): its
     # covariance carries that model discrepancy, so it stays consistent either way.
     undecided = np.flatnonzero(edge_row >= 0)
-    gap = hypotheses.position[edge_row[undecided]] - labelled.position[undecided]
-    covariance = labelled.covariance.copy()
-    covariance[undecided] += gap[:, :, None] * gap[:, None, :]
-    return replace(labelled, covariance=covariance)
+    gap = hypotheses.position[edge_row[undecided]] - picked.position[undecided]
+    picked.covariance[undecided] += gap[:, :, None] * gap[:, None, :]
+    return picked.with_class(label, decided_confidence)
 
 
 def load_kernels() -> None:
