@@ -28,7 +28,6 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
-from rclpy.executors import SingleThreadedExecutor
 from rclpy.experimental import EventsExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
@@ -39,6 +38,7 @@ from sonar_ring.msg import LandmarkArray
 from sonar_ring.progress import Progress
 from sonar_ring.ros.bag import BagWriter, absolute, graph_topics
 from sonar_ring.ros.convert import landmarks_from_msg
+from sonar_ring.ros.executor import DirectExecutor
 from sonar_ring.ros.graph import NODES, compose
 from sonar_ring.ros.offline import describe
 from sonar_ring.ros.run import CONFIG_ERRORS
@@ -147,7 +147,7 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
         listener.create_subscription(LandmarkArray, "landmarks", lambda m: found.__setitem__(_stamp_key(m), m),
                                      qos_profile_sensor_data)
         listener.create_subscription(LandmarkArray, "truth", lambda m: truth.__setitem__(_stamp_key(m), m), 100)
-        executor = SingleThreadedExecutor()
+        executor = DirectExecutor()
         for node in [localiser, classifier, mapper, listener]:
             executor.add_node(node)
         _wait_for_recorder(listener, recorder, executor,

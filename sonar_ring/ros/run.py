@@ -5,10 +5,11 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException
 from rclpy.logging import get_logger
 
 from sonar_ring.geometry import LayoutError
+from sonar_ring.ros.executor import DirectExecutor
 from sonar_ring.ros.params import ParameterError
 from sonar_ring.simulate import SceneError
 from sonar_ring.transport import DeviceError
@@ -18,7 +19,7 @@ CONFIG_ERRORS = (LayoutError, SceneError, DeviceError, ParameterError)
 
 
 def spin(*node_classes, args=None, setup: Callable[[list], None] | None = None) -> None:
-    """Create the nodes and spin them in one executor until Ctrl-C or shutdown.
+    """Create the nodes and spin them in one executor (:class:`DirectExecutor`) until Ctrl-C or shutdown.
 
     One class is the ``main()`` of a node executable; several make the
     single-process graph (components sharing one executor), which ``setup``
@@ -37,7 +38,7 @@ def spin(*node_classes, args=None, setup: Callable[[list], None] | None = None) 
         if setup is not None:
             starting = "sonar_ring"
             setup(nodes)
-        executor = SingleThreadedExecutor()
+        executor = DirectExecutor()
         for node in nodes:
             executor.add_node(node)
         executor.spin()
