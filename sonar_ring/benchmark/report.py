@@ -462,8 +462,8 @@ def _method_notes(results: Results) -> list[str]:
     ]
 
 
-def render(results: Results, plots: list[Path], out_dir: Path, seconds: float) -> str:
-    """The Markdown of the report."""
+def render(results: Results, plots: list[Path], out_dir: Path, seconds: float, code: str) -> str:
+    """The Markdown of the report; ``code`` names the sonar_ring measured (:func:`revision`)."""
     quick = (" This is a `--quick` run: small sizes, to check that the report is produced; its figures are not "
              "for reading.") if results.quick else ""
     streams = ", ".join(f"{stream} {name}" for name, stream in STREAMS.items())
@@ -474,7 +474,7 @@ def render(results: Results, plots: list[Path], out_dir: Path, seconds: float) -
         f"from scratch; this run took {seconds:.0f} s ({'--quick' if results.quick else 'full sizes'}).{quick}", "",
         f"- Date: {today()}",
         f"- Machine: {machine()}",
-        f"- Versions: {versions()}; sonar_ring at git {revision(Path(__file__).parent)}",
+        f"- Versions: {versions()}; sonar_ring at git {code}",
         f"- Seeds: `--seed {results.seed}`; every random stream is `numpy.random.default_rng([seed, stream, level])`"
         f" with stream {streams} and level the index of σ_t in {[_sigma(s) for s in NOISE_LEVELS]}.",
         "", "## Targets", "",
@@ -531,11 +531,12 @@ def run(out_dir: Path = Path("."), quick: bool = False, seed: int = DEFAULT_SEED
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     tell = progress_to_stderr if progress is None else progress
+    code = revision(Path(__file__).parent)  # before this run writes its report and plots into the checkout
     results = measure(seed, quick, tell)
     pictures = plots.save_all(results, out_dir / PLOT_DIR)
     seconds = time.perf_counter() - started
     report = out_dir / REPORT
-    report.write_text(render(results, pictures, out_dir, seconds) + "\n")
+    report.write_text(render(results, pictures, out_dir, seconds, code) + "\n")
     tell(f"wrote {report} and {len(pictures)} plots in {out_dir / PLOT_DIR} ({seconds:.0f} s)")
     if _replace_between_markers(out_dir / "README.md", main_tables(results)):
         tell(f"updated the main tables in {out_dir / 'README.md'}")
