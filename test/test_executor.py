@@ -1,6 +1,7 @@
 """DirectExecutor: every kind of entity runs as under rclpy's SingleThreadedExecutor, over real DDS."""
 
 import threading
+import time
 
 import pytest
 import rclpy
@@ -167,3 +168,60 @@ def test_error_handling(ros):
     rclpy.shutdown()
     thread.join(timeout=5.0)
     assert ended
+
+
+def test_a_destroyed_entity_its_node_still_lists_does_not_make_it_spin(ros):
+    """``Timer.destroy()`` leaves the timer in ``node.timers``: it is left out of the wait, not waited on at once."""
+    node = SonarNode("worker")
+    node.create_timer(10.0, lambda: None).destroy()
+    executor = DirectExecutor()
+    executor.add_node(node)
+    executor.spin_once(timeout_sec=0.05)  # the wake from adding the node
+    calls, started = 0, time.monotonic()
+    while time.monotonic() - started < 0.5:
+        executor.spin_once(timeout_sec=0.2)
+        calls += 1
+    assert calls <= 4
+
+
+def test_a_guard_condition_triggered_by_a_timer_callback_runs_at_the_next_wait(ros):
+    executor = DirectExecutor()
+    for name in ("one", "two"):
+        executor.add_node(SonarNode(name))
+    # The guard in the node rclpy's executor visits first, the timer that triggers it in the other.
+    first, second = executor.get_nodes()
+    ran, fired = [], []
+    guard = first.create_guard_condition(lambda: ran.append(time.monotonic()))
+
+    def trigger_once():
+        fired.append(time.monotonic())
+        timer.cancel()
+        guard.trigger()
+
+    timer = second.create_timer(0.05, trigger_once)
+    deadline = time.monotonic() + 5.0
+    while not ran and time.monotonic() < deadline:
+        executor.spin_once(timeout_sec=1.0)  # long waits: a missed guard would wait them out
+    assert ran and ran[0] - fired[0] < 0.5
+
+
+def test_a_failing_callback_does_not_lose_a_guard_condition_of_the_same_wait(ros):
+    node = SonarNode("listener")
+    ran = []
+    guard = node.create_guard_condition(lambda: ran.append(1))
+
+    def fails(message):
+        raise ValueError("bad message")
+
+    node.create_subscription(String, "chatter", fails, 10)
+    talker, publisher = _publisher()
+    executor = DirectExecutor()
+    for each in (node, talker):
+        executor.add_node(each)
+    spin_until(executor, lambda: publisher.get_subscription_count() > 0, 5.0)
+    publisher.publish(String(data="one"))
+    time.sleep(0.2)  # delivered: the next wait sees the message and the guard together
+    guard.trigger()
+    with pytest.raises(ValueError, match="bad message"):
+        spin_until(executor, lambda: False, 2.0)
+    assert spin_until(executor, lambda: ran, 2.0)

@@ -42,9 +42,12 @@ class DirectExecutor(SingleThreadedExecutor):
     def spin_once(self, timeout_sec: float | None = None) -> None:
         """Wait up to ``timeout_sec`` (None: forever) for work and do it: one wait, its ready callbacks.
 
-        Raises :class:`~rclpy.executors.ExternalShutdownException` when the
-        context was shut down from another thread, also while a wait set was
-        being made (rclpy's executor raises an ``RCLError`` there).
+        Unlike rclpy's, it also returns, without work done, when woken before
+        the timeout (a node, an entity or a task added): :meth:`spin` and loops
+        over ``spin_once`` do not tell the difference.  Raises
+        :class:`~rclpy.executors.ExternalShutdownException` when the context was
+        shut down from another thread, also while a wait set was being made
+        (rclpy's executor raises an ``RCLError`` there).
         """
         try:
             self._spin_once(timeout_sec)
@@ -63,30 +66,32 @@ class DirectExecutor(SingleThreadedExecutor):
         timers = [timer for node in nodes for timer in node.timers]
         services = [service for node in nodes for service in node.services]
         node_guards = [guard for node in nodes for guard in node.guards]
-        guards = node_guards + [guard for guard in (self._guard, self._sigint_gc) if guard]
-        handed_on = False
+        for guard in node_guards:
+            if guard._executor_triggered:  # its callback is still due: wake at once, as rclpy does
+                guard.trigger()
+        executor_guards = [guard for guard in (self._guard, self._sigint_gc) if guard]
         # The handles are held until the callbacks are done: an entity destroyed meanwhile goes when released.
         with ExitStack() as held:
-            try:
-                for entity in (*subscriptions, *timers, *services, *guards):
-                    held.enter_context(entity.handle)
-            except InvalidHandle:  # destroyed since it was listed: rclpy's path skips it
-                handed_on = True
-            else:
-                held.enter_context(self._context.handle)
-                wait_set = self._wait(subscriptions, guards, timers, services, timeout_sec)
-                ready = wait_set.get_ready_entities("subscription")
-                for subscription in subscriptions:
-                    if subscription.handle.pointer in ready:
-                        _call(subscription)
-                # A guard condition is reset by the wait that saw it: marked, rclpy's path runs its callback.
-                triggered = wait_set.get_ready_entities("guard_condition")
-                for guard in node_guards:
-                    if guard.handle.pointer in triggered:
-                        guard._executor_triggered = True
-                handed_on = bool(wait_set.get_ready_entities("timer") or wait_set.get_ready_entities("service")
-                                 or any(guard._executor_triggered for guard in node_guards))
+            subscriptions, timers, services, node_guards, executor_guards = (
+                [entity for entity in entities if _held(held, entity)]
+                for entities in (subscriptions, timers, services, node_guards, executor_guards))
+            held.enter_context(self._context.handle)
+            wait_set = self._wait(subscriptions, node_guards + executor_guards, timers, services, timeout_sec)
+            if not self._context.ok():
+                raise ExternalShutdownException()
+            # A guard condition is reset by the wait that saw it: marked, rclpy's path runs its callback.
+            triggered = wait_set.get_ready_entities("guard_condition")
+            for guard in node_guards:
+                if guard.handle.pointer in triggered:
+                    guard._executor_triggered = True
+            handed_on = bool(wait_set.get_ready_entities("timer") or wait_set.get_ready_entities("service")
+                             or any(guard._executor_triggered for guard in node_guards))
+            ready = wait_set.get_ready_entities("subscription")
+            for subscription in subscriptions:
+                if subscription.handle.pointer in ready:
+                    _call(subscription)
         if handed_on:
+            self._cb_iter = None  # rclpy's ready list of an earlier wait may miss what this one saw: wait afresh
             super().spin_once(0)
 
     def _wait(self, subscriptions, guards, timers, services, timeout_sec):
@@ -113,6 +118,15 @@ class DirectExecutor(SingleThreadedExecutor):
             return False
         with self._tasks_lock:
             return all(task.done() for task, _, _ in self._tasks)
+
+
+def _held(held: ExitStack, entity) -> bool:
+    """Hold ``entity``'s handle in ``held``; False when it was destroyed (still listed by its node), and left out."""
+    try:
+        held.enter_context(entity.handle)
+    except InvalidHandle:
+        return False
+    return True
 
 
 def _call(subscription: Subscription) -> None:
