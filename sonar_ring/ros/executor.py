@@ -84,12 +84,13 @@ class DirectExecutor(SingleThreadedExecutor):
             for guard in node_guards:
                 if guard.handle.pointer in triggered:
                     guard._executor_triggered = True
-            handed_on = bool(wait_set.get_ready_entities("timer") or wait_set.get_ready_entities("service")
-                             or any(guard._executor_triggered for guard in node_guards))
             ready = wait_set.get_ready_entities("subscription")
             for subscription in subscriptions:
                 if subscription.handle.pointer in ready:
                     _call(subscription)
+            # Still ready if a callback raised: the next wait sees them again.
+            handed_on = bool(wait_set.get_ready_entities("timer") or wait_set.get_ready_entities("service")
+                             or any(guard._executor_triggered for guard in node_guards))
         if handed_on:
             self._cb_iter = None  # rclpy's ready list of an earlier wait may miss what this one saw: wait afresh
             super().spin_once(0)
