@@ -68,7 +68,7 @@ def load_kernels() -> None:
 
 SCREEN_PROBLEMS = ("unknown_group", "unknown_transmitter", "not_finite_tof", "not_positive_tof", "tof_too_long",
                    "empty_row", "bad_phase_delay")
-"""What :func:`screen_ping` counts row by row, in the order of :func:`_screen_rows`' counts."""
+"""What :func:`screen_ping` counts by row or by value, in the order of :func:`_screen_rows`' counts."""
 
 
 @kernel
@@ -157,6 +157,8 @@ def screen_ping(echoes: EchoArrays, layout) -> Screened:
     a usable echo row is, and on the row indices of what they keep.
 
     Whole-ping rejections (the ping cannot be read at all):
+    ``mismatched_rows`` (its arrays do not have one row per echo, or the
+    amplitudes and phase delays are not 2-D),
     ``wrong_receivers_per_group`` (the TOF columns are not the layout's K),
     ``bad_speed_of_sound`` (not finite, or outside 250..450 m/s),
     ``missing_phase_delay`` (a triad ping without K - 1 phase delays per row).
@@ -177,6 +179,14 @@ def screen_ping(echoes: EchoArrays, layout) -> Screened:
     """
     k = layout.receivers_per_group
     speed = echoes.speed_of_sound
+    rows = len(echoes.tof)
+    # Checked before the row kernel: compiled indexing does not check bounds.
+    if (echoes.amplitude.ndim != 2 or echoes.phase_delay.ndim != 2
+            or any(len(array) != rows for array in (echoes.group, echoes.transmitter, echoes.amplitude,
+                                                    echoes.phase_delay))):
+        return Screened(None, {"mismatched_rows": 1},
+                        f"rows: {len(echoes.group)} groups, {len(echoes.transmitter)} transmitters, {rows} TOF, "
+                        f"amplitude {echoes.amplitude.shape}, phase delay {echoes.phase_delay.shape}")
     if echoes.tof.ndim != 2 or echoes.tof.shape[1] != k:
         return Screened(None, {"wrong_receivers_per_group": 1},
                         f"TOF shape {echoes.tof.shape}, layout {layout.name} has {k} receivers per group")

@@ -644,11 +644,16 @@ def localise_ping_rows(transmitters, receivers, groups, transmitter, group, tof,
     Returns what :func:`localise_rows` returns, then per entry (M N,):
     ``landmark_class`` (uint8), ``group`` (uint16) and ``echo`` (uint32,
     the row), and the rows' horizontal ``tx``, ``rx1`` and ``rx2`` (N, 2), m.
+    The arrays' shapes are the caller's to check; an index outside the layout
+    raises ``ValueError``.
     """
     count = group.size
     tx, rx1, rx2 = np.empty((count, 2)), np.empty((count, 2)), np.empty((count, 2))
     paths, dz = np.empty((count, 2)), np.empty((count, 2))
     for row in range(count):
+        # Checked here: compiled indexing does not check bounds.
+        if not (0 <= group[row] < groups.shape[0] and 0 <= transmitter[row] < transmitters.shape[0]):
+            raise ValueError("localise_ping: an echo row names a group or transmitter the layout does not have")
         source = transmitters[transmitter[row]]
         first, second = receivers[groups[group[row], 0]], receivers[groups[group[row], 1]]
         for axis in range(2):

@@ -84,7 +84,11 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
     if layout.kind == "triad":
         return _localise_triads(layout, echoes, settings)
     localise.check_path_noise(settings.sigma_tof, echoes.speed_of_sound, settings.sigma_speed, "localise_ping")
-    models, model_class = _model_codes(settings.models)
+    count = echoes.n_echoes
+    if echoes.group.shape != (count,) or echoes.transmitter.shape != (count,) or echoes.tof.shape != (count, 2):
+        raise ValueError(f"localise_ping: need one group, one transmitter and two TOFs per echo row: group "
+                         f"{echoes.group.shape}, transmitter {echoes.transmitter.shape}, tof {echoes.tof.shape}")
+    models, model_class = _model_codes(tuple(settings.models))
     # Copies (astype): decoded from a message, the arrays are read-only views, another type to numba.
     (reason, position, normal, covariance, segment, covariance_paths, lost, landmark_class, group, echo,
      tx, rx1, rx2) = localise.localise_ping_rows(
@@ -92,7 +96,6 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
         echoes.group.astype(np.int64), echoes.tof.astype(float), float(echoes.speed_of_sound),
         settings.vertical_correction, float(settings.sigma_tof), float(settings.sigma_speed), models, model_class)
     if lost.any():
-        count = echoes.n_echoes
         # Near the border of the solvable region (|d2 - d1| close to the baseline) a sigma point can
         # fall outside it while the estimate is valid: first-order covariance there.
         for index in np.unique(np.flatnonzero(lost) // count):

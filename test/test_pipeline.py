@@ -184,6 +184,13 @@ def test_error_handling():
                                 landmark_class=np.array([CORNER, 9], dtype=np.uint8))
     with_strays = pipeline.classify_ping(RING, bad, Landmarks.concatenate([hypotheses, stray]))
     assert_array_equal(with_strays.position, kept.position)
+    # arrays that do not fit the layout or each other are refused (the compiled gather does not check bounds)
+    for group, transmitter in (([0, 1, RING.n_groups], [0, 0, 0]), ([0, -1, 2], [0, 0, 0]), ([0, 1, 2], [0, 0, 5])):
+        with pytest.raises(ValueError, match="names a group or transmitter the layout does not have"):
+            pipeline.localise_ping(RING, dataclasses.replace(bad, group=np.array(group),
+                                                             transmitter=np.array(transmitter)))
+    with pytest.raises(ValueError, match="one group, one transmitter and two TOFs per echo row"):
+        pipeline.localise_ping(RING, dataclasses.replace(bad, tof=bad.tof[:2]))
     # noise parameters that make no sense are refused, as by path_covariance
     for settings, speed in ((pipeline.Settings(sigma_tof=-1e-6), 343.0), (pipeline.Settings(sigma_speed=np.nan), 343.0),
                             (pipeline.Settings(), 0.0)):
