@@ -40,6 +40,7 @@ from sonar_ring.ros.bag import BagWriter, absolute, graph_topics
 from sonar_ring.ros.convert import landmarks_from_msg
 from sonar_ring.ros.executor import DirectExecutor
 from sonar_ring.ros.graph import NODES, compose
+from sonar_ring.ros.node import SonarNode
 from sonar_ring.ros.offline import describe
 from sonar_ring.ros.run import CONFIG_ERRORS
 
@@ -142,7 +143,7 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
         compose(nodes)
         driver, localiser, classifier, mapper = nodes
         total = pings or driver.pings_per_lap * laps
-        listener = rclpy.create_node("demo_listener")
+        listener = SonarNode("demo_listener")  # no QoS event handlers: the executor keeps its direct path
         found, truth = {}, {}
         listener.create_subscription(LandmarkArray, "landmarks", lambda m: found.__setitem__(_stamp_key(m), m),
                                      qos_profile_sensor_data)
