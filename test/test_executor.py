@@ -19,9 +19,13 @@ from sonar_ring.ros.node import SonarNode
 pytestmark = pytest.mark.ros
 
 
-def _publisher(name="talker"):
-    node = SonarNode(name)
-    return node, node.create_publisher(String, "chatter", 10)
+def _executor_with_talker(node):
+    """A DirectExecutor spinning ``node`` and a talker node; returns it and the talker's ``chatter`` publisher."""
+    talker = SonarNode("talker")
+    executor = DirectExecutor()
+    for each in (node, talker):
+        executor.add_node(each)
+    return executor, talker.create_publisher(String, "chatter", 10)
 
 
 def _publish_until(executor, publisher, done, timeout=10.0):
@@ -39,10 +43,7 @@ def test_subscriptions_get_their_message_or_bytes_and_info_without_a_task(ros):
     typed, raw = [], []
     node.create_subscription(String, "chatter", typed.append, 10)
     node.create_subscription(String, "chatter", lambda data, info: raw.append((data, info)), 10, raw=True)
-    talker, publisher = _publisher()
-    executor = DirectExecutor()
-    for each in (node, talker):
-        executor.add_node(each)
+    executor, publisher = _executor_with_talker(node)
     assert _publish_until(executor, publisher, lambda: len(typed) >= 3 and len(raw) >= 3)
     assert isinstance(typed[0], String) and typed[0].data.startswith("message")
     data, info = raw[0]
@@ -100,10 +101,7 @@ def test_what_the_direct_path_does_not_run_goes_through_rclpy(ros, extra):
     node.create_subscription(String, "chatter", on_message_later if extra == "coroutine" else on_message, 10)
     if extra == "client":
         node.create_client(GetParameters, "nobody/get_parameters")
-    talker, publisher = _publisher()
-    executor = DirectExecutor()
-    for each in (node, talker):
-        executor.add_node(each)
+    executor, publisher = _executor_with_talker(node)
     if extra == "task":
         executor.create_task(wait_for_two_messages)
     assert _publish_until(executor, publisher, lambda: len(got) >= 2)
@@ -123,10 +121,7 @@ def test_a_callback_may_destroy_subscriptions(ros):
 
     subscriptions["first"] = node.create_subscription(String, "chatter", destroy_both, 10)
     subscriptions["second"] = node.create_subscription(String, "chatter", second.append, 10)
-    talker, publisher = _publisher()
-    executor = DirectExecutor()
-    for each in (node, talker):
-        executor.add_node(each)
+    executor, publisher = _executor_with_talker(node)
     assert _publish_until(executor, publisher, lambda: first)
     for _ in range(5):
         publisher.publish(String(data="after"))
@@ -145,10 +140,7 @@ def test_error_handling(ros):
             raise ValueError("bad message")
 
     node.create_subscription(String, "chatter", fails_once, 10)
-    talker, publisher = _publisher()
-    executor = DirectExecutor()
-    for each in (node, talker):
-        executor.add_node(each)
+    executor, publisher = _executor_with_talker(node)
     with pytest.raises(ValueError, match="bad message"):  # as from rclpy's SingleThreadedExecutor
         _publish_until(executor, publisher, lambda: False)
     assert _publish_until(executor, publisher, lambda: len(calls) >= 2)  # and it goes on
@@ -214,10 +206,7 @@ def test_a_failing_callback_does_not_lose_a_guard_condition_of_the_same_wait(ros
         raise ValueError("bad message")
 
     node.create_subscription(String, "chatter", fails, 10)
-    talker, publisher = _publisher()
-    executor = DirectExecutor()
-    for each in (node, talker):
-        executor.add_node(each)
+    executor, publisher = _executor_with_talker(node)
     spin_until(executor, lambda: publisher.get_subscription_count() > 0, 5.0)
     publisher.publish(String(data="one"))
     time.sleep(0.2)  # delivered: the next wait sees the message and the guard together
