@@ -933,7 +933,7 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
     _check_significance(z)
     group = np.asarray(group, dtype=int).reshape(-1)
     n_echoes, k = group.size, layout.receivers_per_group
-    paths = np.array(paths, dtype=float)  # a copy: writable and contiguous, one type to numba
+    paths = np.array(paths, dtype=float, order="C")  # a copy: writable and contiguous, one type to numba
     if paths.shape != (n_echoes, k):
         raise ValueError(f"paths must have shape {(n_echoes, k)}, got {paths.shape}")
     if np.any((group < 0) | (group >= layout.n_groups)):

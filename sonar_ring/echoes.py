@@ -197,7 +197,7 @@ def screen_ping(echoes: EchoArrays, layout) -> Screened:
         return Screened(None, {"missing_phase_delay": 1},
                         f"a triad needs {k - 1} phase delays per row, got {echoes.phase_delay.shape[1]}")
     # Copies (np.array, astype): a message's arrays are read-only views, another type to numba.
-    tof, phase_delay = np.array(echoes.tof, dtype=float), np.array(echoes.phase_delay, dtype=float)
+    tof, phase_delay = (np.array(array, dtype=float, order="C") for array in (echoes.tof, echoes.phase_delay))
     keep, counts = _screen_rows(np.asarray(echoes.group).astype(np.int64),
                                 np.asarray(echoes.transmitter).astype(np.int64), tof, phase_delay, layout.n_groups,
                                 np.ascontiguousarray(layout.group_transmitters, dtype=np.int64), longest_tof(layout))

@@ -93,7 +93,7 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
     (reason, position, normal, covariance, segment, covariance_paths, lost, landmark_class, group, echo,
      tx, rx1, rx2) = localise.localise_ping_rows(
         layout.transmitters, layout.receivers, layout.groups, echoes.transmitter.astype(np.int64),
-        echoes.group.astype(np.int64), echoes.tof.astype(float), float(echoes.speed_of_sound),
+        echoes.group.astype(np.int64), echoes.tof.astype(float, order="C"), float(echoes.speed_of_sound),
         settings.vertical_correction, float(settings.sigma_tof), float(settings.sigma_speed), models, model_class)
     if lost.any():
         # Near the border of the solvable region (|d2 - d1| close to the baseline) a sigma point can

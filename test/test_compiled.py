@@ -51,13 +51,17 @@ def test_error_handling():
         mapping._inverse("not an array")
 
 
-def _read_only(arrays):
-    """``arrays`` (a dataclass of numpy arrays) with every array a read-only view, as decoded from a message."""
+def _read_only(arrays, fortran=False):
+    """``arrays`` (a dataclass of numpy arrays) with every array a read-only view, as decoded from a message.
+
+    ``fortran``: the 2-D ones in Fortran order, as a caller of the core may hand
+    them (another type to numba).
+    """
     views = {}
     for field in dataclasses.fields(arrays):
         value = getattr(arrays, field.name)
         if isinstance(value, np.ndarray):
-            value = value.view()
+            value = (np.asfortranarray(value) if fortran and value.ndim == 2 else value).view()
             value.flags.writeable = False
         views[field.name] = value
     return type(arrays)(**views)
@@ -77,10 +81,11 @@ def test_load_kernels_leaves_nothing_to_compile_at_the_first_ping(layout_name):
     scene = load_scene("barshan_kuc_bench" if layout.kind == "pair" else "room")
     times, poses = scene.trajectory.poses(layout.ping_rate)
     ping = Simulator(scene, layout).run(poses[:1], times[:1], noise=Noise(tof=1e-6), rng=np.random.default_rng(0))[0]
-    received = _read_only(ping.echoes)
+    received = _read_only(ping.echoes, fortran=True)
     screened = screen_ping(received, layout).echoes
-    hypotheses = pipeline.localise_ping(layout, _read_only(screened))
-    labelled = pipeline.classify_ping(layout, _read_only(screened), _read_only(hypotheses.select(hypotheses.valid)))
+    hypotheses = pipeline.localise_ping(layout, _read_only(screened, fortran=True))
+    labelled = pipeline.classify_ping(layout, _read_only(screened, fortran=True),
+                                      _read_only(hypotheses.select(hypotheses.valid)))
     landmark_map = mapping.LandmarkMap()
     landmark_map.update(_read_only(labelled), (0.0, 0.0, 0.0))
     landmark_map.update(_read_only(labelled), (0.01, 0.0, 0.0))
