@@ -32,13 +32,15 @@ normal (or the direction to the corner) towards ``a``.
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
+from sonar_ring import localise
 from sonar_ring.compiled import kernel
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN
-from sonar_ring.localise import horizontal_path, horizontal_rows
+from sonar_ring.localise import horizontal_path
 
 DECISION_MARGIN = 6.0
 """Barshan & Kuc eqs 13-14: one amplitude is *greater* than another only by more than 6 sigma."""
@@ -110,15 +112,25 @@ class ConsistencyResult:
 
 def _positive_finite(name, value):
     array = np.asarray(value, dtype=float)
-    if not np.all(np.isfinite(array)) or np.any(array <= 0):
+    if not ((array > 0).all() and np.isfinite(array).all()):  # methods: numpy's wrappers cost more than the test
         raise ValueError(f"{name} must be finite and > 0, got {value!r}")
     return array
 
 
-def _check_significance(z) -> None:
-    """Refuse a consistency test's significance ``z`` unless it is one finite number > 0."""
-    if not (np.ndim(z) == 0 and np.isfinite(z) and z > 0):
-        raise ValueError(f"z must be a finite number > 0, got {z!r}")
+def _positive_number(name: str, value) -> float:
+    """``value`` as a float; ``ValueError`` unless it is one finite number > 0.
+
+    Numbers are checked without numpy, whose calls cost microseconds each.
+    """
+    number = value
+    if not isinstance(value, float | int):
+        try:
+            number = float(value) if np.ndim(value) == 0 else math.nan
+        except (TypeError, ValueError):
+            number = math.nan
+    if not (math.isfinite(number) and number > 0):
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    return float(number)
 
 
 def _beam_and_noise(theta0, sigma_rel, margin_rule):
@@ -138,7 +150,7 @@ def confidence_from_margin(margin):
 
     ``erf(m / sqrt(2))``, the probability that a standard normal deviate lies within
     ``+-m``; evaluated with Abramowitz & Stegun 7.1.26 (absolute error < 2e-7),
-    vectorised in numpy.  Margins <= 0 or NaN give 0.
+    compiled (:func:`_confidence`).  Margins <= 0 or NaN give 0.
 
     Parameters
     ----------
@@ -150,12 +162,28 @@ def confidence_from_margin(margin):
     ndarray
         Confidences, same shape.
     """
-    x = np.asarray(margin, dtype=float) / np.sqrt(2.0)
-    positive = x > 0  # False for NaN
-    x = np.where(positive, x, 0.0)
+    margin = np.asarray(margin, dtype=float)
+    return _confidences(np.ascontiguousarray(margin).reshape(-1)).reshape(margin.shape)
+
+
+@kernel
+def _confidences(margin):
+    """:func:`_confidence` of each margin of a flat array (N,)."""
+    confidence = np.empty(margin.size)
+    for n in range(margin.size):
+        confidence[n] = _confidence(margin[n])
+    return confidence
+
+
+@kernel
+def _confidence(margin):
+    """:func:`confidence_from_margin` of one margin."""
+    x = margin / np.sqrt(2.0)
+    if not x > 0:  # also NaN
+        return 0.0
     t = 1.0 / (1.0 + 0.3275911 * x)
     poly = t * (0.254829592 + t * (-0.284496736 + t * (1.421413741 + t * (-1.453152027 + t * 1.061405429))))
-    return np.where(positive, 1.0 - poly * np.exp(-x * x), 0.0)
+    return 1.0 - poly * np.exp(-x * x)
 
 
 # --------------------------------------------------------------------------- amplitude rules
@@ -578,7 +606,7 @@ def geometric_consistency(transmitter, receivers, paths, sigma_path, z=CONSISTEN
         Decisions, confidences, chi-squares and both fitted positions.  Echoes with
         fewer than three usable receivers are UNKNOWN with zero confidence.
     """
-    _check_significance(z)
+    _positive_number("z", z)
     receivers = np.asarray(receivers, dtype=float)
     if receivers.ndim != 3 or receivers.shape[-1] != 2:
         raise ValueError(f"receivers must have shape (N, K, 2), got {receivers.shape}")
@@ -606,9 +634,9 @@ def _decision(image, chi2_specular, edge, chi2_edge, dof, z) -> ConsistencyResul
     ``image`` and ``edge`` (N, 2) m, ``chi2_specular`` and ``chi2_edge`` (N,),
     ``dof`` (N,) int; ``z`` the significance.
     """
-    cls, specular, margin, chi2_specular, chi2_edge, image, edge = _decide(image, chi2_specular, edge, chi2_edge,
-                                                                            dof, float(z))
-    return ConsistencyResult(cls=cls, specular=specular, margin=margin, confidence=confidence_from_margin(margin),
+    cls, specular, margin, confidence, chi2_specular, chi2_edge, image, edge = _decide(
+        image, chi2_specular, edge, chi2_edge, dof, float(z))
+    return ConsistencyResult(cls=cls, specular=specular, margin=margin, confidence=confidence,
                              chi2_specular=chi2_specular, chi2_edge=chi2_edge, dof=dof, virtual_image=image,
                              edge_position=edge)
 
@@ -620,12 +648,13 @@ def _decide(image, chi2_specular, edge, chi2_edge, dof, z):
     An echo is tested when ``dof >= 1``: EDGE when ``chi2_specular - chi2_edge > z^2`` and
     the edge fits (``chi2_edge`` within :func:`_chi2_upper_quantile`), specular in the
     mirror case.  Returns the class (N,) uint8, specular (N,) bool, the margin
-    (N,), and the chi-squares and fitted points, NaN where untested.
+    and its confidence (:func:`_confidence`) (N,), and the chi-squares and fitted
+    points, NaN where untested.
     """
     n_echoes = dof.size
     cls = np.full(n_echoes, UNKNOWN, dtype=np.uint8)
     specular = np.zeros(n_echoes, dtype=np.bool_)
-    margin = np.zeros(n_echoes)
+    margin, confidence = np.zeros(n_echoes), np.zeros(n_echoes)
     tested_specular, tested_edge = np.full(n_echoes, np.nan), np.full(n_echoes, np.nan)
     tested_image, tested_point = np.full((n_echoes, 2), np.nan), np.full((n_echoes, 2), np.nan)
     threshold = z * z
@@ -641,10 +670,11 @@ def _decide(image, chi2_specular, edge, chi2_edge, dof, z):
         if is_edge or is_specular:
             statistic = abs(difference)
             margin[n] = (statistic - threshold) / (2.0 * np.sqrt(statistic))
+            confidence[n] = _confidence(margin[n])
             specular[n] = is_specular
             if is_edge:
                 cls[n] = EDGE
-    return cls, specular, margin, tested_specular, tested_edge, tested_image, tested_point
+    return cls, specular, margin, confidence, tested_specular, tested_edge, tested_image, tested_point
 
 
 @kernel
@@ -707,6 +737,9 @@ def load_kernels() -> None:
     two_paths = np.full((1, 2), 2.0)
     _ring_fits(one, one, two_paths, horizontal_path(two_paths, 0.0).value, pair, transmitters, facing, slots, 1e-3,
                CONSISTENCY_Z, MAX_ECHOES_PER_GROUP)
+    height_offset = np.zeros((1, 1, 2))
+    height_offset.flags.writeable = False
+    _row_height_offsets(height_offset, one)
 
 
 @kernel
@@ -929,26 +962,44 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
         raise ValueError(f"ring_consistency: layout {layout.name!r} has "
                          f"{layout.group_transmitters.shape[1]} transmitters per group; geometric "
                          "consistency needs one emitter (use the amplitude rule for transducer pairs)")
-    sigma_path = float(_positive_finite("sigma_path", sigma_path))
-    _check_significance(z)
-    group = np.asarray(group, dtype=int).reshape(-1)
+    sigma_path = _positive_number("sigma_path", sigma_path)
+    _positive_number("z", z)
+    group = np.array(group, dtype=np.int64).reshape(-1)  # a copy: writable, one type to numba
     n_echoes, k = group.size, layout.receivers_per_group
     paths = np.array(paths, dtype=float, order="C")  # a copy: writable and contiguous, one type to numba
     if paths.shape != (n_echoes, k):
         raise ValueError(f"paths must have shape {(n_echoes, k)}, got {paths.shape}")
-    if np.any((group < 0) | (group >= layout.n_groups)):
-        raise ValueError(f"group indices must be in [0, {layout.n_groups}), got {group!r}")
     ping = np.zeros(n_echoes, dtype=int) if ping is None else np.asarray(ping, dtype=int).reshape(-1)
     if ping.shape != (n_echoes,):
         raise ValueError(f"ping must have shape {(n_echoes,)}, got {ping.shape}")
 
     plan = layout.plan
-    horizontal = horizontal_rows(paths.ravel(), plan.height_offset[group, 0].ravel())[0].reshape(paths.shape)
-    fits = _ring_fits(ping.astype(np.int64), group.astype(np.int64), paths, horizontal,
+    # Through the module: a kernel imported by name stays the wrapper that compiles at first use.
+    horizontal = localise.horizontal_rows(paths.ravel(), _row_height_offsets(plan.height_offset, group))[0].reshape(
+        paths.shape)
+    fits = _ring_fits(ping.astype(np.int64), group, paths, horizontal,
                       plan.receivers, plan.transmitters, plan.facing,
                       _ring_slots(plan.yaw.tobytes(), float(layout.beam_half_angle)), sigma_path, float(z),
                       MAX_ECHOES_PER_GROUP)
     return _decision(*fits, z)
+
+
+@kernel
+def _row_height_offsets(height_offset, group):
+    """Each echo's transmitter-minus-receiver heights, ``height_offset[group, 0]`` flattened (N K,), m.
+
+    ``height_offset`` (G, M, K) as :attr:`sonar_ring.geometry.Layout.plan` holds
+    it, ``group`` (N,); a group outside ``[0, G)`` raises ``ValueError`` (compiled
+    indexing does not check bounds).
+    """
+    n_groups, n_receivers = height_offset.shape[0], height_offset.shape[2]
+    offsets = np.empty(group.size * n_receivers)
+    for n in range(group.size):
+        if not 0 <= group[n] < n_groups:
+            raise ValueError("ring_consistency: a group index is outside the layout's groups")
+        for k in range(n_receivers):
+            offsets[n * n_receivers + k] = height_offset[group[n], 0, k]
+    return offsets
 
 
 @functools.lru_cache(maxsize=16)

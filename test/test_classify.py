@@ -202,6 +202,10 @@ def test_confidence_is_the_gaussian_mass_within_the_margin():
     expected = [math.erf(m / math.sqrt(2)) for m in margins]
     assert_allclose(classify.confidence_from_margin(margins), expected, atol=2e-7)
     assert_array_equal(classify.confidence_from_margin([-1.0, np.nan]), [0.0, 0.0])
+    flat = classify.confidence_from_margin(margins)
+    for grid in (margins.reshape(2, 3), margins.reshape(3, 2).T):  # any shape and memory order, kept
+        assert_array_equal(classify.confidence_from_margin(grid), flat[np.searchsorted(margins, grid)])
+    assert classify.confidence_from_margin(3.0).shape == ()
 
 
 @settings(max_examples=200, deadline=None)
@@ -465,8 +469,12 @@ def test_error_handling():
     with pytest.raises(ValueError, match="one emitter"):
         classify.ring_consistency(load_layout("barshan_kuc_pair"), [0], np.ones((1, 2)), SIGMA_PATH)
     ring_layout = load_layout("browne_ring")
-    with pytest.raises(ValueError, match="group"):
-        classify.ring_consistency(ring_layout, [48], np.ones((1, 2)), SIGMA_PATH)
+    for group in (48, -1):
+        with pytest.raises(ValueError, match="group"):
+            classify.ring_consistency(ring_layout, [0, group], np.ones((2, 2)), SIGMA_PATH)
+    for sigma_path in (np.nan, -SIGMA_PATH, "wide", [SIGMA_PATH, SIGMA_PATH]):
+        with pytest.raises(ValueError, match="sigma_path must be a finite number > 0"):
+            classify.ring_consistency(ring_layout, [0], np.ones((1, 2)), sigma_path)
     with pytest.raises(ValueError, match="paths"):
         classify.ring_consistency(ring_layout, [0], np.ones((1, 3)), SIGMA_PATH)
     for z in (0.0, np.nan, [3.5, 3.5]):
