@@ -1071,11 +1071,20 @@ def check_path_noise(sigma_tof, speed_of_sound, sigma_speed, caller: str) -> Non
     All must be finite, ``sigma_tof`` (s) and ``sigma_speed`` (m/s) >= 0 and
     ``speed_of_sound`` (m/s) > 0; arrays or scalars.
     """
-    sigma_tof, speed, sigma_speed = (np.asarray(value, dtype=float) for value in (sigma_tof, speed_of_sound,
-                                                                                   sigma_speed))
-    if not (np.all(np.isfinite(sigma_tof) & (sigma_tof >= 0)) and np.all(np.isfinite(sigma_speed) & (sigma_speed >= 0))
-            and np.all(np.isfinite(speed) & (speed > 0))):
+    lowest = [_lowest_finite(value) for value in (sigma_tof, speed_of_sound, sigma_speed)]
+    if not (lowest[0] >= 0 and lowest[1] > 0 and lowest[2] >= 0):
         raise ValueError(f"{caller}: need sigma_tof >= 0, sigma_speed >= 0 and speed_of_sound > 0, all finite")
+
+
+def _lowest_finite(value) -> float:
+    """The smallest of a number or array (inf when empty: nothing to refuse), NaN when any is not finite."""
+    if isinstance(value, float | int):
+        # A ping's settings are numbers: numpy's reductions would cost tens of microseconds cold.
+        return value if math.isfinite(value) else math.nan
+    array = np.asarray(value, dtype=float)
+    if not array.size:
+        return math.inf
+    return float(array.min()) if np.isfinite(array).all() else math.nan
 
 
 @kernel

@@ -402,6 +402,14 @@ def test_error_handling():
         loc.path_covariance(1.0, 1.0, -1e-6, C)
     with pytest.raises(ValueError, match="speed_of_sound > 0"):
         loc.path_covariance(1.0, 1.0, 1e-6, 0.0)
+    # numbers and arrays alike: NaN, infinity or one bad value anywhere is refused; nothing to check is no error
+    for sigma_tof, speed, sigma_speed in ((np.nan, C, 0.0), (1e-6, np.inf, 0.0), (1e-6, C, -np.inf),
+                                          (np.array([1e-6, np.nan]), C, 0.0), (1e-6, np.array([C, -C]), 0.0),
+                                          (1e-6, C, np.array([0.0, np.inf])), (1e-6, np.float32(0.0), 0.0)):
+        with pytest.raises(ValueError, match="path_covariance: need sigma_tof >= 0"):
+            loc.path_covariance(1.0, 1.0, sigma_tof, speed, sigma_speed)
+    loc.check_path_noise(np.empty(0), np.empty(0), np.empty(0), "empty")
+    loc.check_path_noise(0, 343, 0, "integers")
     with pytest.raises(ValueError, match=r"\(\.\.\., 2, 2\)"):
         loc.position_covariance(loc.corner(tx, rx1, rx2, 1.0, 1.0), tx, rx1, rx2, np.eye(3))
     with pytest.raises(ValueError, match="unknown model"):
