@@ -6,6 +6,7 @@ Mirrors the ``sonar_ring/Echoes`` message (N echo rows, K receivers per group);
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -69,6 +70,8 @@ def load_kernels() -> None:
 SCREEN_PROBLEMS = ("unknown_group", "unknown_transmitter", "not_finite_tof", "not_positive_tof", "tof_too_long",
                    "empty_row", "bad_phase_delay")
 """What :func:`screen_ping` counts by row or by value, in the order of :func:`_screen_rows`' counts."""
+ROW_DROPS = ("unknown_group", "unknown_transmitter", "empty_row")
+"""The problems of :data:`SCREEN_PROBLEMS` that drop a row."""
 
 
 @kernel
@@ -137,7 +140,9 @@ class Screened:
     Attributes
     ----------
     echoes : EchoArrays or None
-        The usable rows, or None when nothing of the ping can be used.
+        The usable rows, or None when nothing of the ping can be used.  TOFs
+        and phase delays are new arrays; the other fields are the ping's own
+        arrays when no row was dropped.
     problems : dict of str to int
         Rejections by reason (see :func:`screen_ping`).
     detail : str
@@ -190,7 +195,7 @@ def screen_ping(echoes: EchoArrays, layout) -> Screened:
     if echoes.tof.ndim != 2 or echoes.tof.shape[1] != k:
         return Screened(None, {"wrong_receivers_per_group": 1},
                         f"TOF shape {echoes.tof.shape}, layout {layout.name} has {k} receivers per group")
-    if not (np.isfinite(speed) and SLOWEST_SPEED_OF_SOUND <= speed <= FASTEST_SPEED_OF_SOUND):
+    if not (math.isfinite(speed) and SLOWEST_SPEED_OF_SOUND <= speed <= FASTEST_SPEED_OF_SOUND):
         return Screened(None, {"bad_speed_of_sound": 1}, f"speed of sound {speed} m/s is outside "
                         f"{SLOWEST_SPEED_OF_SOUND:g}..{FASTEST_SPEED_OF_SOUND:g} m/s")
     if layout.kind == "triad" and echoes.phase_delay.shape[1] != k - 1:
@@ -201,7 +206,12 @@ def screen_ping(echoes: EchoArrays, layout) -> Screened:
     keep, counts = _screen_rows(np.asarray(echoes.group).astype(np.int64),
                                 np.asarray(echoes.transmitter).astype(np.int64), tof, phase_delay, layout.n_groups,
                                 np.ascontiguousarray(layout.group_transmitters, dtype=np.int64), longest_tof(layout))
-    kept = EchoArrays(layout=layout.name, speed_of_sound=speed, group=echoes.group[keep],
-                      transmitter=echoes.transmitter[keep], tof=tof[keep], amplitude=echoes.amplitude[keep],
-                      phase_delay=phase_delay[keep])
-    return Screened(kept, {reason: n for reason, n in zip(SCREEN_PROBLEMS, counts.tolist(), strict=True) if n})
+    problems = {reason: n for reason, n in zip(SCREEN_PROBLEMS, counts.tolist(), strict=True) if n}
+    if any(reason in problems for reason in ROW_DROPS):
+        kept = EchoArrays(layout=layout.name, speed_of_sound=speed, group=echoes.group[keep],
+                          transmitter=echoes.transmitter[keep], tof=tof[keep], amplitude=echoes.amplitude[keep],
+                          phase_delay=phase_delay[keep])
+    else:  # every row kept, as in most pings: no gather
+        kept = EchoArrays(layout=layout.name, speed_of_sound=speed, group=echoes.group,
+                          transmitter=echoes.transmitter, tof=tof, amplitude=echoes.amplitude, phase_delay=phase_delay)
+    return Screened(kept, problems)
