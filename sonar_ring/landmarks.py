@@ -89,7 +89,8 @@ class Landmarks:
             if index.shape != (len(self),):
                 raise IndexError(f"Landmarks.select: a mask of shape {index.shape} for {len(self)} landmarks")
             index = np.flatnonzero(index)  # once, not once per field
-        return Landmarks(*(getattr(self, name)[index] for name in _FIELDS))
+        # take: for 2-D and 3-D fields several times faster than indexing with an array
+        return Landmarks(*(getattr(self, name).take(index, axis=0) for name in _FIELDS))
 
     def with_class(self, landmark_class, confidence) -> Landmarks:
         """A copy with new classes and confidences (shapes (L,))."""

@@ -180,7 +180,7 @@ def classify_ping(layout: Layout, echoes: EchoArrays, hypotheses: Landmarks,
     # An undecided echo may be an edge placed with the corner model (Browne s7): its
     # covariance carries that model discrepancy, so it stays consistent either way.
     undecided = np.flatnonzero(edge_row >= 0)
-    gap = hypotheses.position[edge_row[undecided]] - picked.position[undecided]
+    gap = hypotheses.position.take(edge_row[undecided], axis=0) - picked.position.take(undecided, axis=0)
     picked.covariance[undecided] += gap[:, :, None] * gap[:, None, :]
     return picked.with_class(label, decided_confidence)
 

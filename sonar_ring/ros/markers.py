@@ -160,13 +160,13 @@ def landmark_markers(landmarks: Landmarks, namespace: str, lifetime: float, poin
         rows = np.flatnonzero(shown == code)
         if code == PLANE:
             colour, colours = _coloured(code, landmarks.confidence[rows], 2)
-            ends = plane_segments(landmarks, min_plane_length)[rows] if rows.size else np.empty((0, 2, 2))
+            ends = plane_segments(landmarks, min_plane_length).take(rows, axis=0) if rows.size else np.empty((0, 2, 2))
             markers.append(MarkerParts(f"{namespace}/{name}", Marker.LINE_LIST, (line_width, 0.0, 0.0), colour,
                                        ends.reshape(-1, 2), colours, lifetime))
         else:
             colour, colours = _coloured(code, landmarks.confidence[rows], 1)
             markers.append(MarkerParts(f"{namespace}/{name}", Marker.POINTS, (point_size, point_size, 0.0), colour,
-                                       landmarks.position[rows], colours, lifetime))
+                                       landmarks.position.take(rows, axis=0), colours, lifetime))
     return markers
 
 
