@@ -31,7 +31,7 @@ from sonar_ring.geometry import load_layout, speed_of_sound
 from sonar_ring.landmarks import make_landmarks
 from sonar_ring.msg import Echoes
 from sonar_ring.msg import LandmarkArray as LandmarkArrayMsg
-from sonar_ring.ros.convert import as_message_types, echoes_to_msg, landmarks_to_msg
+from sonar_ring.ros.convert import MessageHeader, as_message_types, echoes_to_msg, landmarks_to_msg
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import FUTURE_TOLERANCE, InputGate, screened, take_echoes
 from sonar_ring.ros.node import SonarNode
@@ -149,7 +149,7 @@ class Driver(SonarNode):
         if taken is None:
             return
         received, echoes = taken
-        header = Header(stamp=received.stamp, frame_id=self.params["frame_id"])
+        header = MessageHeader(received.stamp, self.params["frame_id"])
         downstream = self._publish(echoes, header)
         self.health.processed(time.perf_counter() - started - downstream)
 

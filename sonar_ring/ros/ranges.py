@@ -29,6 +29,7 @@ from sensor_msgs.msg import Range
 
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import Layout
+from sonar_ring.ros.convert import header_message
 from sonar_ring.ros.node import LATCHED, SonarNode
 
 MIN_RANGE = 0.02
@@ -138,12 +139,13 @@ def range_messages(layout: Layout, echoes: EchoArrays, header, groups=None) -> l
         np.minimum.at(nearest, echoes.group.astype(np.int64), half_path)
     nearest[nearest < MIN_RANGE] = -np.inf
     field_of_view = 2.0 * float(layout.beam_half_angle)
+    stamp = header_message(header).stamp
     messages = []
     for group in range(layout.n_groups) if groups is None else groups:
         value = float(nearest[group])
         message = Range(radiation_type=Range.ULTRASOUND, field_of_view=field_of_view, min_range=MIN_RANGE,
                         max_range=float(layout.max_range), range=value)
-        message.header.stamp = header.stamp
+        message.header.stamp = stamp
         message.header.frame_id = group_frame(header.frame_id, group)
         messages.append(message)
     return messages
