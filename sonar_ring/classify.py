@@ -813,7 +813,7 @@ def _fit(start, receivers, paths, weight, emitter, edge, steps, converged):
     path = np.ascontiguousarray(paths.T)
     weights = np.ascontiguousarray(weight.T)
     x, y = start[:, 0].copy(), start[:, 1].copy()
-    emitter_x, emitter_y, emitter_distance = np.zeros(n_echoes), np.zeros(n_echoes), np.zeros(n_echoes)
+    emitter_distance, emitter_unit_x, emitter_unit_y = np.zeros(n_echoes), np.zeros(n_echoes), np.zeros(n_echoes)
     xx, xy, yy = np.empty(n_echoes), np.empty(n_echoes), np.empty(n_echoes)
     gradient_x, gradient_y, squares = np.empty(n_echoes), np.empty(n_echoes), np.empty(n_echoes)
     chi2 = np.empty(n_echoes)
@@ -823,9 +823,10 @@ def _fit(start, receivers, paths, weight, emitter, edge, steps, converged):
     for _ in range(steps + 1):  # an echo sums at most steps + 1 times: once per step and at its final point
         xx[:] = xy[:] = yy[:] = gradient_x[:] = gradient_y[:] = squares[:] = 0.0
         if edge:
-            for n in range(n_echoes):
-                emitter_x[n], emitter_y[n] = x[n] - emitter[n, 0], y[n] - emitter[n, 1]
-                emitter_distance[n] = np.sqrt(emitter_x[n] * emitter_x[n] + emitter_y[n] * emitter_y[n])
+            for n in range(n_echoes):  # the emitter's part of the edge's path and Jacobian: once per pass
+                away_x, away_y = x[n] - emitter[n, 0], y[n] - emitter[n, 1]
+                emitter_distance[n] = np.sqrt(away_x * away_x + away_y * away_y)
+                emitter_unit_x[n], emitter_unit_y[n] = away_x / emitter_distance[n], away_y / emitter_distance[n]
         for k in range(n_receivers):
             for n in range(n_echoes):
                 w = weights[k, n]
@@ -834,8 +835,8 @@ def _fit(start, receivers, paths, weight, emitter, edge, steps, converged):
                 jacobian_x, jacobian_y = to_x / distance, to_y / distance
                 if edge:
                     distance += emitter_distance[n]
-                    jacobian_x += emitter_x[n] / emitter_distance[n]
-                    jacobian_y += emitter_y[n] / emitter_distance[n]
+                    jacobian_x += emitter_unit_x[n]
+                    jacobian_y += emitter_unit_y[n]
                 residual = distance - path[k, n]
                 used = w != 0.0  # a receiver left out adds nothing, not 0 * NaN
                 xx[n] += w * jacobian_x * jacobian_x if used else 0.0
