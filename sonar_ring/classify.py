@@ -162,8 +162,8 @@ def confidence_from_margin(margin):
     ndarray
         Confidences, same shape.
     """
-    margin = np.asarray(margin, dtype=float)
-    return _confidences(np.ascontiguousarray(margin).reshape(-1)).reshape(margin.shape)
+    margin = np.array(margin, dtype=float, order="C")  # a copy: writable and contiguous, one type to numba
+    return _confidences(margin.reshape(-1)).reshape(margin.shape)
 
 
 @kernel

@@ -177,11 +177,7 @@ def classify_ping(layout: Layout, echoes: EchoArrays, hypotheses: Landmarks,
                                                        hypotheses.echo.astype(np.int64), hypotheses.valid.astype(bool),
                                                        decided, confidence)
     picked = hypotheses.select(pick)  # new arrays: the covariance may be added to in place
-    # An undecided echo may be an edge placed with the corner model (Browne s7): its
-    # covariance carries that model discrepancy, so it stays consistent either way.
-    undecided = np.flatnonzero(edge_row >= 0)
-    gap = hypotheses.position.take(edge_row[undecided], axis=0) - picked.position.take(undecided, axis=0)
-    picked.covariance[undecided] += gap[:, :, None] * gap[:, None, :]
+    _add_edge_discrepancy(picked.covariance, picked.position, hypotheses.position.astype(float, order="C"), edge_row)
     return picked.with_class(label, decided_confidence)
 
 
@@ -193,6 +189,8 @@ def load_kernels() -> None:
     """
     _picks(np.zeros(1, dtype=np.uint8), np.zeros(1, dtype=np.int64), np.ones(1, dtype=bool),
            np.zeros(1, dtype=np.uint8), np.zeros(1))
+    _add_edge_discrepancy(np.zeros((1, 2, 2)), np.zeros((1, 2)), np.zeros((1, 2)), np.zeros(1, dtype=np.int64))
+    classify.confidence_from_margin(np.zeros(1))  # the amplitude rules' confidences
 
 
 @kernel
@@ -234,6 +232,26 @@ def _picks(landmark_class, echo, valid, decided, confidence):
         pick[kept] = chosen
         kept += 1
     return pick[:kept], label[:kept], label_confidence[:kept], edge_row[:kept]
+
+
+@kernel
+def _add_edge_discrepancy(covariance, position, hypothesis_position, edge_row):
+    """Add the edge model's discrepancy to the covariance of each undecided echo, in place.
+
+    An undecided echo may be an edge placed with the corner model (Browne s7): its
+    covariance (L, 2, 2) m^2, at ``position`` (L, 2) m, gets ``g g^T`` with ``g`` the
+    gap to its valid edge hypothesis (row ``edge_row`` (L,) of ``hypothesis_position``
+    (H, 2) m; -1: none), so it stays consistent either way.
+    """
+    for n in range(edge_row.size):
+        if edge_row[n] < 0:
+            continue
+        gap_x = hypothesis_position[edge_row[n], 0] - position[n, 0]
+        gap_y = hypothesis_position[edge_row[n], 1] - position[n, 1]
+        covariance[n, 0, 0] += gap_x * gap_x
+        covariance[n, 0, 1] += gap_x * gap_y
+        covariance[n, 1, 0] += gap_y * gap_x
+        covariance[n, 1, 1] += gap_y * gap_y
 
 
 def _evidence(layout: Layout, echoes: EchoArrays, settings: Settings, ping: np.ndarray):
