@@ -9,6 +9,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.serialization import serialize_message
+from rclpy.time import Time
 from ros_harness import spin_until
 from sonar_ring.msg import Echoes, LandmarkArray
 from std_msgs.msg import Header
@@ -171,25 +172,13 @@ def test_localiser_uses_the_valid_rows_of_a_ping_and_refuses_bad_headers(ros):
     bench.close()
 
 
-class ManualClock:
-    """Stands in for a node's clock (simulated time): ``get_clock().now().nanoseconds`` is what the test sets."""
-
-    def __init__(self):
-        self.nanoseconds = 0
-
-    def get_clock(self):
-        return self
-
-    def now(self):
-        return self
-
-
 def test_stamp_order_restarts_when_simulated_time_jumps_back(ros):
-    node = rclpy.create_node("gate_owner")
+    # Simulated time, set here as /clock would set it.
+    node = rclpy.create_node("gate_owner", parameter_overrides=[Parameter("use_sim_time", value=True)])
     health = NodeHealth(node)
-    clock = ManualClock()
+    clock = node.get_clock()
     forgotten = []
-    gate = InputGate(clock, health, "echoes", {"frame_id": "", "future_tolerance": 1.0},
+    gate = InputGate(node, health, "echoes", {"frame_id": "", "future_tolerance": 1.0},
                      on_clock_jump=lambda: forgotten.append(True))
 
     def header(seconds):
@@ -198,10 +187,10 @@ def test_stamp_order_restarts_when_simulated_time_jumps_back(ros):
         return h
 
     assert gate.admit(header(100)), "a zero clock (no /clock yet) checks no stamp for the future"
-    clock.nanoseconds = 101 * 10**9
+    clock.set_ros_time_override(Time(seconds=101))
     assert gate.admit(header(101)) and not gate.admit(header(101)) and not gate.admit(header(99))
     assert not gate.admit(header(103))
-    clock.nanoseconds = 5 * 10**9  # the bag starts again
+    clock.set_ros_time_override(Time(seconds=5))  # the bag starts again
     assert gate.admit(header(5)) and gate.admit(header(6)) and forgotten == [True]
     assert health.problems == {"duplicate_stamp": 1, "out_of_order_stamp": 1, "future_stamp": 1}
     assert health.notes == {"clock jumped back": 1}

@@ -81,7 +81,7 @@ class InputGate:
     def __init__(self, node: Node, health: NodeHealth, topic: str, params: dict,
                  frame_param: str | None = EXPECTED_FRAME.name, on_clock_jump: Callable[[], None] | None = None
                  ) -> None:
-        self._node = node
+        self._clock = node.get_clock()
         self._health = health
         self._topic = topic
         self._params = params
@@ -112,7 +112,8 @@ class InputGate:
             if expected and header.frame_id != expected:
                 return "wrong_frame_id", f"frame {header.frame_id!r}, expected {expected!r}"
         stamp = stamp_ns(header)
-        now = self._node.get_clock().now().nanoseconds
+        # The clock's own reading: Clock.now() builds a Time object for it (13 us cold, three gates a ping).
+        now = self._clock.handle.get_now().nanoseconds
         if now < self._last_clock:
             self._health.note("clock jumped back")
             self._last_stamp = None
