@@ -15,6 +15,7 @@ of the ring and tens of milliseconds for a map with its covariance ellipses.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -73,7 +74,7 @@ class MarkerParts:
         if len(points) != 2 or points[1] != 2 or colors not in ((points[0], 4), (0, 4)):
             raise ValueError(f"marker {self.ns!r}: points must be (P, 2) and colors (P, 4) or (0, 4), got {points} "
                              f"and {colors}")
-        if not (np.isfinite(self.lifetime) and self.lifetime >= 0):
+        if not (math.isfinite(self.lifetime) and self.lifetime >= 0):
             raise ValueError(f"marker {self.ns!r}: lifetime must be finite and >= 0 s, got {self.lifetime!r}")
 
 
@@ -87,8 +88,13 @@ def serialize_markers(markers: list[MarkerParts], header) -> bytes:
     """
     cdr = Cdr()
     cdr.pack("I", len(markers), align=4)
+    # Every marker's header: the same bytes, 4-aligned wherever they go.
+    stamped = Cdr()
+    stamped.header(header.stamp.sec, header.stamp.nanosec, header.frame_id)
+    header_bytes = bytes(stamped.buffer[4:])
     for marker in markers:
-        cdr.header(header.stamp.sec, header.stamp.nanosec, header.frame_id)
+        cdr.align(4)
+        cdr.buffer += header_bytes
         cdr.string(marker.ns)
         cdr.pack("iii", 0, marker.type, Marker.ADD, align=4)
         # pose (origin, identity orientation) and scale; color, lifetime and frame_locked
@@ -132,7 +138,7 @@ def _coloured(landmark_class: int, confidence: np.ndarray, repeat: int) -> tuple
         return (r, g, b, 1.0), _NO_COLOURS
     alpha = MIN_ALPHA + (1.0 - MIN_ALPHA) * np.minimum(np.maximum(confidence, 0.0), 1.0)
     colour = (r, g, b, float(alpha[0]))
-    if bool(np.all(alpha == alpha[0])):
+    if bool((alpha == alpha[0]).all()):
         return colour, _NO_COLOURS
     per_point = np.repeat(alpha, repeat)
     return colour, np.column_stack([np.full((per_point.size, 3), (r, g, b)), per_point]).astype(np.float32)
@@ -156,8 +162,11 @@ def landmark_markers(landmarks: Landmarks, namespace: str, lifetime: float, poin
     """One marker per class in ``namespace/<class>``; ``lifetime`` 0 keeps them forever."""
     markers = []
     shown = np.where(landmarks.valid, landmarks.landmark_class, len(CLASS_NAMES))
+    # Each class's rows, in row order: one stable sort, not one comparison and search per class.
+    order = np.argsort(shown, kind="stable")
+    bounds = np.searchsorted(shown[order], np.arange(len(CLASS_NAMES) + 1)).tolist()
     for code, name in enumerate(CLASS_NAMES):
-        rows = np.flatnonzero(shown == code)
+        rows = order[bounds[code]:bounds[code + 1]]
         if code == PLANE:
             colour, colours = _coloured(code, landmarks.confidence[rows], 2)
             ends = plane_segments(landmarks, min_plane_length).take(rows, axis=0) if rows.size else np.empty((0, 2, 2))
