@@ -633,7 +633,7 @@ def localise_rows(tx, rx1, rx2, paths, dz, vertical, sigma_tof, speed, sigma_spe
 @kernel
 def localise_ping_rows(transmitters, receivers, groups, transmitter, group, tof, speed, vertical, sigma_tof,
                        sigma_speed, models, model_class):
-    """:func:`localise_rows` of a ping's rows, from the layout's transducers, with the landmark fields it fixes.
+    """:func:`localise_rows` of a ping's rows, from the layout's transducers, as the fields of its hypotheses.
 
     Layout (:class:`sonar_ring.geometry.Layout`): ``transmitters`` (T, 3) and
     ``receivers`` (R, 3), m, sensor frame; ``groups`` (G, 2) each group's
@@ -641,11 +641,13 @@ def localise_ping_rows(transmitters, receivers, groups, transmitter, group, tof,
     and ``tof`` (N, 2), s; ``speed`` m/s makes the paths ``speed * tof``.
     ``models`` as for :func:`localise_rows`, ``model_class`` (M,) their landmark classes.
 
-    Returns what :func:`localise_rows` returns, then per entry (M N,):
-    ``landmark_class`` (uint8), ``group`` (uint16) and ``echo`` (uint32,
-    the row), and the rows' horizontal ``tx``, ``rx1`` and ``rx2`` (N, 2), m.
-    The arrays' shapes are the caller's to check; an index outside the layout
-    raises ``ValueError``.
+    Returns, per entry (M N,), the fields of :class:`sonar_ring.landmarks.Landmarks`
+    in its order -- ``landmark_class``, ``position``, ``normal``, ``covariance``,
+    ``confidence`` (0), ``segment``, ``observations`` (1), ``group``, ``echo`` (the
+    row), ``valid`` and ``reason`` -- then the entries whose covariance is still to
+    compute (``lost`` of :func:`localise_rows`, ascending) and the rows' path
+    covariance (N, 2, 2).  The arrays' shapes are the caller's to check; an index
+    outside the layout raises ``ValueError``.
     """
     count = group.size
     tx, rx1, rx2 = np.empty((count, 2)), np.empty((count, 2)), np.empty((count, 2))
@@ -671,8 +673,9 @@ def localise_ping_rows(transmitters, receivers, groups, transmitter, group, tof,
             landmark_class[index * count + row] = model_class[index]
             entry_group[index * count + row] = group[row]
             echo[index * count + row] = row
-    return (reason, position, normal, covariance, segment, covariance_paths, lost, landmark_class, entry_group, echo,
-            tx, rx1, rx2)
+    return (landmark_class, position, normal, covariance, np.zeros(size, dtype=np.float32), segment,
+            np.ones(size, dtype=np.uint32), entry_group, echo, reason == OK, reason, np.flatnonzero(lost),
+            covariance_paths)
 
 
 def _solved(caller, models, tx, rx1, rx2, d1, d2) -> dict:

@@ -90,25 +90,25 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
                          f"{echoes.group.shape}, transmitter {echoes.transmitter.shape}, tof {echoes.tof.shape}")
     models, model_class = _model_codes(tuple(settings.models))
     # Copies (astype): decoded from a message, the arrays are read-only views, another type to numba.
-    (reason, position, normal, covariance, segment, covariance_paths, lost, landmark_class, group, echo,
-     tx, rx1, rx2) = localise.localise_ping_rows(
+    *fields, lost, covariance_paths = localise.localise_ping_rows(
         layout.transmitters, layout.receivers, layout.groups, echoes.transmitter.astype(np.int64),
         echoes.group.astype(np.int64), echoes.tof.astype(float, order="C"), float(echoes.speed_of_sound),
         settings.vertical_correction, float(settings.sigma_tof), float(settings.sigma_speed), models, model_class)
-    if lost.any():
+    hypotheses = Landmarks(*fields)
+    if lost.size:
         # Near the border of the solvable region (|d2 - d1| close to the baseline) a sigma point can
         # fall outside it while the estimate is valid: first-order covariance there.
-        for index in np.unique(np.flatnonzero(lost) // count):
-            rows = np.flatnonzero(lost[index * count:(index + 1) * count])
-            entries = index * count + rows
-            estimate = localise.PointEstimate(position[entries], np.ones(rows.size, dtype=bool), reason[entries],
-                                              settings.models[index])
-            covariance[entries] = localise.position_covariance(estimate, tx[rows], rx1[rows], rx2[rows],
-                                                               covariance_paths[rows])
-    return Landmarks(landmark_class=landmark_class, position=position, normal=normal, covariance=covariance,
-                     confidence=np.zeros(reason.size, dtype=np.float32), segment=segment,
-                     observations=np.ones(reason.size, dtype=np.uint32), group=group, echo=echo,
-                     valid=reason == localise.OK, reason=reason)
+        for index in np.unique(lost // count):
+            entries = lost[lost // count == index]
+            rows = entries - index * count
+            transducers = (layout.transmitters[echoes.transmitter[rows], :2],
+                           layout.receivers[layout.groups[echoes.group[rows], 0], :2],
+                           layout.receivers[layout.groups[echoes.group[rows], 1], :2])
+            estimate = localise.PointEstimate(hypotheses.position[entries], np.ones(rows.size, dtype=bool),
+                                              hypotheses.reason[entries], settings.models[index])
+            hypotheses.covariance[entries] = localise.position_covariance(estimate, *transducers,
+                                                                          covariance_paths[rows])
+    return hypotheses
 
 
 @functools.lru_cache(maxsize=8)
