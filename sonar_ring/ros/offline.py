@@ -91,6 +91,7 @@ class BagClock:
 
     The gates then refuse what the nodes refuse on replay with ``use_sim_time``
     (empty or wrong frame, stamps ahead of bag time, duplicate and out-of-order stamps).
+    It offers what a gate reads of a node's rclpy clock: ``get_clock().handle.get_now().nanoseconds``.
     """
 
     def __init__(self) -> None:
@@ -100,7 +101,12 @@ class BagClock:
         """The clock (this object)."""
         return self
 
-    def now(self) -> BagClock:
+    @property
+    def handle(self) -> BagClock:
+        """The clock's handle (this object)."""
+        return self
+
+    def get_now(self) -> BagClock:
         """The time (this object: ``nanoseconds`` is the bag time of the message being read)."""
         return self
 
