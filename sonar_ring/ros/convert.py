@@ -77,18 +77,25 @@ class Cdr:
 
     def align(self, size: int) -> None:
         """Zero padding up to the next multiple of ``size`` bytes."""
-        self.buffer += bytes(-(len(self.buffer) - 4) % size)
+        self.buffer += _PADDING[-(len(self.buffer) - 4) % size]
+
+    # The methods below pad inline rather than call align(): a ping's markers and landmarks take
+    # about seventy of these calls, each costing more than its work in a process that waited for the ping.
 
     def pack(self, fmt: str, *values, align: int) -> None:
-        """``values`` by the :mod:`struct` format ``fmt``, after aligning to ``align`` bytes."""
-        self.align(align)
-        self.buffer += struct.pack("<" + fmt, *values)
+        """``values`` by the :mod:`struct` format ``fmt`` (little-endian), after aligning to ``align`` bytes."""
+        buffer = self.buffer
+        buffer += _PADDING[-(len(buffer) - 4) % align]
+        buffer += struct.pack("<" + fmt, *values)
 
     def string(self, text: str) -> None:
         """A string: its length in bytes with the terminating NUL, then UTF-8 and the NUL."""
         data = text.encode()
-        self.pack("I", len(data) + 1, align=4)
-        self.buffer += data + b"\x00"
+        buffer = self.buffer
+        buffer += _PADDING[-(len(buffer) - 4) % 4]
+        buffer += _UINT32.pack(len(data) + 1)
+        buffer += data
+        buffer += b"\x00"
 
     def header(self, sec: int, nanosec: int, frame_id: str) -> None:
         """A ``std_msgs/Header``: the stamp's seconds and nanoseconds, then the frame."""
@@ -100,10 +107,17 @@ class Cdr:
 
         Fast CDR aligns no empty sequence, and its reader expects the next field right after the length.
         """
-        self.pack("I", len(values), align=4)
+        buffer = self.buffer
+        buffer += _PADDING[-(len(buffer) - 4) % 4]
+        buffer += _UINT32.pack(len(values))
         if len(values):
-            self.align(align)
-            self.buffer += np.ascontiguousarray(values).tobytes()
+            buffer += _PADDING[-(len(buffer) - 4) % align]
+            buffer += np.ascontiguousarray(values).tobytes()
+
+
+_PADDING = tuple(bytes(size) for size in range(8))
+"""Zero bytes to pad with, by count (CDR aligns to at most 8)."""
+_UINT32 = struct.Struct("<I")
 
 
 class CdrReader:
@@ -121,13 +135,9 @@ class CdrReader:
         if self.order is None or len(data) < 4:
             raise MessageError(f"{what}: not plain CDR (encapsulation {bytes(data[:4])!r})")
 
-    def align(self, size: int) -> None:
-        """Skip the padding up to the next multiple of ``size`` bytes."""
-        self.offset += -(self.offset - 4) % size
-
     def unpack(self, fmt: str, align: int) -> tuple:
         """Values by the :mod:`struct` format ``fmt``, after aligning to ``align`` bytes."""
-        self.align(align)
+        self.offset += -(self.offset - 4) % align  # inline, as in Cdr: a ping's message takes about ten
         fmt = self.order + fmt
         try:
             values = struct.unpack_from(fmt, self.data, self.offset)
@@ -160,7 +170,7 @@ class CdrReader:
         (count,) = self.unpack("I", align=4)
         dtype = np.dtype(dtype)
         if count:
-            self.align(dtype.itemsize)
+            self.offset += -(self.offset - 4) % dtype.itemsize
         if count * dtype.itemsize > len(self.data) - self.offset:
             raise MessageError(f"{self.what}: a sequence of {count} values at {self.offset} runs past the end "
                                f"({len(self.data)} bytes)")
