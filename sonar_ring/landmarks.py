@@ -12,7 +12,7 @@ per-ping landmarks, ``odom`` for the map), angles in radians counter-clockwise.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
 
 import numpy as np
 
@@ -94,8 +94,12 @@ class Landmarks:
 
     def with_class(self, landmark_class, confidence) -> Landmarks:
         """A copy with new classes and confidences (shapes (L,))."""
-        return replace(self, landmark_class=np.asarray(landmark_class, dtype=np.uint8),
-                       confidence=np.asarray(confidence, dtype=np.float32))
+        # Built directly: dataclasses.replace walks the fields in Python.
+        return Landmarks(landmark_class=np.asarray(landmark_class, dtype=np.uint8), position=self.position,
+                         normal=self.normal, covariance=self.covariance,
+                         confidence=np.asarray(confidence, dtype=np.float32), segment=self.segment,
+                         observations=self.observations, group=self.group, echo=self.echo, valid=self.valid,
+                         reason=self.reason)
 
     @staticmethod
     def empty() -> Landmarks:

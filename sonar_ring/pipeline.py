@@ -256,11 +256,14 @@ def _add_edge_discrepancy(covariance, position, hypothesis_position, edge_row):
 
 def _evidence(layout: Layout, echoes: EchoArrays, settings: Settings, ping: np.ndarray):
     """Class decision and confidence per echo row, shapes (N,); ``ping`` (N,) keeps pings apart."""
+    if echoes.n_echoes and layout.kind == "ring":
+        result = classify.ring_consistency(layout, echoes.group, echoes.path_lengths(),
+                                           echoes.speed_of_sound * settings.sigma_tof, ping=ping,
+                                           z=settings.consistency_z)
+        return result.cls, np.where(result.cls == EDGE, result.confidence, 0.0)
     decided = np.full(echoes.n_echoes, UNKNOWN, dtype=np.uint8)
     confidence = np.zeros(echoes.n_echoes)
-    if echoes.n_echoes == 0:
-        return decided, confidence
-    if layout.group_transmitters.shape[1] == 2 and echoes.amplitude.shape[1] == 2:
+    if echoes.n_echoes and layout.group_transmitters.shape[1] == 2 and echoes.amplitude.shape[1] == 2:
         first, second = _matched_rows(layout, echoes, ping)
         # [[A_aa', A_ab'], [A_ba', A_bb']]: rows by transmitter, columns by receiver.
         amplitudes = np.stack([echoes.amplitude[first], echoes.amplitude[second]], axis=1)
@@ -268,12 +271,6 @@ def _evidence(layout: Layout, echoes: EchoArrays, settings: Settings, ping: np.n
         for rows in (first, second):
             decided[rows] = result.cls
             confidence[rows] = result.confidence
-    elif layout.kind == "ring":
-        result = classify.ring_consistency(layout, echoes.group, echoes.path_lengths(),
-                                           echoes.speed_of_sound * settings.sigma_tof, ping=ping,
-                                           z=settings.consistency_z)
-        decided[:] = result.cls
-        confidence[:] = np.where(result.cls == EDGE, result.confidence, 0.0)
     return decided, confidence
 
 

@@ -254,9 +254,9 @@ def usable_echoes(echoes: EchoArrays, layout, health, header: Header, speed_of_s
     ``speed_of_sound`` (m/s) where the source gave none, then screened
     (:func:`sonar_ring.ros.inputs.screened`: rejections counted on ``health``).
     """
-    speed = echoes.speed_of_sound or speed_of_sound
-    return screened(replace(echoes, speed_of_sound=speed), layout, health,
-                    f"ping at {header.stamp.sec}.{header.stamp.nanosec:09d}")
+    if not echoes.speed_of_sound:
+        echoes = replace(echoes, speed_of_sound=speed_of_sound)
+    return screened(echoes, layout, health, header)
 
 
 def truth_message(ping, header: Header) -> LandmarkArrayMsg:

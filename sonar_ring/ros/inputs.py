@@ -175,13 +175,14 @@ def check_echoes(header: Header, echoes: EchoArrays, layout, health: NodeHealth)
     if echoes.layout != layout.name:
         health.problem("layout_mismatch", f"echoes of layout {echoes.layout!r}, this node runs {layout.name!r}")
         return None
-    return screened(echoes, layout, health, f"ping at {header.stamp.sec}.{header.stamp.nanosec:09d}")
+    return screened(echoes, layout, health, header)
 
 
-def screened(echoes: EchoArrays, layout, health: NodeHealth, where: str) -> EchoArrays | None:
-    """:func:`sonar_ring.echoes.screen_ping` with its rejections counted on ``health``."""
+def screened(echoes: EchoArrays, layout, health: NodeHealth, header) -> EchoArrays | None:
+    """:func:`sonar_ring.echoes.screen_ping` with its rejections counted on ``health``, the ping named by ``header``."""
     result = screen_ping(echoes, layout)
     for reason, count in result.problems.items():
+        where = f"ping at {header.stamp.sec}.{header.stamp.nanosec:09d}"
         health.problem(reason, f"{where}: {result.detail}" if result.detail else where, count)
     if result.echoes is not None and result.echoes.n_echoes == 0:
         health.note("empty ping")

@@ -67,7 +67,7 @@ class MarkerParts:
     lifetime: float = 0.0
 
     def __post_init__(self) -> None:
-        points, colors = np.shape(self.points), np.shape(self.colors)
+        points, colors = np.asarray(self.points).shape, np.asarray(self.colors).shape
         if len(self.scale) != 3 or len(self.color) != 4:
             raise ValueError(f"marker {self.ns!r}: scale needs 3 values and color 4, got {self.scale!r}, "
                              f"{self.color!r}")
@@ -163,8 +163,8 @@ def landmark_markers(landmarks: Landmarks, namespace: str, lifetime: float, poin
     markers = []
     shown = np.where(landmarks.valid, landmarks.landmark_class, len(CLASS_NAMES))
     # Each class's rows, in row order: one stable sort, not one comparison and search per class.
-    order = np.argsort(shown, kind="stable")
-    bounds = np.searchsorted(shown[order], np.arange(len(CLASS_NAMES) + 1)).tolist()
+    order = shown.argsort(kind="stable")
+    bounds = shown[order].searchsorted(np.arange(len(CLASS_NAMES) + 1)).tolist()
     for code, name in enumerate(CLASS_NAMES):
         rows = order[bounds[code]:bounds[code + 1]]
         if code == PLANE:
