@@ -625,31 +625,20 @@ def geometric_consistency(transmitter, receivers, paths, sigma_path, z=CONSISTEN
     fits = _fit_models(np.ascontiguousarray(transmitter), np.ascontiguousarray(receivers),
                        np.ascontiguousarray(paths), np.ascontiguousarray(sigma), np.ascontiguousarray(outward),
                        facing is not None)
-    return _decision(*fits, z)
-
-
-def _decision(image, chi2_specular, edge, chi2_edge, dof, z) -> ConsistencyResult:
-    """The tests of :func:`geometric_consistency` on both models' fits (:func:`_fit_models`' outputs).
-
-    ``image`` and ``edge`` (N, 2) m, ``chi2_specular`` and ``chi2_edge`` (N,),
-    ``dof`` (N,) int; ``z`` the significance.
-    """
-    cls, specular, margin, confidence, chi2_specular, chi2_edge, image, edge = _decide(
-        image, chi2_specular, edge, chi2_edge, dof, float(z))
-    return ConsistencyResult(cls=cls, specular=specular, margin=margin, confidence=confidence,
-                             chi2_specular=chi2_specular, chi2_edge=chi2_edge, dof=dof, virtual_image=image,
-                             edge_position=edge)
+    return ConsistencyResult(*_decide(*fits, float(z)))
 
 
 @kernel
 def _decide(image, chi2_specular, edge, chi2_edge, dof, z):
-    """Per echo, the two tests of :func:`geometric_consistency` on its fits (see :func:`_decision`).
+    """Per echo, the two tests of :func:`geometric_consistency` on both models' fits (:func:`_fit_models`' outputs).
 
-    An echo is tested when ``dof >= 1``: EDGE when ``chi2_specular - chi2_edge > z^2`` and
-    the edge fits (``chi2_edge`` within :func:`_chi2_upper_quantile`), specular in the
-    mirror case.  Returns the class (N,) uint8, specular (N,) bool, the margin
-    and its confidence (:func:`_confidence`) (N,), and the chi-squares and fitted
-    points, NaN where untested.
+    ``image`` and ``edge`` (N, 2) m, ``chi2_specular`` and ``chi2_edge`` (N,), ``dof``
+    (N,) int; ``z`` the significance.  An echo is tested when ``dof >= 1``: EDGE
+    when ``chi2_specular - chi2_edge > z^2`` and the edge fits (``chi2_edge`` within
+    :func:`_chi2_upper_quantile`), specular in the mirror case.  Returns the fields
+    of :class:`ConsistencyResult` in order: the class (N,) uint8, specular (N,)
+    bool, the margin and its confidence (:func:`_confidence`) (N,), the
+    chi-squares, ``dof``, and the fitted points, NaN where untested.
     """
     n_echoes = dof.size
     cls = np.full(n_echoes, UNKNOWN, dtype=np.uint8)
@@ -674,7 +663,7 @@ def _decide(image, chi2_specular, edge, chi2_edge, dof, z):
             specular[n] = is_specular
             if is_edge:
                 cls[n] = EDGE
-    return cls, specular, margin, confidence, tested_specular, tested_edge, tested_image, tested_point
+    return cls, specular, margin, confidence, tested_specular, tested_edge, dof, tested_image, tested_point
 
 
 @kernel
@@ -735,7 +724,7 @@ def load_kernels() -> None:
         array.flags.writeable = False
     one = np.zeros(1, dtype=np.int64)
     two_paths = np.full((1, 2), 2.0)
-    _ring_fits(one, one, two_paths, horizontal_path(two_paths, 0.0).value, pair, transmitters, facing, slots, 1e-3,
+    _ring_tests(one, one, two_paths, horizontal_path(two_paths, 0.0).value, pair, transmitters, facing, slots, 1e-3,
                CONSISTENCY_Z, MAX_ECHOES_PER_GROUP)
     height_offset = np.zeros((1, 1, 2))
     height_offset.flags.writeable = False
@@ -978,11 +967,10 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
     # Through the module: a kernel imported by name stays the wrapper that compiles at first use.
     horizontal = localise.horizontal_rows(paths.ravel(), _row_height_offsets(plan.height_offset, group))[0].reshape(
         paths.shape)
-    fits = _ring_fits(ping.astype(np.int64), group, paths, horizontal,
-                      plan.receivers, plan.transmitters, plan.facing,
-                      _ring_slots(plan.yaw.tobytes(), float(layout.beam_half_angle)), sigma_path, float(z),
-                      MAX_ECHOES_PER_GROUP)
-    return _decision(*fits, z)
+    return ConsistencyResult(*_ring_tests(ping.astype(np.int64), group, paths, horizontal,
+                                          plan.receivers, plan.transmitters, plan.facing,
+                                          _ring_slots(plan.yaw.tobytes(), float(layout.beam_half_angle)),
+                                          sigma_path, float(z), MAX_ECHOES_PER_GROUP))
 
 
 @kernel
@@ -1013,9 +1001,11 @@ def _ring_slots(yaw_bytes: bytes, beam_half_angle: float) -> np.ndarray:
 
 
 @kernel
-def _ring_fits(ping, group, paths, horizontal, receivers, transmitters, facing, slots, sigma_path, z,
-               max_per_group):
-    """Both models' fits of every echo of :func:`ring_consistency`, joined with its overlapping groups' echoes.
+def _ring_tests(ping, group, paths, horizontal, receivers, transmitters, facing, slots, sigma_path, z,
+                max_per_group):
+    """Both models' fits and tests (:func:`_decide`) of every echo of :func:`ring_consistency`.
+
+    Each echo is joined with its overlapping groups' echoes first.
 
     ``ping`` and ``group`` (N,) int; ``paths`` (N, K) measured path lengths and
     ``horizontal`` their horizontal parts (NaN where unusable), m;
@@ -1024,8 +1014,8 @@ def _ring_fits(ping, group, paths, horizontal, receivers, transmitters, facing, 
     ``facing`` (G, 2); ``slots`` (G, 1 + J) each group and its overlapping ones
     (:func:`_ring_slots`); ``sigma_path`` m; ``z`` the gate's significance; a group
     with more than ``max_per_group`` echoes in a ping is left out.  Returns what
-    :func:`_fit_models` returns, one row per echo; an echo left out (crowded, too
-    many echoes) has no usable receiver.
+    :func:`_decide` returns, one row per echo; an echo left out (crowded, too
+    many echoes) has no usable receiver, so is untested.
     """
     n_echoes, n_receivers = paths.shape
     n_groups, n_slots = slots.shape
@@ -1089,7 +1079,7 @@ def _ring_fits(ping, group, paths, horizontal, receivers, transmitters, facing, 
                 all_paths[n, column] = horizontal[row, k]
                 all_sigma[n, column] = sigma[row, k]
                 all_receivers[n, column] = receivers[group[row], k]
-    return _fit_models(echo_transmitter, all_receivers, all_paths, all_sigma, echo_facing, True)
+    return _decide(*_fit_models(echo_transmitter, all_receivers, all_paths, all_sigma, echo_facing, True), z)
 
 
 @kernel
