@@ -129,17 +129,18 @@ _MARKER_TAIL = _marker_tail()
 
 _NO_COLOURS = np.empty((0, 4), dtype=np.float32)
 _NO_COLOURS.flags.writeable = False
+_NO_POINTS = np.empty((0, 2))
+_NO_POINTS.flags.writeable = False
 
 
 def _coloured(landmark_class: int, confidence: np.ndarray, repeat: int) -> tuple[tuple, np.ndarray]:
-    """Colour by class, alpha by confidence: the marker's colour, and per-point colours where alphas differ."""
+    """Colour by class, alpha by confidences (one or more): the marker colour, per-point colours if alphas differ."""
     r, g, b = CLASS_COLOURS[landmark_class]
-    if confidence.size == 0:
-        return (r, g, b, 1.0), _NO_COLOURS
-    alpha = MIN_ALPHA + (1.0 - MIN_ALPHA) * np.minimum(np.maximum(confidence, 0.0), 1.0)
+    clipped = confidence.clip(0.0, 1.0)
+    if clipped.min() == clipped.max():  # one alpha for all (False with NaN, which then shows per point)
+        return (r, g, b, float(MIN_ALPHA + (1.0 - MIN_ALPHA) * clipped[0])), _NO_COLOURS
+    alpha = MIN_ALPHA + (1.0 - MIN_ALPHA) * clipped
     colour = (r, g, b, float(alpha[0]))
-    if bool((alpha == alpha[0]).all()):
-        return colour, _NO_COLOURS
     per_point = np.repeat(alpha, repeat)
     return colour, np.column_stack([np.full((per_point.size, 3), (r, g, b)), per_point]).astype(np.float32)
 
@@ -167,15 +168,15 @@ def landmark_markers(landmarks: Landmarks, namespace: str, lifetime: float, poin
     bounds = shown[order].searchsorted(np.arange(len(CLASS_NAMES) + 1)).tolist()
     for code, name in enumerate(CLASS_NAMES):
         rows = order[bounds[code]:bounds[code + 1]]
-        if code == PLANE:
-            colour, colours = _coloured(code, landmarks.confidence[rows], 2)
-            ends = plane_segments(landmarks, min_plane_length).take(rows, axis=0) if rows.size else np.empty((0, 2, 2))
-            markers.append(MarkerParts(f"{namespace}/{name}", Marker.LINE_LIST, (line_width, 0.0, 0.0), colour,
-                                       ends.reshape(-1, 2), colours, lifetime))
+        kind, scale, repeat = ((Marker.LINE_LIST, (line_width, 0.0, 0.0), 2) if code == PLANE
+                               else (Marker.POINTS, (point_size, point_size, 0.0), 1))
+        if not rows.size:  # as most classes in most pings: no numpy
+            colour, colours, points = (*CLASS_COLOURS[code], 1.0), _NO_COLOURS, _NO_POINTS
         else:
-            colour, colours = _coloured(code, landmarks.confidence[rows], 1)
-            markers.append(MarkerParts(f"{namespace}/{name}", Marker.POINTS, (point_size, point_size, 0.0), colour,
-                                       landmarks.position.take(rows, axis=0), colours, lifetime))
+            colour, colours = _coloured(code, landmarks.confidence[rows], repeat)
+            points = (plane_segments(landmarks, min_plane_length).take(rows, axis=0).reshape(-1, 2) if code == PLANE
+                      else landmarks.position.take(rows, axis=0))
+        markers.append(MarkerParts(f"{namespace}/{name}", kind, scale, colour, points, colours, lifetime))
     return markers
 
 
