@@ -124,10 +124,8 @@ def _positive_number(name: str, value) -> float:
     """
     number = value
     if not isinstance(value, float | int):
-        try:
-            number = float(value) if np.ndim(value) == 0 else math.nan
-        except (TypeError, ValueError):
-            number = math.nan
+        numeric = isinstance(value, np.generic | np.ndarray) and value.ndim == 0 and value.dtype.kind in "biuf"
+        number = float(value) if numeric else math.nan
     if not (math.isfinite(number) and number > 0):
         raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
     return float(number)
@@ -965,8 +963,10 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
 
     plan = layout.plan
     # Through the module: a kernel imported by name stays the wrapper that compiles at first use.
-    horizontal = localise.horizontal_rows(paths.ravel(), _row_height_offsets(plan.height_offset, group))[0].reshape(
-        paths.shape)
+    height_offsets, outside = _row_height_offsets(plan.height_offset, group)
+    if outside >= 0:
+        raise ValueError(f"group indices must be in [0, {layout.n_groups}), got {group[outside]} in row {outside}")
+    horizontal = localise.horizontal_rows(paths.ravel(), height_offsets)[0].reshape(paths.shape)
     return ConsistencyResult(*_ring_tests(ping.astype(np.int64), group, paths, horizontal,
                                           plan.receivers, plan.transmitters, plan.facing,
                                           _ring_slots(plan.yaw.tobytes(), float(layout.beam_half_angle)),
@@ -978,17 +978,17 @@ def _row_height_offsets(height_offset, group):
     """Each echo's transmitter-minus-receiver heights, ``height_offset[group, 0]`` flattened (N K,), m.
 
     ``height_offset`` (G, M, K) as :attr:`sonar_ring.geometry.Layout.plan` holds
-    it, ``group`` (N,); a group outside ``[0, G)`` raises ``ValueError`` (compiled
-    indexing does not check bounds).
+    it, ``group`` (N,).  Also returns the first row whose group is outside
+    ``[0, G)`` (checked here: compiled indexing does not check bounds), or -1.
     """
     n_groups, n_receivers = height_offset.shape[0], height_offset.shape[2]
     offsets = np.empty(group.size * n_receivers)
     for n in range(group.size):
         if not 0 <= group[n] < n_groups:
-            raise ValueError("ring_consistency: a group index is outside the layout's groups")
+            return offsets, n
         for k in range(n_receivers):
             offsets[n * n_receivers + k] = height_offset[group[n], 0, k]
-    return offsets
+    return offsets, -1
 
 
 @functools.lru_cache(maxsize=16)

@@ -470,14 +470,14 @@ def test_error_handling():
         classify.ring_consistency(load_layout("barshan_kuc_pair"), [0], np.ones((1, 2)), SIGMA_PATH)
     ring_layout = load_layout("browne_ring")
     for group in (48, -1):
-        with pytest.raises(ValueError, match="group"):
+        with pytest.raises(ValueError, match=rf"group indices must be in \[0, 48\), got {group} in row 1"):
             classify.ring_consistency(ring_layout, [0, group], np.ones((2, 2)), SIGMA_PATH)
     for sigma_path in (np.nan, -SIGMA_PATH, "wide", [SIGMA_PATH, SIGMA_PATH]):
         with pytest.raises(ValueError, match="sigma_path must be a finite number > 0"):
             classify.ring_consistency(ring_layout, [0], np.ones((1, 2)), sigma_path)
     with pytest.raises(ValueError, match="paths"):
         classify.ring_consistency(ring_layout, [0], np.ones((1, 3)), SIGMA_PATH)
-    for z in (0.0, np.nan, [3.5, 3.5]):
+    for z in (0.0, np.nan, [3.5, 3.5], "3.5", None, np.array("3.5"), 3.5j):
         with pytest.raises(ValueError, match="z must"):
             classify.ring_consistency(ring_layout, [0], np.ones((1, 2)), SIGMA_PATH, z=z)
 

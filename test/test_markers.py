@@ -125,6 +125,17 @@ def test_points_keep_their_float64_positions():
                     rtol=0, atol=0)
 
 
+def test_alpha_is_per_point_only_where_the_alphas_differ():
+    """Confidences that differ can round to one float32 alpha: one colour then, as for equal ones."""
+    for confidence, per_point in (([0.99999994, 0.9999999], False), ([0.0, 1e-9], False), ([0.2, 0.9], True),
+                                  ([0.5, np.nan], True)):
+        landmarks = make_landmarks([EDGE, EDGE], [[1.0, 0.0], [2.0, 0.0]], confidence=confidence)
+        edges = landmark_markers(landmarks, "landmarks", lifetime=0.0)[EDGE]
+        alpha = MIN_ALPHA + (1.0 - MIN_ALPHA) * np.clip(np.float32(confidence), 0.0, 1.0)
+        assert len(edges.colors) == (2 if per_point else 0)
+        assert edges.color[3] == float(alpha[0])
+
+
 def test_error_handling():
     fine = {"ns": "x", "type": Marker.POINTS, "scale": (0.1, 0.1, 0.0), "color": (1.0, 1.0, 1.0, 1.0),
             "points": np.zeros((2, 2)), "colors": np.empty((0, 4))}

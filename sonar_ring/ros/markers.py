@@ -136,11 +136,10 @@ _NO_POINTS.flags.writeable = False
 def _coloured(landmark_class: int, confidence: np.ndarray, repeat: int) -> tuple[tuple, np.ndarray]:
     """Colour by class, alpha by confidences (one or more): the marker colour, per-point colours if alphas differ."""
     r, g, b = CLASS_COLOURS[landmark_class]
-    clipped = confidence.clip(0.0, 1.0)
-    if clipped.min() == clipped.max():  # one alpha for all (False with NaN, which then shows per point)
-        return (r, g, b, float(MIN_ALPHA + (1.0 - MIN_ALPHA) * clipped[0])), _NO_COLOURS
-    alpha = MIN_ALPHA + (1.0 - MIN_ALPHA) * clipped
+    alpha = MIN_ALPHA + (1.0 - MIN_ALPHA) * confidence.clip(0.0, 1.0)
     colour = (r, g, b, float(alpha[0]))
+    if alpha.min() == alpha.max():  # one alpha for all (False with NaN, which then shows per point)
+        return colour, _NO_COLOURS
     per_point = np.repeat(alpha, repeat)
     return colour, np.column_stack([np.full((per_point.size, 3), (r, g, b)), per_point]).astype(np.float32)
 
