@@ -13,7 +13,6 @@ from collections import OrderedDict
 
 import numpy as np
 from rclpy.qos import qos_profile_sensor_data
-from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
 from sonar_ring import classify, pipeline
@@ -22,7 +21,7 @@ from sonar_ring.echoes import load_kernels as load_screening_kernels
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import EDGE, Landmarks
 from sonar_ring.msg import Echoes, LandmarkArray
-from sonar_ring.ros.convert import MessageError, landmarks_from_msg, serialize_landmarks
+from sonar_ring.ros.convert import AnyHeader, MessageError, landmarks_from_msg, serialize_landmarks
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, check_echoes, take_echoes
 from sonar_ring.ros.localiser import settings_from
@@ -82,7 +81,7 @@ class Classifier(SonarNode):
         if self._gates["raw"].admit(msg.header, info):
             self._arrived("raw", msg.header, msg)
 
-    def _arrived(self, kind: str, header: Header, value) -> None:
+    def _arrived(self, kind: str, header: AnyHeader, value) -> None:
         key = (header.stamp.sec, header.stamp.nanosec, header.frame_id)
         halves = self._pending.setdefault(key, {})
         halves[kind] = value
@@ -93,7 +92,7 @@ class Classifier(SonarNode):
             _, dropped = self._pending.popitem(last=False)
             self.health.problem("unpaired_" + "_".join(sorted(dropped)), "no matching ping arrived")
 
-    def _classify(self, header: Header, echoes: EchoArrays, raw_msg: LandmarkArray) -> None:
+    def _classify(self, header: AnyHeader, echoes: EchoArrays, raw_msg: LandmarkArray) -> None:
         started = time.perf_counter()
         self.health.received()
         echoes = check_echoes(header, echoes, self.layout, self.health)
@@ -110,7 +109,7 @@ class Classifier(SonarNode):
                                 int(np.count_nonzero(stray)))
         self._label(header, echoes, hypotheses, started)
 
-    def on_ping(self, header: Header, echoes: EchoArrays, hypotheses: Landmarks) -> None:
+    def on_ping(self, header: AnyHeader, echoes: EchoArrays, hypotheses: Landmarks) -> None:
         """A ping from the localiser in this process: its echoes' header, screened arrays and hypotheses.
 
         The hypotheses may include invalid ones: :func:`sonar_ring.pipeline.classify_ping`

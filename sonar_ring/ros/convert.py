@@ -51,7 +51,11 @@ class MessageHeader(NamedTuple):
     frame_id: str
 
 
-def header_message(header) -> Header:
+AnyHeader = Header | MessageHeader
+"""A header as the nodes pass it on: a message's, or one read from a serialized message; read alike."""
+
+
+def header_message(header: AnyHeader) -> Header:
     """``header`` (a ``std_msgs/Header`` or a :class:`MessageHeader`) as a ``std_msgs/Header`` message."""
     if isinstance(header, Header):
         return header
@@ -161,7 +165,7 @@ class CdrReader:
         return text
 
     def header(self) -> MessageHeader:
-        """A ``std_msgs/Header``."""
+        """A ``std_msgs/Header``, as a :class:`MessageHeader`."""
         sec, nanosec = self.unpack("iI", align=4)
         return MessageHeader(Stamp(sec, nanosec), self.string())
 
@@ -188,7 +192,7 @@ each is the :class:`~sonar_ring.landmarks.Landmarks` attribute of the same name,
 
 
 def serialize_landmarks(landmarks: Landmarks, header) -> bytes:
-    """A serialized ``sonar_ring/LandmarkArray`` of ``landmarks`` with ``header`` (``std_msgs/Header``).
+    """A serialized ``sonar_ring/LandmarkArray`` of ``landmarks`` with ``header`` (:data:`AnyHeader`).
 
     The message :func:`landmarks_to_msg` builds, as ``rclpy.serialization.serialize_message``
     writes it (same fields when decoded); publishers take it as it is.

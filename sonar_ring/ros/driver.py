@@ -31,7 +31,7 @@ from sonar_ring.geometry import load_layout, speed_of_sound
 from sonar_ring.landmarks import make_landmarks
 from sonar_ring.msg import Echoes
 from sonar_ring.msg import LandmarkArray as LandmarkArrayMsg
-from sonar_ring.ros.convert import MessageHeader, as_message_types, echoes_to_msg, landmarks_to_msg
+from sonar_ring.ros.convert import AnyHeader, MessageHeader, as_message_types, echoes_to_msg, landmarks_to_msg
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import FUTURE_TOLERANCE, InputGate, screened, take_echoes
 from sonar_ring.ros.node import SonarNode
@@ -213,7 +213,7 @@ class Driver(SonarNode):
 
     # ------------------------------------------------------------------ output
 
-    def _publish(self, echoes: EchoArrays, header: Header) -> float:
+    def _publish(self, echoes: EchoArrays, header: AnyHeader) -> float:
         """Screen a ping (:func:`sonar_ring.echoes.screen_ping`) and publish what is usable of it.
 
         Returns the seconds the nodes that follow this one in this process took.
@@ -248,7 +248,7 @@ class Driver(SonarNode):
         super().destroy_node()
 
 
-def usable_echoes(echoes: EchoArrays, layout, health, header: Header, speed_of_sound: float) -> EchoArrays | None:
+def usable_echoes(echoes: EchoArrays, layout, health, header: AnyHeader, speed_of_sound: float) -> EchoArrays | None:
     """What the driver publishes of a ping, or None when nothing of it is usable.
 
     ``speed_of_sound`` (m/s) where the source gave none, then screened

@@ -36,10 +36,9 @@ from collections import OrderedDict
 from collections.abc import Callable
 
 from rclpy.node import Node
-from std_msgs.msg import Header
 
 from sonar_ring.echoes import EchoArrays, screen_ping
-from sonar_ring.ros.convert import MessageError, echoes_from_cdr
+from sonar_ring.ros.convert import AnyHeader, MessageError, MessageHeader, echoes_from_cdr
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.params import Param
 
@@ -51,7 +50,7 @@ PUBLISHERS_TRACKED = 16
 
 
 def stamp_ns(header) -> int:
-    """A ``std_msgs/Header`` stamp in integer nanoseconds."""
+    """A header's stamp (:data:`~sonar_ring.ros.convert.AnyHeader`) in integer nanoseconds."""
     return header.stamp.sec * 10**9 + header.stamp.nanosec
 
 
@@ -148,7 +147,7 @@ class InputGate:
                                  "than this node works", count=sequence - last - 1)
 
 
-def take_echoes(data: bytes, info, gate: InputGate, health: NodeHealth) -> tuple[Header, EchoArrays] | None:
+def take_echoes(data: bytes, info, gate: InputGate, health: NodeHealth) -> tuple[MessageHeader, EchoArrays] | None:
     """A serialized Echoes message decoded and admitted by ``gate``, or None after counting why not.
 
     ``info`` is the message's ``MessageInfo`` (or None); the messages lost before
@@ -163,7 +162,7 @@ def take_echoes(data: bytes, info, gate: InputGate, health: NodeHealth) -> tuple
     return (header, echoes) if gate.admit(header, info) else None
 
 
-def check_echoes(header: Header, echoes: EchoArrays, layout, health: NodeHealth) -> EchoArrays | None:
+def check_echoes(header: AnyHeader, echoes: EchoArrays, layout, health: NodeHealth) -> EchoArrays | None:
     """The usable part of a decoded Echoes ping (:func:`take_echoes`), or None after counting why nothing is.
 
     A ping of another layout (``layout_mismatch``) or that the layout cannot
@@ -178,7 +177,7 @@ def check_echoes(header: Header, echoes: EchoArrays, layout, health: NodeHealth)
     return screened(echoes, layout, health, header)
 
 
-def screened(echoes: EchoArrays, layout, health: NodeHealth, header) -> EchoArrays | None:
+def screened(echoes: EchoArrays, layout, health: NodeHealth, header: AnyHeader) -> EchoArrays | None:
     """:func:`sonar_ring.echoes.screen_ping` with its rejections counted on ``health``, the ping named by ``header``."""
     result = screen_ping(echoes, layout)
     for reason, count in result.problems.items():

@@ -13,14 +13,13 @@ import time
 import numpy as np
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.subscription import MessageInfo
-from std_msgs.msg import Header
 
 from sonar_ring import localise, pipeline
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.echoes import load_kernels as load_screening_kernels
 from sonar_ring.geometry import load_layout
 from sonar_ring.msg import Echoes, LandmarkArray
-from sonar_ring.ros.convert import serialize_landmarks
+from sonar_ring.ros.convert import AnyHeader, serialize_landmarks
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, check_echoes, take_echoes
 from sonar_ring.ros.node import SonarNode
@@ -97,14 +96,14 @@ class Localiser(SonarNode):
         if usable is not None:
             self._localise(header, usable, started)
 
-    def on_ping(self, header: Header, echoes: EchoArrays) -> None:
+    def on_ping(self, header: AnyHeader, echoes: EchoArrays) -> None:
         """A ping from the driver in this process: the header it publishes and the screened arrays."""
         started = time.perf_counter()
         self.health.received()
         if self._gate.admit(header):
             self._localise(header, echoes, started)
 
-    def _localise(self, header: Header, echoes: EchoArrays, started: float) -> None:
+    def _localise(self, header: AnyHeader, echoes: EchoArrays, started: float) -> None:
         hypotheses = pipeline.localise_ping(self.layout, echoes, self.settings)
         # The labelled landmarks, not these hypotheses, are what a ping is for: in one process they go first.
         # The classifier labels from the valid ones only, so the invalid ones need not be taken out first.

@@ -31,7 +31,7 @@ from visualization_msgs.msg import MarkerArray
 from sonar_ring.landmarks import Landmarks
 from sonar_ring.mapping import LandmarkMap, Sightings, load_kernels, transform_landmarks
 from sonar_ring.msg import LandmarkArray
-from sonar_ring.ros.convert import MessageError, landmarks_from_msg, serialize_landmarks
+from sonar_ring.ros.convert import AnyHeader, MessageError, landmarks_from_msg, serialize_landmarks
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, stamp_ns
 from sonar_ring.ros.markers import covariance_ellipses, landmark_markers, serialize_markers
@@ -243,7 +243,7 @@ class Mapper(SonarNode):
             return
         self._place(stamp_ns(msg.header), landmarks)
 
-    def on_ping(self, header: Header, landmarks: Landmarks) -> None:
+    def on_ping(self, header: AnyHeader, landmarks: Landmarks) -> None:
         """A ping's labelled landmarks from the classifier in this process: their header and arrays."""
         self.health.received()
         if self._landmarks_gate.admit(header):
