@@ -79,7 +79,7 @@ class MarkerParts:
 
 
 def serialize_markers(markers: list[MarkerParts], header) -> bytes:
-    """A serialized ``visualization_msgs/MarkerArray`` of ``markers``, all with ``header`` (a message header or a decoded one).
+    """A serialized ``visualization_msgs/MarkerArray`` of ``markers``, all with ``header`` (message or decoded).
 
     The message ``rclpy.serialization.serialize_message`` gives for the same
     MarkerArray built from message objects: same length, same fields when
