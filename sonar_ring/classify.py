@@ -1041,6 +1041,7 @@ def _ring_tests(ping, group, paths, horizontal, receivers, transmitters, facing,
     echo_transmitter = np.empty((n_echoes, 2))
     echo_facing = np.empty((n_echoes, 2))
     joined = np.empty(n_slots, dtype=np.int64)
+    spacing = np.empty((n_receivers, n_receivers))  # |R_i - R_k| between the echo's group and a slot's
     for n in range(n_echoes):
         echo_transmitter[n] = transmitters[group[n], 0]
         echo_facing[n] = facing[group[n]]
@@ -1054,13 +1055,17 @@ def _ring_tests(ping, group, paths, horizontal, receivers, transmitters, facing,
             target = slots[group[n], slot]
             if target < 0:
                 continue
+            for i in range(n_receivers):
+                for j in range(n_receivers):
+                    dx = receivers[group[n], i, 0] - receivers[target, j, 0]
+                    dy = receivers[group[n], i, 1] - receivers[target, j, 1]
+                    spacing[i, j] = np.sqrt(dx * dx + dy * dy)
             wanted = ping[n] * n_groups + target
             passing = 0
             for index in range(np.searchsorted(sorted_key, wanted, side="left"),
                                np.searchsorted(sorted_key, wanted, side="right")):
                 other = order[index]
-                if other != n and not overfull[other] and _passes_gate(n, other, horizontal, sigma, receivers,
-                                                                        group, z):
+                if other != n and not overfull[other] and _passes_gate(n, other, horizontal, sigma, spacing, z):
                     passing += 1
                     joined[slot] = other
             if slot == 0 and passing > 0:
@@ -1083,11 +1088,12 @@ def _ring_tests(ping, group, paths, horizontal, receivers, transmitters, facing,
 
 
 @kernel
-def _passes_gate(n, other, horizontal, sigma, receivers, group, z):
+def _passes_gate(n, other, horizontal, sigma, spacing, z):
     """Whether echoes ``n`` and ``other`` were both heard and fit one reflector.
 
     Every pair of receivers that heard them must satisfy the triangle inequality
-    ``|h_i - h_k| <= |R_i - R_k| + z sqrt(sigma_i^2 + sigma_k^2)``.
+    ``|h_i - h_k| <= |R_i - R_k| + z sqrt(sigma_i^2 + sigma_k^2)``; ``spacing``
+    (K, K) holds ``|R_i - R_k|``, m, between their groups' receivers.
     """
     n_receivers = horizontal.shape[1]
     heard = False
@@ -1100,9 +1106,7 @@ def _passes_gate(n, other, horizontal, sigma, receivers, group, z):
             if not np.isfinite(theirs):
                 continue
             heard = True
-            dx = receivers[group[n], i, 0] - receivers[group[other], j, 0]
-            dy = receivers[group[n], i, 1] - receivers[group[other], j, 1]
             noise = np.sqrt(sigma[n, i] ** 2 + sigma[other, j] ** 2)
-            if not (np.sqrt(dx * dx + dy * dy) + z * noise - abs(own - theirs) >= 0.0):
+            if not (spacing[i, j] + z * noise - abs(own - theirs) >= 0.0):
                 return False
     return heard
