@@ -101,10 +101,13 @@ def serialize_markers(markers: list[MarkerParts], header) -> bytes:
         cdr.pack("10d", 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0, *marker.scale, align=8)
         whole = int(marker.lifetime)
         cdr.pack("4fiI?", *marker.color, whole, int(round((marker.lifetime - whole) * 1e9)), False, align=4)
-        xyz = np.zeros((len(marker.points), 3))
-        xyz[:, :2] = marker.points
-        cdr.array(xyz, 8)
-        cdr.array(np.asarray(marker.colors, dtype=np.float32).reshape(-1, 4), 4)
+        # An empty sequence is its length alone: no numpy for the empty markers of most pings.
+        points, colors = marker.points, marker.colors
+        if len(points):
+            points = np.zeros((len(points), 3))
+            points[:, :2] = marker.points
+        cdr.array(points, 8)
+        cdr.array(np.asarray(colors, dtype=np.float32).reshape(-1, 4) if len(colors) else colors, 4)
         cdr.buffer += _MARKER_TAIL
     return bytes(cdr.buffer)
 
