@@ -207,11 +207,7 @@ def screen_ping(echoes: EchoArrays, layout) -> Screened:
                                 np.asarray(echoes.transmitter).astype(np.int64), tof, phase_delay, layout.n_groups,
                                 np.ascontiguousarray(layout.group_transmitters, dtype=np.int64), longest_tof(layout))
     problems = {reason: n for reason, n in zip(SCREEN_PROBLEMS, counts.tolist(), strict=True) if n}
-    if any(reason in problems for reason in ROW_DROPS):
-        kept = EchoArrays(layout=layout.name, speed_of_sound=speed, group=echoes.group[keep],
-                          transmitter=echoes.transmitter[keep], tof=tof[keep], amplitude=echoes.amplitude[keep],
-                          phase_delay=phase_delay[keep])
-    else:  # every row kept, as in most pings: no gather
-        kept = EchoArrays(layout=layout.name, speed_of_sound=speed, group=echoes.group,
-                          transmitter=echoes.transmitter, tof=tof, amplitude=echoes.amplitude, phase_delay=phase_delay)
-    return Screened(kept, problems)
+    rows = (echoes.group, echoes.transmitter, tof, echoes.amplitude, phase_delay)
+    if any(reason in problems for reason in ROW_DROPS):  # else every row is kept, as in most pings: no gather
+        rows = tuple(array[keep] for array in rows)
+    return Screened(EchoArrays(layout.name, speed, *rows), problems)
