@@ -101,13 +101,12 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
         for index in np.unique(lost // count):
             entries = lost[lost // count == index]
             rows = entries - index * count
-            transducers = (layout.transmitters[echoes.transmitter[rows], :2],
-                           layout.receivers[layout.groups[echoes.group[rows], 0], :2],
-                           layout.receivers[layout.groups[echoes.group[rows], 1], :2])
+            receivers = layout.group_receivers()[echoes.group[rows], :, :2]
             estimate = localise.PointEstimate(hypotheses.position[entries], np.ones(rows.size, dtype=bool),
                                               hypotheses.reason[entries], settings.models[index])
-            hypotheses.covariance[entries] = localise.position_covariance(estimate, *transducers,
-                                                                          covariance_paths[rows])
+            hypotheses.covariance[entries] = localise.position_covariance(
+                estimate, layout.transmitters[echoes.transmitter[rows], :2], receivers[:, 0], receivers[:, 1],
+                covariance_paths[rows])
     return hypotheses
 
 
