@@ -53,3 +53,20 @@ def test_quick_report_has_every_row_the_targets_and_the_plots(tmp_path):
     assert "an old table" not in updated
     assert updated.startswith("# Project\n\n" + TABLE_BEGIN) and updated.endswith(TABLE_END + "\n\n## Next section\n")
     assert tables.strip() in updated
+
+
+def test_graph_targets_are_judged_on_one_cpu_with_any_cpu_beside():
+    from sonar_ring.benchmark.report import _graph_targets
+
+    latency = {"latency_median_ms": 1.6, "latency_p99_ms": 3.9, "rate_hz": 30.0, "pings": 600, "dropped": 0}
+    unpinned = {**latency, "latency_median_ms": 2.06, "latency_p99_ms": 5.1}
+    graph = {**latency, "max_sustained_rate_hz": 300.0, "ladder": [], "cpu": 1, "any_cpu": unpinned}
+    (_, figures, verdict), (_, rate_figures, rate_verdict) = _graph_targets(graph)
+    assert figures == "on CPU 1 (`cpus:=1`): median 1.60 ms, p99 3.90 ms; on any CPU: median 2.06 ms, p99 5.10 ms"
+    assert verdict == "**met** on one CPU; on any CPU **missed** (median ×1.03, p99 ×1.02 the target)"
+    assert (rate_figures, rate_verdict) == ("on CPU 1 (`cpus:=1`): sustains 300 Hz", "**met**")
+    # A machine that gives the benchmark one CPU: one run, on it, judged as it is.
+    alone = {**graph, "cpu": None, "any_cpu": None, "latency_median_ms": 2.5}
+    (_, figures, verdict), _ = _graph_targets(alone)
+    assert figures == "on any CPU: median 2.50 ms, p99 3.90 ms"
+    assert verdict == "**missed** (median ×1.25, p99 ×0.78 the target)"

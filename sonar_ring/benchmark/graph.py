@@ -9,8 +9,14 @@ wall clock at sending written into its stamp; a ping's
 latency is the time from that stamp until the middleware here received its
 markers (which carry the same stamp), so it includes both DDS hops, the
 graph's executor, the driver's checks, localiser, classifier and the marker
-message, but not this process's own executor.  Needs ROS 2 (rclpy and
-the built ``sonar_ring`` messages).
+message, but not this process's own executor.
+
+The graph runs twice: on one CPU (the last this process may use), as the
+launch file's ``cpus`` argument runs it, for the latency and the rate ladder;
+then on any CPU, as the scheduler places it, for the latency again.  On one
+CPU its middleware threads hand a ping to its executor without waking the
+other core, and no migration leaves its code in the other core's cache.
+Needs ROS 2 (rclpy and the built ``sonar_ring`` messages).
 """
 
 from __future__ import annotations
@@ -86,19 +92,50 @@ def _percentiles(latencies_ms: list[float]) -> tuple[float, float]:
 
 
 def run(quick: bool = False) -> dict:
-    """Start the graph, measure, stop it; return the figures.
+    """Start the graph, measure, stop it -- on one CPU, then on any; return the figures.
 
     Returns
     -------
     dict
+        With the graph on one CPU (``cpu``, its index; None when this process
+        may use only one, and the graph then runs once, unpinned):
         ``latency_median_ms``, ``latency_p99_ms`` (ping -> markers at
         :data:`LATENCY_RATE`), ``rate_hz`` (that rate), ``pings`` (sent at it),
         ``dropped`` (of those, pings whose markers never came),
         ``max_sustained_rate_hz`` (highest rate of the ladder with at least
         :data:`SUSTAINED_SHARE` of pings through; 0 when none), ``ladder``
         (per rate: sent, received, latency median and p99), ``node_latency_ms``
-        (each node's median compute time per message from ``/diagnostics``),
+        (each node's median compute time per message from ``/diagnostics``);
+        ``any_cpu``: the latency figures (the same first five keys) with the
+        graph on any CPU, or None without a second run;
         ``rows_per_ping`` and ``note`` (what was measured).
+    """
+    plan = QUICK if quick else FULL
+    layout = load_layout(LAYOUT)
+    echoes = benchmark_echoes(layout, np.random.default_rng(0))
+    allowed = sorted(os.sched_getaffinity(0))
+    cpu = allowed[-1] if len(allowed) > 1 else None
+    domain = 100 + os.getpid() % 99  # apart from other graphs on this machine; the second run on the next one
+    pinned = _session(echoes, plan, cpu, ladder=True, domain=domain)
+    any_cpu = None
+    if cpu is not None:
+        unpinned = _session(echoes, plan, None, ladder=False, domain=domain + 1)
+        any_cpu = {key: unpinned[key] for key in ("latency_median_ms", "latency_p99_ms", "rate_hz", "pings",
+                                                  "dropped")}
+    placement = f"on CPU {cpu}, then on any CPU" if cpu is not None else "on the one CPU this process may use"
+    return {
+        **pinned, "cpu": cpu, "any_cpu": any_cpu, "rows_per_ping": echoes.n_echoes,
+        "note": (f"{layout.n_groups} pairs x {len(ECHO_RANGES)} pole echoes ({echoes.n_echoes} rows) per ping, "
+                 f"sigma_t {SIGMA_TOF * 1e6:g} us; the graph executable in its own process (source:=topic, fixed "
+                 f"pose), {placement}; latency from the ping's stamp to its markers arriving in another process"),
+    }
+
+
+def _session(echoes: EchoArrays, plan: Plan, cpu: int | None, ladder: bool, domain: int) -> dict:
+    """One run of the graph process, on ``cpu`` (None: any): its latency, and the rate ladder if asked.
+
+    The graph and this process meet in ROS ``domain``.  Returns the keys of
+    :func:`run` up to ``node_latency_ms``.
     """
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -110,12 +147,10 @@ def run(quick: bool = False) -> dict:
     from sonar_ring.msg import Echoes
     from sonar_ring.ros.convert import echoes_to_msg
 
-    plan = QUICK if quick else FULL
-    layout = load_layout(LAYOUT)
-    echoes = benchmark_echoes(layout, np.random.default_rng(0))
-    domain = 100 + os.getpid() % 100  # apart from other graphs on this machine
     environment = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
-    command = [sys.executable, "-c", "from sonar_ring.ros.graph import main; main()", "--ros-args",
+    # Set before rclpy starts: the middleware's threads, made later, inherit it.
+    placement = "" if cpu is None else f"import os; os.sched_setaffinity(0, {{{cpu}}}); "
+    command = [sys.executable, "-c", placement + "from sonar_ring.ros.graph import main; main()", "--ros-args",
                "-p", "source:=topic", "-p", f"layout:={LAYOUT}", "-p", "use_odometry:=false",
                "--log-level", "error"]
     errors = tempfile.TemporaryFile(mode="w+")
@@ -183,14 +218,14 @@ def run(quick: bool = False) -> dict:
         stamps = send(LATENCY_RATE, plan.latency_pings)
         received, latencies = figures(stamps)
         median, p99 = _percentiles(latencies)
-        ladder = []
+        steps = []
         sustained = 0.0
-        for rate in plan.ladder:
+        for rate in plan.ladder if ladder else ():
             sent = send(rate, int(rate * plan.seconds_per_rate))
             through, rate_latencies = figures(sent)
-            ladder.append({"rate_hz": rate, "sent": len(sent), "received": through,
-                           "latency_median_ms": _percentiles(rate_latencies)[0],
-                           "latency_p99_ms": _percentiles(rate_latencies)[1]})
+            steps.append({"rate_hz": rate, "sent": len(sent), "received": through,
+                          "latency_median_ms": _percentiles(rate_latencies)[0],
+                          "latency_p99_ms": _percentiles(rate_latencies)[1]})
             if through < SUSTAINED_SHARE * len(sent):
                 break
             sustained = rate
@@ -202,11 +237,6 @@ def run(quick: bool = False) -> dict:
         except subprocess.TimeoutExpired:
             graph.kill()
         errors.close()
-    return {
-        "latency_median_ms": median, "latency_p99_ms": p99, "rate_hz": LATENCY_RATE, "pings": len(stamps),
-        "dropped": len(stamps) - received, "max_sustained_rate_hz": sustained, "ladder": ladder,
-        "node_latency_ms": node_latency, "rows_per_ping": echoes.n_echoes,
-        "note": (f"{layout.n_groups} pairs x {len(ECHO_RANGES)} pole echoes ({echoes.n_echoes} rows) per ping, "
-                 f"sigma_t {SIGMA_TOF * 1e6:g} us; the graph executable in its own process (source:=topic, fixed "
-                 "pose); latency from the ping's stamp to its markers arriving in another process"),
-    }
+    return {"latency_median_ms": median, "latency_p99_ms": p99, "rate_hz": LATENCY_RATE, "pings": len(stamps),
+            "dropped": len(stamps) - received, "max_sustained_rate_hz": sustained, "ladder": steps,
+            "node_latency_ms": node_latency}

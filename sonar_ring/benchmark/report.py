@@ -191,22 +191,45 @@ def targets(results: Results, seconds: float) -> list[str]:
 
 
 def _graph_targets(graph: dict) -> list[tuple[str, str, str]]:
-    """The running graph's targets (issue #7): latency at the nominal rate and the sustained rate."""
+    """The running graph's targets (issue #7): latency at the nominal rate and the sustained rate.
+
+    Judged with the graph on one CPU, as the launch file's ``cpus`` argument runs
+    it; the latency on any CPU is shown beside it, with its own verdict.
+    """
     if "error" in graph:
         return [("graph: ping → markers median ≤ 2 ms, p99 ≤ 5 ms at 30 Hz; ≥ 300 pings/s sustained",
                  graph["error"], "not measured")]
-    median, p99 = graph["latency_median_ms"], graph["latency_p99_ms"]
     rate = graph["max_sustained_rate_hz"]
-    latency_ok = median <= GRAPH_MEDIAN_TARGET_MS and p99 <= GRAPH_P99_TARGET_MS
+    figures, verdict = f"{_placement(graph)}: {_latency(graph)}", _latency_verdict(graph)
+    if graph.get("any_cpu"):
+        figures += f"; on any CPU: {_latency(graph['any_cpu'])}"
+        verdict += f" on one CPU; on any CPU {_latency_verdict(graph['any_cpu'])}"
     return [
         (f"graph: ping → markers median ≤ {GRAPH_MEDIAN_TARGET_MS:g} ms, p99 ≤ {GRAPH_P99_TARGET_MS:g} ms at "
-         f"{graph['rate_hz']:g} Hz", f"median {median:.2f} ms, p99 {p99:.2f} ms",
-         _met(latency_ok) + ("" if latency_ok else f" (median ×{median / GRAPH_MEDIAN_TARGET_MS:.1f}, "
-                                                   f"p99 ×{p99 / GRAPH_P99_TARGET_MS:.1f} the target)")),
-        (f"graph: ≥ {GRAPH_RATE_TARGET_HZ:g} pings/s sustained", _sustained(graph),
+         f"{graph['rate_hz']:g} Hz", figures, verdict),
+        (f"graph: ≥ {GRAPH_RATE_TARGET_HZ:g} pings/s sustained", f"{_placement(graph)}: {_sustained(graph)}",
          _met(rate >= GRAPH_RATE_TARGET_HZ)
          + ("" if rate >= GRAPH_RATE_TARGET_HZ else f" ({GRAPH_RATE_TARGET_HZ / max(rate, 1):.1f}× short)")),
     ]
+
+
+def _latency_verdict(figures: dict) -> str:
+    """Met or missed, and by how much, for a graph run's latency."""
+    median, p99 = figures["latency_median_ms"], figures["latency_p99_ms"]
+    if median <= GRAPH_MEDIAN_TARGET_MS and p99 <= GRAPH_P99_TARGET_MS:
+        return _met(True)
+    return (_met(False)
+            + f" (median ×{median / GRAPH_MEDIAN_TARGET_MS:.2f}, p99 ×{p99 / GRAPH_P99_TARGET_MS:.2f} the target)")
+
+
+def _latency(figures: dict) -> str:
+    """A graph run's ping -> markers latency: median and p99."""
+    return f"median {figures['latency_median_ms']:.2f} ms, p99 {figures['latency_p99_ms']:.2f} ms"
+
+
+def _placement(graph: dict) -> str:
+    """Where the graph's main run ran: one CPU (``cpus:=N`` of the launch file) or wherever the scheduler chose."""
+    return f"on CPU {graph['cpu']} (`cpus:={graph['cpu']}`)" if graph.get("cpu") is not None else "on any CPU"
 
 
 def _short(name: str) -> str:
@@ -307,10 +330,12 @@ def _summary_rows(results: Results) -> list[tuple]:
     if "error" in graph:
         rows.append(("graph", "ping → markers, 48 pairs × 3 echoes", graph["error"], "—", "—", "—"))
     else:
-        rows.append(("graph", "ping → markers, 48 pairs × 3 echoes", _sustained(graph),
-                     f"latency median {graph['latency_median_ms']:.2f} ms, p99 {graph['latency_p99_ms']:.2f} ms "
-                     f"at {graph['rate_hz']:g} Hz",
-                     "—", f"dropped {graph['dropped']} of {graph['pings']}"))
+        any_cpu = graph.get("any_cpu")
+        rows.append(("graph", "ping → markers, 48 pairs × 3 echoes", f"{_sustained(graph)} {_placement(graph)}",
+                     f"latency {_latency(graph)} at {graph['rate_hz']:g} Hz {_placement(graph)}"
+                     + (f"; {_latency(any_cpu)} on any CPU" if any_cpu else ""),
+                     "—", f"dropped {graph['dropped']} of {graph['pings']}"
+                     + (f" ({any_cpu['dropped']} of {any_cpu['pings']} on any CPU)" if any_cpu else "")))
     return rows
 
 
@@ -407,9 +432,13 @@ def _graph_section(results: Results) -> list[str]:
     if "error" in graph:
         return lines + [f"Graph (ping → markers): {graph['error']}.", ""]
     lines += [f"Graph (ping → markers): {graph['note']}.", "",
-              f"- latency at {graph['rate_hz']:g} Hz over {graph['pings']} pings: median "
-              f"{graph['latency_median_ms']:.2f} ms, p99 {graph['latency_p99_ms']:.2f} ms; dropped {graph['dropped']}",
-              f"- highest sustained ping rate: {_sustained(graph)}"]
+              f"- latency at {graph['rate_hz']:g} Hz over {graph['pings']} pings {_placement(graph)}: "
+              f"{_latency(graph)}; dropped {graph['dropped']}"]
+    if graph.get("any_cpu"):
+        any_cpu = graph["any_cpu"]
+        lines.append(f"- latency at {any_cpu['rate_hz']:g} Hz over {any_cpu['pings']} pings on any CPU: "
+                     f"{_latency(any_cpu)}; dropped {any_cpu['dropped']}")
+    lines.append(f"- highest sustained ping rate {_placement(graph)}: {_sustained(graph)}")
     if graph.get("node_latency_ms"):
         lines.append("- node compute per message (median, /diagnostics): " + ", ".join(
             f"{name} {value:.2f} ms" for name, value in sorted(graph["node_latency_ms"].items())))
