@@ -543,24 +543,26 @@ decision: z = 3 (0.13 %) would allow ~1 % false decisions, z = 3.5 (0.023 %) ~0.
 _GAUSS_NEWTON_STEPS = 5
 """Most iterations of each fit.  The model that fits converges fast (exact echoes quadratically;
 with noise each step is ~100x shorter than the last, so :data:`_CONVERGED` ends it after 2-3), the
-one that does not only slowly, so its chi-square may stay a little above its minimum.  That
-only ever favours the model that fits: a false decision needs the wrong model's chi-square to
-be the smaller, so the error bound of :func:`geometric_consistency` still holds.  (On 620
-simulated room pings, 5 and 8 steps give identical decisions.)"""
+one that does not only slowly, so its chi-square may stay above its minimum.  That only ever
+favours the model that fits (whose chi-square is within about :data:`_CONVERGED` of its
+minimum, either side): a false decision needs the wrong model's chi-square to be the smaller,
+so the error bound of :func:`geometric_consistency` still holds.  (On 620 simulated room
+pings, 5 and 8 steps gave identical decisions.)"""
 
 
 MAX_ECHOES_PER_GROUP = 32
 """Echoes of one group in one ping beyond which :func:`ring_consistency` leaves that group out."""
 
 _CONVERGED = 1e-6
-"""A Gauss-Newton step that lowers the chi-square by less than this ends an echo's fit.
+"""A Gauss-Newton step predicted to lower the chi-square by at most this is an echo's last.
 
-The chi-square decides, so the stop is set on it, not on the position: it is then
-within about 1e-6 x (convergence rate) of its minimum, against a test threshold of
-z^2 >= 1, and the position (after that last step) within micrometres of it at
-sigma_path = 0.34 mm, nanometres when the model fits.  A stop on the step's length
-(1e-13 m before) took every step on noisy echoes, where the fit converges only
-linearly: twice the work for no change in any decision."""
+The chi-square decides, so the stop is set on it, not on the position: a fit converging
+at rate r then ends about 1e-6 r^2 / (1 - r^2) above its minimum (r ~ 0.01 on the ring's
+noisy echoes), against test thresholds of z^2 (z >= 1 by the parameters' range), and
+its point within sqrt(1e-6 / lambda_min) of the minimum's (lambda_min the smallest
+eigenvalue of J^T W J): nanometres to micrometres at sigma_path = 0.34 mm.  A stop on
+the step's length (1e-13 m before) took every step on noisy echoes, where the fit
+converges only linearly: twice the work for no change in any decision."""
 
 
 def geometric_consistency(transmitter, receivers, paths, sigma_path, z=CONSISTENCY_Z,
@@ -815,7 +817,7 @@ def _fit(start, receivers, paths, weight, emitter, edge, steps, converged):
     chi2 = np.empty(n_echoes)
     step = np.zeros(n_echoes, dtype=np.int64)
     active = np.ones(n_echoes, dtype=np.bool_)
-    for _ in range(steps + 1):  # an echo sums at most steps + 1 times: once per step and at its final point
+    for _ in range(steps + 1):  # an echo sums at most steps + 1 times: once per step, and at its last point
         xx[:] = xy[:] = yy[:] = gradient_x[:] = gradient_y[:] = squares[:] = 0.0
         if edge:
             for n in range(n_echoes):  # the emitter's part of the edge's path and Jacobian: once per pass
@@ -855,9 +857,11 @@ def _fit(start, receivers, paths, weight, emitter, edge, steps, converged):
             step_y = (xx[n] * gradient_y[n] - xy[n] * gradient_x[n]) / det
             if not (np.isfinite(step_x) and np.isfinite(step_y)):
                 continue
+            decrease = step_x * gradient_x[n] + step_y * gradient_y[n]  # g^T H^-1 g, the linear model's
+            if not decrease >= 0.0:  # no descent (H indefinite by rounding): the fit stays where it is
+                continue
             x[n], y[n] = x[n] - step_x, y[n] - step_y
             step[n] += 1
-            decrease = step_x * gradient_x[n] + step_y * gradient_y[n]  # g^T H^-1 g >= 0
             if decrease <= converged:
                 chi2[n] = max(squares[n] - decrease, 0.0)
                 continue
