@@ -10,8 +10,11 @@ Node parameters come from config/params/<layout>.yaml unless ``params_file`` nam
 another file; the arguments below override them.
 """
 
-from launch import LaunchDescription
-from launch.actions import DeclareLaunchArgument
+import re
+import shlex
+
+from launch import LaunchContext, LaunchDescription
+from launch.actions import DeclareLaunchArgument, OpaqueFunction
 from launch.conditions import IfCondition, UnlessCondition
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution, PythonExpression
 from launch_ros.actions import Node
@@ -49,23 +52,41 @@ def generate_launch_description() -> LaunchDescription:
         "scene": config["scene"],
     }
     parameters = [params_file, overrides]
-    # taskset first, then any --launch-prefix (gdb, valgrind): what that prefix runs inherits the CPUs.
-    # exec_name: with a prefix, the process would be labelled after its first word (taskset-1).
-    prefix = [PythonExpression(["'taskset -c ", config["cpus"], "' if '", config["cpus"], "' else ''"]), " ",
-              LaunchConfiguration("launch-prefix", default="")]
-    separate = [
-        Node(package="sonar_ring", executable=name, name=name, namespace=config["namespace"],
-             parameters=parameters, output="screen", prefix=prefix, exec_name=name,
-             condition=UnlessCondition(config["single_process"]))
-        for name in NODES
-    ]
-    # No name: a name would rename every node of the process; the parameters go to all of them.
-    together = Node(package="sonar_ring", executable="graph",
-                    namespace=config["namespace"], parameters=parameters, output="screen", prefix=prefix,
-                    exec_name="graph", condition=IfCondition(config["single_process"]))
+
+    def sonar_ring_processes(context: LaunchContext) -> list[Node]:
+        # exec_name: under taskset, a process would be labelled after it (taskset-1).
+        separate = [
+            Node(package="sonar_ring", executable=name, name=name, namespace=config["namespace"],
+                 parameters=parameters, output="screen", prefix=cpu_prefix(context, name), exec_name=name,
+                 condition=UnlessCondition(config["single_process"]))
+            for name in NODES
+        ]
+        # No name: a name would rename every node of the process; the parameters go to all of them.
+        together = Node(package="sonar_ring", executable="graph", namespace=config["namespace"],
+                        parameters=parameters, output="screen", prefix=cpu_prefix(context, "graph"),
+                        exec_name="graph", condition=IfCondition(config["single_process"]))
+        return [*separate, together]
+
     rviz = Node(package="rviz2", executable="rviz2", name="rviz2", namespace=config["namespace"],
                 arguments=["-d", PathJoinSubstitution([share, "config", "sonar_ring.rviz"])],
                 parameters=[{"use_sim_time": overrides["use_sim_time"]}], condition=IfCondition(config["rviz"]))
     declared = [DeclareLaunchArgument(name, default_value=default, description=text)
                 for name, (default, text) in ARGUMENTS.items()]
-    return LaunchDescription([*declared, *separate, together, rviz])
+    return LaunchDescription([*declared, OpaqueFunction(function=sonar_ring_processes), rviz])
+
+
+def cpu_prefix(context: LaunchContext, executable: str) -> str | None:
+    """The process prefix of ``executable``: None (launch's own) without ``cpus``, else ``taskset -c <cpus>``.
+
+    With ``cpus``, ``--launch-prefix`` (gdb, valgrind) follows taskset, so what
+    it runs inherits the CPUs, where ``--launch-prefix-filter`` lets it: a node
+    given its own prefix is no longer filtered by launch itself.
+    """
+    cpus = context.launch_configurations.get("cpus", "")
+    if not cpus:
+        return None
+    prefix = f"taskset -c {shlex.quote(cpus)}"
+    launch_prefix = context.launch_configurations.get("launch-prefix", "")
+    if launch_prefix and re.match(context.launch_configurations.get("launch-prefix-filter", ""), executable):
+        prefix += f" {launch_prefix}"
+    return prefix
