@@ -66,7 +66,22 @@ def test_graph_targets_are_judged_on_one_cpu_with_any_cpu_beside():
     assert verdict == "**met** on one CPU; on any CPU **missed** (median ×1.03, p99 ×1.02 the target)"
     assert (rate_figures, rate_verdict) == ("on CPU 1 (`cpus:=1`): sustains 300 Hz", "**met**")
     # A machine that gives the benchmark one CPU: one run, on it, judged as it is.
-    alone = {**graph, "cpu": None, "any_cpu": None, "latency_median_ms": 2.5}
+    alone = {**graph, "cpu": 0, "any_cpu": None, "latency_median_ms": 2.5}
     (_, figures, verdict), _ = _graph_targets(alone)
-    assert figures == "on any CPU: median 2.50 ms, p99 3.90 ms"
+    assert figures == "on CPU 0 (`cpus:=0`): median 2.50 ms, p99 3.90 ms"
     assert verdict == "**missed** (median ×1.25, p99 ×0.78 the target)"
+    # A failed second run leaves the first one's figures and verdicts.
+    failed = {**graph, "note": "the graph", "node_latency_ms": {},
+              "any_cpu": {"error": "failed: the graph did not start: no output"}}
+    (_, figures, verdict), (_, _, rate_verdict) = _graph_targets(failed)
+    assert figures.endswith("; on any CPU: failed: the graph did not start: no output")
+    assert verdict == "**met** on one CPU; on any CPU not measured" and rate_verdict == "**met**"
+    assert "failed: the graph did not start" in "".join(_graph_section_lines(failed))
+
+
+def _graph_section_lines(graph):
+    from types import SimpleNamespace
+
+    from sonar_ring.benchmark.report import _graph_section
+
+    return _graph_section(SimpleNamespace(graph=graph, pipeline={"error": "not run"}))
