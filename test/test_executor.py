@@ -13,6 +13,7 @@ from rclpy.task import Future
 from ros_harness import spin_until
 from std_msgs.msg import String
 
+from sonar_ring.ros import executor as executor_module
 from sonar_ring.ros.executor import DirectExecutor
 from sonar_ring.ros.node import SonarNode
 
@@ -214,3 +215,26 @@ def test_a_failing_callback_does_not_lose_a_guard_condition_of_the_same_wait(ros
     with pytest.raises(ValueError, match="bad message"):
         spin_until(executor, lambda: False, 2.0)
     assert spin_until(executor, lambda: ran, 2.0)
+
+
+def test_a_take_failing_as_the_context_goes_down_is_a_shutdown(ros, monkeypatch):
+    # Seen once in CI: SIGINT while a subscription was ready, and rclpy's take_message raised
+    # "RuntimeError: Unable to convert call argument '0' to Python object".
+    node = SonarNode("listener")
+    node.create_subscription(String, "chatter", lambda message: None, 10)
+    executor, publisher = _executor_with_talker(node)
+
+    def take_fails(subscription):
+        raise RuntimeError("Unable to convert call argument '0' to Python object")
+
+    monkeypatch.setattr(executor_module, "_call", take_fails)
+    with pytest.raises(RuntimeError, match="Unable to convert"):  # while the context is up: an error
+        _publish_until(executor, publisher, lambda: False)
+
+    def shut_down_then_fail(subscription):
+        rclpy.shutdown()
+        take_fails(subscription)
+
+    monkeypatch.setattr(executor_module, "_call", shut_down_then_fail)
+    with pytest.raises(ExternalShutdownException):
+        _publish_until(executor, publisher, lambda: False)

@@ -46,12 +46,13 @@ class DirectExecutor(SingleThreadedExecutor):
         the timeout (a node, an entity or a task added): :meth:`spin` and loops
         over ``spin_once`` do not tell the difference.  Raises
         :class:`~rclpy.executors.ExternalShutdownException` when the context was
-        shut down from another thread, also while a wait set was being made
-        (rclpy's executor raises an ``RCLError`` there).
+        shut down from another thread or by a signal, also while a wait set was
+        being made (rclpy's executor raises an ``RCLError`` there) or a message
+        taken (rclpy 9 may fail to convert it then).
         """
         try:
             self._spin_once(timeout_sec)
-        except _rclpy.RCLError:
+        except RuntimeError:  # rclpy's RCLError, or a take that failed inside rclpy as the context went down
             if self._context.ok():
                 raise
         if not self._context.ok():
