@@ -613,7 +613,7 @@ def geometric_consistency(transmitter, receivers, paths, sigma_path, z=CONSISTEN
         Decisions, confidences, chi-squares and both fitted positions.  Echoes with
         fewer than three usable receivers are UNKNOWN with zero confidence.
     """
-    _positive_number("z", z)
+    z = _positive_number("z", z)
     receivers = np.asarray(receivers, dtype=float)
     if receivers.ndim != 3 or receivers.shape[-1] != 2:
         raise ValueError(f"receivers must have shape (N, K, 2), got {receivers.shape}")
@@ -632,7 +632,7 @@ def geometric_consistency(transmitter, receivers, paths, sigma_path, z=CONSISTEN
     fits = _fit_models(np.ascontiguousarray(transmitter), np.ascontiguousarray(receivers),
                        np.ascontiguousarray(paths), np.ascontiguousarray(sigma), np.ascontiguousarray(outward),
                        facing is not None)
-    return ConsistencyResult(*_decide(*fits, float(z)))
+    return ConsistencyResult(*_decide(*fits, z))
 
 
 @kernel
@@ -793,10 +793,11 @@ def _fit(start, receivers, paths, weight, emitter, edge, steps, converged):
     ``start`` (N, 2) m; ``receivers`` (N, K, 2) m; ``paths`` (N, K) m; ``weight``
     (N, K), 0 for receivers left out; ``emitter`` (N, 2) m, used for an edge.
     Returns the fitted points (N, 2) and their weighted residual sums of squares (N,).
-    Each echo iterates on its own, up to ``steps`` Gauss-Newton steps or until
-    a step lowers the sum by less than ``converged`` (then the sum is the one the
-    step's linear model predicts, ``S - g^T step``, and no pass is spent on it),
-    so its fit is the same in any batch.
+    Each echo iterates on its own, up to ``steps`` Gauss-Newton steps, until a
+    step predicted to lower the sum by at most ``converged`` (then the sum is the
+    one the step's linear model predicts, ``S - g^T step``, and no pass is spent
+    on it), or until a step would not descend (H indefinite by rounding; it is
+    not taken), so its fit is the same in any batch.
 
     The echoes step in lockstep, each pass summing over the receivers for all
     of them at once: the loop over echoes is then free of dependences and runs
@@ -965,7 +966,7 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
                          f"{layout.group_transmitters.shape[1]} transmitters per group; geometric "
                          "consistency needs one emitter (use the amplitude rule for transducer pairs)")
     sigma_path = _positive_number("sigma_path", sigma_path)
-    _positive_number("z", z)
+    z = _positive_number("z", z)
     group = np.array(group, dtype=np.int64).reshape(-1)  # a copy: writable, one type to numba
     n_echoes, k = group.size, layout.receivers_per_group
     paths = np.array(paths, dtype=float, order="C")  # a copy: writable and contiguous, one type to numba
@@ -983,7 +984,7 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
     horizontal = localise.horizontal_rows(paths.ravel(), height_offsets)[0].reshape(paths.shape)
     slots, spacing = _ring_slots(plan.yaw.tobytes(), float(layout.beam_half_angle), plan.receivers.tobytes())
     return ConsistencyResult(*_ring_tests(ping.astype(np.int64), group, paths, horizontal, plan.receivers,
-                                          plan.transmitters, plan.facing, slots, spacing, sigma_path, float(z),
+                                          plan.transmitters, plan.facing, slots, spacing, sigma_path, z,
                                           MAX_ECHOES_PER_GROUP))
 
 

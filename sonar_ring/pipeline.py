@@ -98,10 +98,11 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
     if lost.size:
         # Near the border of the solvable region (|d2 - d1| close to the baseline) a sigma point can
         # fall outside it while the estimate is valid: first-order covariance there.
+        group_receivers = layout.group_receivers()
         for index in np.unique(lost // count):
             entries = lost[lost // count == index]
             rows = entries - index * count
-            receivers = layout.group_receivers()[echoes.group[rows], :, :2]
+            receivers = group_receivers[echoes.group[rows], :, :2]
             estimate = localise.PointEstimate(hypotheses.position[entries], np.ones(rows.size, dtype=bool),
                                               hypotheses.reason[entries], settings.models[index])
             hypotheses.covariance[entries] = localise.position_covariance(
