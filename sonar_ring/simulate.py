@@ -8,7 +8,11 @@ for every receiver group, every transmitter of the group and every reflector
 that returns an echo, the time of flight at each receiver of the group, the
 amplitude and (for Kreczmer triads) the phase delays; and with every echo the
 ground truth that produced it.  Only the listed reflectors echo: there are no
-higher-order reflections beyond a corner's double bounce.
+higher-order reflections beyond a corner's double bounce.  What a robot measures
+beside that -- multipath, spurious and late echoes, missed echoes, the wrong
+speed of sound, drifting odometry -- is added by :mod:`sonar_ring.realism`, which
+builds on the steps of :meth:`Simulator.ping` (:meth:`~Simulator.place`,
+:meth:`~Simulator.hear`, :meth:`~Simulator.measure`, :meth:`~Simulator.echo_rows`).
 
 Physics, exact for vertically extruded reflectors (horizontal distances are
 taken in the scene's (x, y) plane, ``dz`` is transmitter minus receiver height):
@@ -53,7 +57,7 @@ in the sensor frame (m, s, rad; REP 103).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -73,6 +77,13 @@ from sonar_ring.landmarks import UNKNOWN as UNKNOWN
 
 REFLECTOR_TYPES = {"wall": PLANE, "corner": CORNER, "edge": EDGE}
 """Scene-file reflector ``type`` and the class code of its echoes."""
+
+DIRECT, MULTIPATH, SPURIOUS, LATE = 0, 1, 2, 3
+"""Where an echo row came from (:attr:`Ping.truth_origin`): a reflector of the scene, or none of them --
+a double bounce, clutter, or the previous ping's echo (:mod:`sonar_ring.realism`)."""
+
+ORIGIN_NAMES = ("direct", "multipath", "spurious", "late")
+"""Name of each origin code, indexable by the code."""
 
 DEFAULT_REFLECTIVITY = {"plane": 1.0, "corner": 1.0, "edge": 0.3}
 """Relative echo strength per class; a scene file may override any of them."""
@@ -188,6 +199,10 @@ class Scene:
         Default sensor pose ``(x, y, yaw)``, m and rad.
     trajectory : Trajectory or None
         Robot path for mapping runs, if the scene has one.
+    realism : dict of str to float
+        The scene file's ``realism:`` block: fields of
+        :class:`sonar_ring.realism.Realism` that replace a profile's for this
+        scene (checked by :func:`sonar_ring.realism.profile`).
     """
 
     name: str
@@ -205,6 +220,7 @@ class Scene:
     relative_humidity: float
     sensor_pose: np.ndarray
     trajectory: Trajectory | None
+    realism: dict = field(default_factory=dict)
 
     @property
     def n_reflectors(self) -> int:
@@ -237,7 +253,7 @@ def load_scene(source) -> Scene:
 
 
 _SCENE_KEYS = {"name", "description", "temperature_c", "relative_humidity", "reflectivity",
-               "sensor_pose", "reflectors", "trajectory"}
+               "sensor_pose", "reflectors", "trajectory", "realism"}
 _REFLECTOR_KEYS = {"wall": {"type", "name", "from", "to"},
                    "corner": {"type", "name", "walls"},
                    "edge": {"type", "name", "at"}}
@@ -336,7 +352,15 @@ def _scene_from_mapping(m: dict, where: str) -> Scene:
         relative_humidity=humidity,
         sensor_pose=np.array(pose),
         trajectory=trajectory,
+        realism=_realism_block(m.get("realism", {}), where),
     )
+
+
+def _realism_block(block, where: str) -> dict:
+    """The ``realism:`` block: names to numbers (:func:`sonar_ring.realism.profile` checks names and ranges)."""
+    if not isinstance(block, dict) or not all(isinstance(key, str) for key in block):
+        raise SceneError(f"{where}: field 'realism' must map effect fields to numbers, got {block!r}")
+    return {key: _number(value, where, f"realism.{key}") for key, value in block.items()}
 
 
 def _corners(specs, walls, wall_rows):
@@ -431,10 +455,10 @@ class Noise:
     timer: float = 0.0
 
     def __post_init__(self):
-        for field in ("tof", "amplitude", "phase", "timer"):
-            value = getattr(self, field)
+        for name in ("tof", "amplitude", "phase", "timer"):
+            value = getattr(self, name)
             if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"Noise: field '{field}' must be a finite number >= 0, got {value!r}")
+                raise ValueError(f"Noise: field '{name}' must be a finite number >= 0, got {value!r}")
 
     @property
     def random(self) -> bool:
@@ -480,9 +504,15 @@ class Ping:
         modulo one carrier period ``1 / layout.frequency``, in ``[0, period)``, s.
         NaN where receiver 0 or receiver k did not hear the echo.
     truth_reflector : ndarray of int, shape (N,)
-        Index of the reflector in the scene's ``reflectors`` list.
+        Index of the reflector in the scene's ``reflectors`` list; -1 for an
+        echo of no reflector (``truth_origin`` not :data:`DIRECT`).
     truth_class : ndarray of int, shape (N,)
-        :data:`PLANE`, :data:`CORNER` or :data:`EDGE`.
+        :data:`PLANE`, :data:`CORNER` or :data:`EDGE`; :data:`UNKNOWN` for an
+        echo of no reflector.
+    truth_origin : ndarray of int, shape (N,)
+        :data:`DIRECT` (a reflector of the scene), or what made an echo of no
+        reflector: :data:`MULTIPATH`, :data:`SPURIOUS`, :data:`LATE`
+        (:mod:`sonar_ring.realism`).
     truth_position : ndarray, shape (N, 2)
         The landmark as the localiser defines it, m: for a plane the foot point
         ``G = (T + T') / 2`` of the perpendicular from the transmitter that fired
@@ -492,7 +522,8 @@ class Ping:
         transmitter's side (``(T - T') / |T - T'|``); NaN for corners and edges.
     truth_reflection_point : ndarray, shape (N, K, 2)
         Where the echo heard by receiver k last touched the reflector (the
-        point a receiver "sees"), m; NaN where not heard.
+        point a receiver "sees"), m; NaN where not heard.  Truth positions,
+        normals and reflection points are NaN for an echo of no reflector.
     """
 
     layout: str
@@ -506,6 +537,7 @@ class Ping:
     phase_delay: np.ndarray
     truth_reflector: np.ndarray
     truth_class: np.ndarray
+    truth_origin: np.ndarray
     truth_position: np.ndarray
     truth_normal: np.ndarray
     truth_reflection_point: np.ndarray
@@ -524,7 +556,7 @@ class Ping:
 
 
 PING_ROW_FIELDS = ("group", "transmitter", "tof", "amplitude", "phase_delay", "truth_reflector",
-                   "truth_class", "truth_position", "truth_normal", "truth_reflection_point")
+                   "truth_class", "truth_origin", "truth_position", "truth_normal", "truth_reflection_point")
 """Fields of :class:`Ping` with one entry per echo row."""
 
 
@@ -609,15 +641,41 @@ def _blocked(starts, ends, walls):
 
 
 @dataclass
-class _Paths:
-    """Echo paths of one reflector kind, broadcast over (F, G, M, K).
+class Paths:
+    """Echo paths of one family (a reflector kind, or an effect's), broadcast over (F, G, M, K).
 
-    ``legs`` are (start, end) pairs of horizontal path legs; ``out_point`` is
-    where the transmitted ray first meets the reflector, ``in_point`` where the
-    received ray last left it; truth arrays are (F, G, M, 2).
+    F counts the family's members (reflectors, or an effect's paths), G the
+    receiver groups, M a group's transmitter slots and K its receivers.
+
+    Attributes
+    ----------
+    source : ndarray of int, shape (F,)
+        Row key of each member: the reflector's index in the scene, or an
+        effect's own number (at least the scene's reflector count), so each
+        member's echoes make rows of their own.
+    strength : ndarray, shape (F,)
+        Echo strength of each member before the beam gains, relative to
+        ``A_max`` (a reflector's reflectivity; an effect's product of them and
+        its losses).
+    origin : int
+        :data:`DIRECT` for the scene's reflectors, else the effect's origin code.
+    horizontal : ndarray, shape (F, G, M, K)
+        Horizontal path length transmitter -> member -> receiver, m.
+    exists : ndarray of bool, shape (F, G, M, K)
+        Where the path is geometrically possible.
+    out_point, in_point : ndarray, shape (F, G, M, K, 2) or broadcastable
+        Where the transmitted ray first meets the member and where the received
+        ray last leaves it, world frame, m (beam angles, the truth's reflection point).
+    legs : list of (start, end)
+        Horizontal legs of the path, each end broadcastable to (F, G, M, K, 2);
+        a wall crossing any of them blocks the path.
+    truth_position, truth_normal : ndarray, shape (F, G, M, 2)
+        Ground truth of the landmark the member makes (see :class:`Ping`); NaN for effects.
     """
 
-    reflector: np.ndarray
+    source: np.ndarray
+    strength: np.ndarray
+    origin: int
     horizontal: np.ndarray
     exists: np.ndarray
     out_point: np.ndarray
@@ -627,8 +685,92 @@ class _Paths:
     truth_normal: np.ndarray
 
 
+@dataclass(frozen=True)
+class Placement:
+    """The sensor's transducers in the world frame at one pose (what every path family needs).
+
+    Attributes
+    ----------
+    pose : ndarray, shape (3,)
+        Sensor pose ``(x, y, yaw)``, world frame, m and rad.
+    rotation : ndarray, shape (2, 2)
+        Sensor-to-world rotation by ``yaw``.
+    tx : ndarray, shape (G, M, 2)
+        Each group's transmitters, m.
+    rx : ndarray, shape (G, K, 2)
+        Each group's receivers, m.
+    tx_axis : ndarray, shape (G, M, 1, 2)
+        Unit vectors along the transmitters' axes.
+    rx_axis : ndarray, shape (G, 1, K, 2)
+        Unit vectors along the receivers' axes.
+    """
+
+    pose: np.ndarray
+    rotation: np.ndarray
+    tx: np.ndarray
+    rx: np.ndarray
+    tx_axis: np.ndarray
+    rx_axis: np.ndarray
+
+
+@dataclass(frozen=True)
+class Heard:
+    """Paths a receiver hears (or, after :meth:`Simulator.measure`, reports), one entry per path and receiver.
+
+    Attributes
+    ----------
+    source : ndarray of int, shape (n,)
+        Row key (:attr:`Paths.source`).
+    origin : ndarray of int, shape (n,)
+        :data:`DIRECT`, :data:`MULTIPATH`, :data:`SPURIOUS` or :data:`LATE`.
+    group, slot, receiver : ndarray of int, shape (n,)
+        Receiver group, its transmitter slot and receiver column.
+    path : ndarray, shape (n,)
+        Path length transmitter -> receiver including the height difference, m.
+    amplitude : ndarray, shape (n,)
+        Echo amplitude relative to ``A_max`` (measured: with noise, at least the threshold).
+    in_point : ndarray, shape (n, 2)
+        Where the received ray last left the reflector, world frame, m.
+    truth_position, truth_normal : ndarray, shape (n, 2)
+        The row's ground truth, world frame (NaN for effects).
+    tof, crossing : ndarray, shape (n,)
+        Measured time of flight and rising zero-crossing time, s; NaN until
+        :meth:`Simulator.measure`.
+    """
+
+    source: np.ndarray
+    origin: np.ndarray
+    group: np.ndarray
+    slot: np.ndarray
+    receiver: np.ndarray
+    path: np.ndarray
+    amplitude: np.ndarray
+    in_point: np.ndarray
+    truth_position: np.ndarray
+    truth_normal: np.ndarray
+    tof: np.ndarray
+    crossing: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.source.shape[0])
+
+    def take(self, index) -> Heard:
+        """The entries picked by a boolean mask or an index array."""
+        return Heard(*(getattr(self, f.name)[index] for f in fields(Heard)))
+
+    @staticmethod
+    def concatenate(parts) -> Heard:
+        """The entries of ``parts`` (a non-empty sequence of Heard), in order."""
+        return Heard(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Heard)))
+
+
 class Simulator:
     """Forward model of one sensor layout in one scene.
+
+    :meth:`ping` is four steps, public so that :mod:`sonar_ring.realism` can
+    add paths of its own between them: :meth:`place` the sensor at a pose,
+    :meth:`hear` the scene's reflections (:meth:`reflections`), :meth:`measure`
+    them with noise, and pack them into :meth:`echo_rows`.
 
     Parameters
     ----------
@@ -644,6 +786,10 @@ class Simulator:
     ----------
     half_angle : float
         Gaussian beam half-angle ``theta0`` of the transducers, rad.
+    speed : float
+        Speed of sound in the scene's air, m/s.
+    max_path : float
+        Longest path the receivers report, ``2 * layout.max_range``, m.
     """
 
     def __init__(self, scene: Scene, layout: Layout, threshold: float = DEFAULT_THRESHOLD):
@@ -655,30 +801,36 @@ class Simulator:
         self.speed = scene.speed_of_sound
         self.half_angle = transducer_half_angle(layout, self.speed)
         self.period = 1.0 / layout.frequency
+        self.max_path = 2.0 * layout.max_range
         # Sensor-frame transducers per (group, transmitter slot) and (group, receiver column).
         self._tx = layout.transmitters[layout.group_transmitters]  # (G, M, 3)
         self._tx_yaw = layout.transmitter_yaw[layout.group_transmitters]  # (G, M)
         self._rx = layout.receivers[layout.groups]  # (G, K, 3)
         self._rx_yaw = layout.receiver_yaw[layout.groups]  # (G, K)
         self._dz = layout.height_offset()  # (G, M, K)
-        self._max_path = 2.0 * layout.max_range
         self._triad = layout.kind == "triad"
         s = scene
-        self._wall_start = s.walls[:, 0]
+        self.wall_start = s.walls[:, 0]
         wall_vector = s.walls[:, 1] - s.walls[:, 0]
-        self._wall_length = np.hypot(wall_vector[:, 0], wall_vector[:, 1])
-        self._wall_dir = wall_vector / self._wall_length[:, None]
-        self._wall_normal = np.stack([-self._wall_dir[:, 1], self._wall_dir[:, 0]], axis=-1)
+        self.wall_length = np.hypot(wall_vector[:, 0], wall_vector[:, 1])
+        self.wall_direction = wall_vector / self.wall_length[:, None]
+        self.wall_normal = np.stack([-self.wall_direction[:, 1], self.wall_direction[:, 0]], axis=-1)
         # Reflector index of each row of the walls / corners / edges tables (both in file order).
         self._reflectors = {code: np.flatnonzero(s.reflector_class == code) for code in (PLANE, CORNER, EDGE)}
 
     # ------------------------------------------------------------------ geometry per kind
 
-    def _plane_paths(self, tx, rx) -> _Paths:
-        """Single reflections: image of T in each wall line (shapes in :class:`_Paths`)."""
-        a = self._wall_start[:, None, None, None, :]
-        u = self._wall_dir[:, None, None, None, :]
-        n = self._wall_normal[:, None, None, None, :]
+    def _family(self, code: int) -> dict:
+        """Row keys, strengths and origin of the scene's reflectors of one class (:class:`Paths` fields)."""
+        reflectors = self._reflectors[code]
+        return dict(source=reflectors, strength=self.scene.reflectivity[self.scene.reflector_class[reflectors]],
+                    origin=DIRECT)
+
+    def _plane_paths(self, tx, rx) -> Paths:
+        """Single reflections: image of T in each wall line (shapes in :class:`Paths`)."""
+        a = self.wall_start[:, None, None, None, :]
+        u = self.wall_direction[:, None, None, None, :]
+        n = self.wall_normal[:, None, None, None, :]
         t = tx[None, :, :, None, :]  # (1, G, M, 1, 2)
         r = rx[None, :, None, :, :]  # (1, G, 1, K, 2)
         side_t = _dot(t - a, n)  # (W, G, M, 1)
@@ -691,15 +843,16 @@ class Simulator:
             fraction = side_r / (side_r + side_t)
             point = r + fraction[..., None] * (image - r)  # reflection point, (W, G, M, K, 2)
             along = _dot(point - a, u)
-        length = self._wall_length[:, None, None, None]
+        length = self.wall_length[:, None, None, None]
         exists = same_side & (along >= 0) & (along <= length)
         delta = image - r
         foot = tx[None] - side_t[..., 0, None] * n[:, :, :, 0]  # (W, G, M, 2)
         normal = np.sign(side_t[..., 0, None]) * n[:, :, :, 0]
-        return _Paths(self._reflectors[PLANE], np.hypot(delta[..., 0], delta[..., 1]), exists,
-                      point, point, [(t, point), (point, r)], foot, normal)
+        return Paths(**self._family(PLANE), horizontal=np.hypot(delta[..., 0], delta[..., 1]), exists=exists,
+                     out_point=point, in_point=point, legs=[(t, point), (point, r)], truth_position=foot,
+                     truth_normal=normal)
 
-    def _corner_paths(self, tx, rx) -> _Paths:
+    def _corner_paths(self, tx, rx) -> Paths:
         """Double reflections: image ``2C - T``; reflection points on both arms."""
         s = self.scene
         c = s.corner_point[:, None, None, None, :]
@@ -730,11 +883,12 @@ class Simulator:
         exists = inside & (first <= first_length) & (last <= last_length)
         delta = 2.0 * c - t - r
         vertex = np.broadcast_to(s.corner_point[:, None, None, :], (len(s.corner_point),) + tx.shape)
-        return _Paths(self._reflectors[CORNER], np.hypot(delta[..., 0], delta[..., 1]), exists,
-                      first_point, last_point, [(t, first_point), (first_point, last_point), (last_point, r)],
-                      vertex, np.full(vertex.shape, np.nan))
+        return Paths(**self._family(CORNER), horizontal=np.hypot(delta[..., 0], delta[..., 1]), exists=exists,
+                     out_point=first_point, in_point=last_point,
+                     legs=[(t, first_point), (first_point, last_point), (last_point, r)],
+                     truth_position=vertex, truth_normal=np.full(vertex.shape, np.nan))
 
-    def _edge_paths(self, tx, rx) -> _Paths:
+    def _edge_paths(self, tx, rx) -> Paths:
         """Diffraction at vertical lines: ``|T - P| + |P - R|``."""
         p = self.scene.edges[:, None, None, None, :]
         t = tx[None, :, :, None, :]
@@ -742,8 +896,9 @@ class Simulator:
         out, back = p - t, p - r
         horizontal = np.hypot(out[..., 0], out[..., 1]) + np.hypot(back[..., 0], back[..., 1])
         vertex = np.broadcast_to(self.scene.edges[:, None, None, :], (len(self.scene.edges),) + tx.shape)
-        return _Paths(self._reflectors[EDGE], horizontal, np.ones(horizontal.shape, dtype=bool),
-                      p, p, [(t, p), (p, r)], vertex, np.full(vertex.shape, np.nan))
+        return Paths(**self._family(EDGE), horizontal=horizontal, exists=np.ones(horizontal.shape, dtype=bool),
+                     out_point=p, in_point=p, legs=[(t, p), (p, r)], truth_position=vertex,
+                     truth_normal=np.full(vertex.shape, np.nan))
 
     # ------------------------------------------------------------------ one ping
 
@@ -769,37 +924,60 @@ class Simulator:
         """
         if noise.random and rng is None:
             raise ValueError("Simulator.ping: a numpy.random.Generator 'rng' is needed for noisy pings")
+        placement = self.place(pose)
+        measured = self.measure(self.reflections(placement), noise, rng, self.speed)
+        return self.echo_rows(measured, placement, noise, rng, time, self.speed)
+
+    def place(self, pose) -> Placement:
+        """The sensor's transducers in the world at ``pose`` (x, y, yaw; m, rad).
+
+        Raises
+        ------
+        ValueError
+            If ``pose`` is not three finite numbers.
+        """
         pose = np.asarray(pose, dtype=float)
         if pose.shape != (3,) or not np.all(np.isfinite(pose)):
             raise ValueError(f"Simulator.ping: pose must be finite (x, y, yaw), got {pose!r}")
         cos_yaw, sin_yaw = math.cos(pose[2]), math.sin(pose[2])
         rotation = np.array([[cos_yaw, -sin_yaw], [sin_yaw, cos_yaw]])
-        tx = self._tx[..., :2] @ rotation.T + pose[:2]  # (G, M, 2), world
-        rx = self._rx[..., :2] @ rotation.T + pose[:2]  # (G, K, 2), world
         tx_yaw = self._tx_yaw + pose[2]
         rx_yaw = self._rx_yaw + pose[2]
-        tx_axis = np.stack([np.cos(tx_yaw), np.sin(tx_yaw)], axis=-1)[:, :, None, :]  # (G, M, 1, 2)
-        rx_axis = np.stack([np.cos(rx_yaw), np.sin(rx_yaw)], axis=-1)[:, None, :, :]  # (G, 1, K, 2)
+        return Placement(
+            pose=pose,
+            rotation=rotation,
+            tx=self._tx[..., :2] @ rotation.T + pose[:2],
+            rx=self._rx[..., :2] @ rotation.T + pose[:2],
+            tx_axis=np.stack([np.cos(tx_yaw), np.sin(tx_yaw)], axis=-1)[:, :, None, :],
+            rx_axis=np.stack([np.cos(rx_yaw), np.sin(rx_yaw)], axis=-1)[:, None, :, :],
+        )
 
-        heard = [self._heard(kind(tx, rx), tx, rx, tx_axis, rx_axis)
-                 for code, kind in ((PLANE, self._plane_paths), (CORNER, self._corner_paths),
-                                    (EDGE, self._edge_paths)) if self._reflectors[code].size]
-        columns = {key: np.concatenate([h[key] for h in heard]) for key in heard[0]}
-        return self._assemble(columns, pose, rotation, noise, rng, time)
+    def reflections(self, placement: Placement, max_path: float | None = None) -> Heard:
+        """What the scene's walls, corners and edges return to the sensor at ``placement`` (no noise).
 
-    def _heard(self, paths: _Paths, tx, rx, tx_axis, rx_axis) -> dict:
-        """The (reflector, group, slot, receiver) paths a receiver hears, as flat columns.
-
-        Keeps paths that exist geometrically, fit the receive window, leave a
-        directional transmitter and reach the receiver within the acceptance
-        half-angle, and are not blocked by a wall.
+        ``max_path`` (m) is the receive window, default :attr:`max_path`.
         """
+        kinds = ((PLANE, self._plane_paths), (CORNER, self._corner_paths), (EDGE, self._edge_paths))
+        return Heard.concatenate([self.hear(kind(placement.tx, placement.rx), placement, max_path)
+                                  for code, kind in kinds if self._reflectors[code].size])
+
+    def hear(self, paths: Paths, placement: Placement, max_path: float | None = None) -> Heard:
+        """The (member, group, slot, receiver) paths a receiver hears, as flat columns.
+
+        Keeps paths that exist geometrically, fit the receive window
+        (``max_path``, m; default :attr:`max_path`), leave a directional
+        transmitter and reach the receiver within the acceptance half-angle, and
+        are not blocked by a wall.  Amplitudes are the member's strength times
+        Barshan & Kuc's transmit and receive gains.
+        """
+        tx, rx = placement.tx, placement.rx
         shape = paths.horizontal.shape
         acceptance = self.layout.beam_half_angle
         path = np.sqrt(paths.horizontal ** 2 + self._dz ** 2)
         in_point = np.broadcast_to(paths.in_point, shape + (2,))
-        receive_angle = _angle_off_axis(in_point - rx[None, :, None, :, :], rx_axis)
-        candidate = paths.exists & (path <= self._max_path) & (np.abs(receive_angle) <= acceptance)
+        receive_angle = _angle_off_axis(in_point - rx[None, :, None, :, :], placement.rx_axis)
+        window = self.max_path if max_path is None else max_path
+        candidate = paths.exists & (path <= window) & (np.abs(receive_angle) <= acceptance)
         if self.layout.isotropic_emitter:
             transmit_angle = np.zeros(shape)
         else:
@@ -807,7 +985,7 @@ class Simulator:
             # the same beam limits what it sends, which keeps A_ab' = A_ba' (reciprocity)
             # and puts the beam edge where Barshan & Kuc's eq 27 has it.
             out_point = np.broadcast_to(paths.out_point, shape + (2,))
-            transmit_angle = _angle_off_axis(out_point - tx[None, :, :, None, :], tx_axis)
+            transmit_angle = _angle_off_axis(out_point - tx[None, :, :, None, :], placement.tx_axis)
             candidate &= np.abs(transmit_angle) <= acceptance
         index = np.nonzero(candidate)
         if self.scene.walls.size and index[0].size:
@@ -818,50 +996,74 @@ class Simulator:
         f, g, m, k = index
         # Barshan & Kuc eqs 3-4: the product of the transmit and receive Gaussian gains.
         gain = np.exp(-2.0 * (transmit_angle[index] ** 2 + receive_angle[index] ** 2) / self.half_angle ** 2)
-        reflector = paths.reflector[f]
-        return dict(
-            reflector=reflector,
+        unmeasured = np.full(f.size, np.nan)
+        return Heard(
+            source=paths.source[f],
+            origin=np.full(f.size, paths.origin),
             group=g,
             slot=m,
             receiver=k,
             path=path[index],
-            amplitude=self.scene.reflectivity[self.scene.reflector_class[reflector]] * gain,
+            amplitude=paths.strength[f] * gain,
             in_point=in_point[index],
             truth_position=paths.truth_position[f, g, m],
             truth_normal=paths.truth_normal[f, g, m],
+            tof=unmeasured,
+            crossing=unmeasured,
         )
 
-    def _assemble(self, c: dict, pose, rotation, noise: Noise, rng, time: float) -> Ping:
-        """Add noise, apply the threshold and pack the heard paths into echo rows."""
-        K = self.layout.receivers_per_group
-        amplitude = c["amplitude"]
+    def measure(self, heard: Heard, noise: Noise, rng, speed: float) -> Heard:
+        """What the receivers report of ``heard``: amplitude noise, the threshold, times of flight.
+
+        Amplitudes get Gaussian noise and those below the threshold are dropped;
+        the others' arrival is ``path / speed`` (``speed`` of the air the echoes
+        travelled in, m/s), reported with Gaussian TOF noise (``tof``) and
+        zero-crossing jitter (``crossing``).  Random numbers come from ``rng``
+        in a fixed order, so a path family measured with its own generator
+        leaves the others' values unchanged.
+        """
+        amplitude = heard.amplitude
         if noise.amplitude:
             amplitude = amplitude + rng.normal(0.0, noise.amplitude, amplitude.shape)
         keep = amplitude >= self.threshold
-        c = {key: value[keep] for key, value in c.items()}
-        amplitude = amplitude[keep]
-        arrival = c["path"] / self.speed
+        kept = heard.take(keep)
+        arrival = kept.path / speed
         tof = arrival + rng.normal(0.0, noise.tof, arrival.shape) if noise.tof else arrival
-        zero_crossing = arrival + rng.normal(0.0, noise.phase, arrival.shape) if noise.phase else arrival
+        crossing = arrival + rng.normal(0.0, noise.phase, arrival.shape) if noise.phase else arrival
+        return replace(kept, amplitude=amplitude[keep], tof=tof, crossing=crossing)
 
-        # One row per (reflector, group, transmitter slot); receivers are its columns.
+    def echo_rows(self, c: Heard, placement: Placement, noise: Noise, rng, time: float,
+                  speed_of_sound: float) -> Ping:
+        """Pack measured paths into echo rows: one per (source, group, transmitter slot), receivers as columns.
+
+        ``speed_of_sound`` (m/s) is what the ping reports; a timer (``noise.timer``)
+        draws its clock's phase from ``rng``.
+        """
+        K = self.layout.receivers_per_group
+        pose = placement.pose
+        # One row per (source, group, transmitter slot); receivers are its columns.
         n_slots = self._tx.shape[1]
-        key = (c["reflector"] * self.layout.n_groups + c["group"]) * n_slots + c["slot"]
+        key = (c.source * self.layout.n_groups + c.group) * n_slots + c.slot
         row_key, row = np.unique(key, return_inverse=True)
         N = row_key.size
         tof_table = np.full((N, K), np.nan)
-        tof_table[row, c["receiver"]] = tof
+        tof_table[row, c.receiver] = c.tof
         amplitude_table = np.full((N, K), np.nan)
-        amplitude_table[row, c["receiver"]] = amplitude
+        amplitude_table[row, c.receiver] = c.amplitude
         crossing_table = np.full((N, K), np.nan)
-        crossing_table[row, c["receiver"]] = zero_crossing
+        crossing_table[row, c.receiver] = c.crossing
         point_table = np.full((N, K, 2), np.nan)
-        point_table[row, c["receiver"]] = c["in_point"]
+        point_table[row, c.receiver] = c.in_point
         first = np.empty(N, dtype=int)
-        first[row] = np.arange(row.size)  # any path of a row: they share reflector, group, slot and truth
-        reflector = c["reflector"][first]
-        group = c["group"][first]
-        transmitter = self.layout.group_transmitters[group, c["slot"][first]]
+        first[row] = np.arange(row.size)  # any path of a row: they share source, group, slot and truth
+        source = c.source[first]
+        origin = c.origin[first]
+        group = c.group[first]
+        transmitter = self.layout.group_transmitters[group, c.slot[first]]
+        direct = origin == DIRECT
+        reflector = np.where(direct, source, -1)
+        truth_class = np.where(direct, self.scene.reflector_class[np.where(direct, source, 0)], UNKNOWN)
+        point_table[~direct] = np.nan
 
         if noise.timer:
             clock = rng.uniform(0.0, noise.timer)  # the counter clock's phase at this ping
@@ -876,7 +1078,7 @@ class Simulator:
             phase = np.empty((N, 0))
 
         order = np.lexsort((np.nanmin(tof_table, axis=1), transmitter, group))
-        to_sensor = rotation  # row vectors times R == R.T applied to column vectors
+        to_sensor = placement.rotation  # row vectors times R == R.T applied to column vectors
 
         def sensor_frame(points):
             return (points - pose[:2]) @ to_sensor
@@ -885,16 +1087,17 @@ class Simulator:
             layout=self.layout.name,
             time=float(time),
             pose=pose.copy(),
-            speed_of_sound=self.speed,
+            speed_of_sound=float(speed_of_sound),
             group=group[order],
             transmitter=transmitter[order],
             tof=tof_table[order],
             amplitude=amplitude_table[order],
             phase_delay=phase[order],
             truth_reflector=reflector[order],
-            truth_class=self.scene.reflector_class[reflector][order],
-            truth_position=sensor_frame(c["truth_position"][first])[order],
-            truth_normal=(c["truth_normal"][first] @ to_sensor)[order],
+            truth_class=truth_class[order],
+            truth_origin=origin[order],
+            truth_position=sensor_frame(c.truth_position[first])[order],
+            truth_normal=(c.truth_normal[first] @ to_sensor)[order],
             truth_reflection_point=sensor_frame(point_table)[order],
         )
 
