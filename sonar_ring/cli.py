@@ -5,7 +5,8 @@ its arguments and sets ``handler`` to ``_run_<name>(args) -> int``.  Add a
 subcommand by writing such a pair and listing the ``_add_`` function in
 :data:`SUBCOMMANDS`.
 
-``sonar-ring simulate SCENE`` runs the scene simulator (:mod:`sonar_ring.simulate`)
+``sonar-ring simulate SCENE`` runs the scene simulator (:mod:`sonar_ring.simulate`,
+with the realistic world's effects of :mod:`sonar_ring.realism` on request)
 and writes the pings as ``.npz`` or ``.json`` (format in :func:`write_pings`)
 and, on request, a PNG picture.  ``sonar-ring process IN_BAG OUT_BAG`` and
 ``sonar-ring record-sim SCENE OUT_BAG`` work on rosbag2 files
@@ -24,13 +25,15 @@ from pathlib import Path
 import numpy as np
 
 from sonar_ring.geometry import LayoutError, load_layout
+from sonar_ring.realism import PROFILES, RANGES, World, scene_realism
 from sonar_ring.simulate import (
     CLASS_NAMES,
     DEFAULT_THRESHOLD,
+    DIRECT,
+    ORIGIN_NAMES,
     PING_ROW_FIELDS,
     Noise,
     SceneError,
-    Simulator,
     load_scene,
     stack_pings,
 )
@@ -75,7 +78,30 @@ def _add_simulate(subparsers) -> None:
                    help="timer tick that times are truncated to, s (e.g. 0.33e-6; default: 0, off)")
     p.add_argument("--threshold", type=float, default=DEFAULT_THRESHOLD, metavar="A",
                    help=f"detection threshold relative to A_max (default: {DEFAULT_THRESHOLD:.4f}, -30 dB)")
+    _add_world_options(p, default="ideal")
     p.set_defaults(handler=_run_simulate)
+
+
+def _add_world_options(p, default: str) -> None:
+    """``--world`` and ``--realism``: the realistic world's effects (:mod:`sonar_ring.realism`)."""
+    p.add_argument("--world", choices=tuple(PROFILES), default=default,
+                   help=f"the world's effects: ideal (the forward model) or realistic (drifting odometry, "
+                        f"missed, spurious, multipath and late echoes, the air's speed of sound) (default: {default})")
+    p.add_argument("--realism", action="append", type=realism_field, default=[], metavar="FIELD=VALUE",
+                   help="replace one field of the world's profile, e.g. multipath_gain=0 to switch multipath off; "
+                        "repeat for several (fields: " + ", ".join(RANGES) + ")")
+
+
+def realism_field(text: str) -> tuple[str, float]:
+    """``FIELD=NUMBER`` of ``--realism`` as ``(field, number)`` (the field is checked by :mod:`sonar_ring.realism`)."""
+    name, equals, value = text.partition("=")
+    try:
+        number = float(value)
+    except ValueError:
+        number = None
+    if not equals or number is None:
+        raise argparse.ArgumentTypeError(f"must be FIELD=NUMBER, got {text!r}")
+    return name.strip(), number
 
 
 def _run_simulate(args) -> int:
@@ -91,12 +117,14 @@ def _run_simulate(args) -> int:
         pose = scene.sensor_pose if args.pose is None else np.array([*args.pose[:2], math.radians(args.pose[2])])
         times, poses = np.zeros(1), pose[None, :]
     noise = Noise(tof=args.sigma_t, amplitude=args.sigma_a, phase=args.sigma_phase, timer=args.timer)
-    simulator = Simulator(scene, layout, threshold=args.threshold)
-    pings = simulator.run(poses, times, noise=noise, rng=np.random.default_rng(args.seed))
+    world = World(scene, layout, scene_realism(scene, args.world, dict(args.realism), where="--realism"),
+                  noise=noise, seed=args.seed, threshold=args.threshold)
+    pings = [world.ping(pose, time) for pose, time in zip(poses, times, strict=True)]
+    odometry = np.array([world.odometry_pose(pose) for pose in poses])
 
-    _print_summary(scene, layout, pings)
+    _print_summary(scene, layout, pings, args.world)
     if args.out is not None:
-        write_pings(args.out, pings, scene=scene.name, layout=layout.name)
+        write_pings(args.out, pings, scene=scene.name, layout=layout.name, world=args.world, odometry=odometry)
         print(f"wrote {args.out}")
     if args.png is not None:
         from sonar_ring import plot  # matplotlib only when a picture is asked for
@@ -106,11 +134,14 @@ def _run_simulate(args) -> int:
     return 0
 
 
-def _print_summary(scene, layout, pings) -> None:
-    classes = np.concatenate([p.truth_class for p in pings])
+def _print_summary(scene, layout, pings, world: str) -> None:
+    classes = np.concatenate([p.truth_class[p.truth_origin == DIRECT] for p in pings])
+    origins = np.concatenate([p.truth_origin for p in pings])
     counts = ", ".join(f"{CLASS_NAMES[c]} {np.count_nonzero(classes == c)}" for c in np.unique(classes))
-    print(f"{scene.name} / {layout.name}: {len(pings)} ping(s), {classes.size} echoes ({counts or 'none'}), "
-          f"c = {pings[0].speed_of_sound:.2f} m/s")
+    others = ", ".join(f"{ORIGIN_NAMES[o]} {np.count_nonzero(origins == o)}" for o in np.unique(origins) if o != DIRECT)
+    others = f", of no reflector: {others}" if others else ""
+    print(f"{scene.name} / {layout.name} ({world} world): {len(pings)} ping(s), {origins.size} echoes "
+          f"({counts or 'none'}{others}), c = {pings[0].speed_of_sound:.2f} m/s")
     if len(pings) != 1:
         return
     ping = pings[0]
@@ -121,25 +152,31 @@ def _print_summary(scene, layout, pings) -> None:
     for n in range(ping.n_echoes):
         tofs = " ".join(f"{t * 1e3:10.5f}" for t in ping.tof[n])
         amplitudes = " ".join(f"{a:6.3f}" for a in ping.amplitude[n])
-        print(f"{ping.group[n]:5d} {ping.transmitter[n]:3d} {scene.reflector_names[ping.truth_reflector[n]]:<14} "
+        source = scene.reflector_names[ping.truth_reflector[n]] if ping.truth_origin[n] == DIRECT else \
+            f"({ORIGIN_NAMES[ping.truth_origin[n]]})"
+        print(f"{ping.group[n]:5d} {ping.transmitter[n]:3d} {source:<14} "
               f"{CLASS_NAMES[ping.truth_class[n]]:<7} {tofs} {amplitudes}")
 
 
-def write_pings(path, pings, *, scene: str, layout: str) -> Path:
+def write_pings(path, pings, *, scene: str, layout: str, world: str, odometry) -> Path:
     """Write simulated pings as ``.npz`` or ``.json``.
 
     Both hold ``format`` (:data:`OUTPUT_FORMAT`), ``scene``, ``layout``,
-    ``receivers_per_group`` (K) and ``class_names`` (index = class code).
+    ``world`` (the profile), ``receivers_per_group`` (K), ``class_names``
+    (index = class code) and ``origin_names`` (index = ``truth_origin`` code).
 
     * ``.npz``: the rows of all pings stacked (:func:`sonar_ring.simulate.stack_pings`):
       ``ping`` (N,), ``group`` (N,), ``transmitter`` (N,), ``tof`` (N, K) s,
       ``amplitude`` (N, K), ``phase_delay`` (N, K-1 or 0) s, ``truth_reflector``
-      (N,), ``truth_class`` (N,), ``truth_position`` (N, 2) m, ``truth_normal``
-      (N, 2), ``truth_reflection_point`` (N, K, 2) m, and per ping ``time`` (P,) s,
-      ``pose`` (P, 3) world x, y (m), yaw (rad), ``speed_of_sound`` (P,) m/s.
-      NaN marks a receiver that did not hear an echo.
+      (N,; -1 for no reflector), ``truth_class`` (N,), ``truth_origin`` (N,),
+      ``truth_position`` (N, 2) m, ``truth_normal`` (N, 2),
+      ``truth_reflection_point`` (N, K, 2) m, and per ping ``time`` (P,) s,
+      ``pose`` (P, 3) world x, y (m), yaw (rad), ``odometry`` (P, 3) what the
+      wheel odometry reported (``odom``), ``speed_of_sound`` (P,) m/s.  NaN
+      marks a receiver that did not hear an echo.
     * ``.json``: ``pings``, a list with, per ping, ``time``, ``pose``,
-      ``speed_of_sound`` and the same row fields as nested lists; NaN is ``null``.
+      ``odometry``, ``speed_of_sound`` and the same row fields as nested lists;
+      NaN is ``null``.
 
     Returns
     -------
@@ -147,17 +184,20 @@ def write_pings(path, pings, *, scene: str, layout: str) -> Path:
         The file written.
     """
     path = Path(path)
-    header = dict(format=OUTPUT_FORMAT, scene=scene, layout=layout,
-                  receivers_per_group=int(pings[0].tof.shape[1]), class_names=list(CLASS_NAMES))
+    header = dict(format=OUTPUT_FORMAT, scene=scene, layout=layout, world=world,
+                  receivers_per_group=int(pings[0].tof.shape[1]), class_names=list(CLASS_NAMES),
+                  origin_names=list(ORIGIN_NAMES))
+    odometry = np.asarray(odometry, dtype=float).reshape(-1, 3)
     if path.suffix == ".npz":
-        np.savez_compressed(path, **header, **stack_pings(pings))
+        np.savez_compressed(path, **header, **stack_pings(pings), odometry=odometry)
     elif path.suffix == ".json":
         def plain(array):
             array = np.asarray(array)
             return np.where(np.isnan(array), None, array).tolist() if array.dtype.kind == "f" else array.tolist()
 
-        records = [dict(time=p.time, pose=plain(p.pose), speed_of_sound=p.speed_of_sound,
-                        **{name: plain(getattr(p, name)) for name in PING_ROW_FIELDS}) for p in pings]
+        records = [dict(time=p.time, pose=plain(p.pose), odometry=plain(o), speed_of_sound=p.speed_of_sound,
+                        **{name: plain(getattr(p, name)) for name in PING_ROW_FIELDS})
+                   for p, o in zip(pings, odometry, strict=True)]
         path.write_text(json.dumps(dict(header, pings=records)))
     else:
         raise ValueError(f"write_pings: {str(path)!r} must end in .npz or .json")
@@ -258,6 +298,7 @@ def _add_record_sim(subparsers) -> None:
                    help="amplitude noise standard deviation relative to A_max (default: 0.02)")
     p.add_argument("--no-range", action="store_true",
                    help="leave out /range/group_NN (a sensor_msgs/Range topic per group)")
+    _add_world_options(p, default="realistic")
     _add_output_options(p)
     p.set_defaults(handler=_run_record_sim)
 
@@ -265,9 +306,11 @@ def _add_record_sim(subparsers) -> None:
 def _run_record_sim(args) -> int:
     offline = _offline()
     report = offline.record_sim(args.scene, args.out_bag, layout=args.layout, laps=args.laps, pings=args.pings,
-                                seed=args.seed, sigma_t=args.sigma_t, sigma_a=args.sigma_a,
-                                with_range=not args.no_range, storage=args.storage, progress=not args.quiet)
-    print(f"recorded {report.pings} pings ({report.data_seconds:.1f} s of data) in {report.seconds:.2f} s")
+                                seed=args.seed, sigma_t=args.sigma_t, sigma_a=args.sigma_a, world=args.world,
+                                realism=dict(args.realism), with_range=not args.no_range, storage=args.storage,
+                                progress=not args.quiet)
+    print(f"recorded {report.pings} pings ({report.data_seconds:.1f} s of data, {args.world} world) in "
+          f"{report.seconds:.2f} s")
     if report.problems:
         print("  refused: " + ", ".join(f"{n} {reason}" for reason, n in sorted(report.problems.items())))
     print(f"wrote {offline.describe(args.out_bag)}")

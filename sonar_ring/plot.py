@@ -180,8 +180,13 @@ def visible_magnification(covariance, extent: float, sigma: float = 2.0, share: 
     return float(max(step * decade for step in (1.0, 2.0, 5.0) if step * decade <= wanted))
 
 
-def save_map_png(path, scene: Scene, robot_path, landmarks: Landmarks, title: str) -> Path:
-    """Draw the true scene, the robot's path and an estimated map into a PNG file.
+PATH_STYLES = ({"color": "dimgrey", "linestyle": "--"}, {"color": "tab:orange", "linestyle": "-"},
+               {"color": "tab:purple", "linestyle": "-"})
+"""Line styles of the robot paths :func:`save_map_png` draws, in order (the truth first)."""
+
+
+def save_map_png(path, scene: Scene, paths: dict, landmarks: Landmarks, title: str) -> Path:
+    """Draw the true scene, robot paths and an estimated map into a PNG file.
 
     Parameters
     ----------
@@ -189,10 +194,12 @@ def save_map_png(path, scene: Scene, robot_path, landmarks: Landmarks, title: st
         The PNG to write.
     scene : Scene
         The truth: walls, corners, edges (world frame).
-    robot_path : array_like, shape (P, 2) or (P, 3)
-        Robot positions (x, y, [yaw]) in the world frame, m.
+    paths : dict of str to array_like, shape (P, 2) or (P, 3)
+        Robot positions (x, y, [yaw]) in the world frame, m, by legend label:
+        the true path first, then estimates (the odometry, ...), in the styles
+        of :data:`PATH_STYLES`.
     landmarks : Landmarks
-        The map, world (``odom``) frame.
+        The map, world frame.
     title : str
         Figure title.
 
@@ -203,11 +210,12 @@ def save_map_png(path, scene: Scene, robot_path, landmarks: Landmarks, title: st
     """
     figure, ax = _world_figure((8.8, 6.0), dpi=100)
     draw_scene(ax, scene, prefix="true ")
-    robot_path = np.asarray(robot_path, dtype=float)
-    ax.plot(robot_path[:, 0], robot_path[:, 1], color="dimgrey", linestyle="--", linewidth=1.0, label="robot path")
-    ax.plot(*robot_path[0, :2], marker="o", color="dimgrey", linestyle="none", label="start")
+    drawn = [np.asarray(robot_path, dtype=float) for robot_path in paths.values()]
+    for (label, robot_path), style in zip(zip(paths, drawn, strict=True), PATH_STYLES, strict=False):
+        ax.plot(robot_path[:, 0], robot_path[:, 1], linewidth=1.0, label=label, **style)
+    ax.plot(*drawn[0][0, :2], marker="o", color="dimgrey", linestyle="none", label="start")
     points = landmarks.select(landmarks.valid & (landmarks.landmark_class != PLANE))
-    extent = float(np.ptp(np.concatenate([scene.walls.reshape(-1, 2), robot_path[:, :2]]), axis=0).max())
+    extent = float(np.ptp(np.concatenate([scene.walls.reshape(-1, 2), *(p[:, :2] for p in drawn)]), axis=0).max())
     draw_map(ax, landmarks, magnify=visible_magnification(points.covariance, extent))
     _legend(ax, loc="upper left", bbox_to_anchor=(1.02, 1.0))
     ax.autoscale_view()

@@ -136,7 +136,7 @@ class Realism:
     late_echoes: float = 0.0
 
     def __post_init__(self):
-        for name, (low, high) in _RANGES.items():
+        for name, (low, high) in RANGES.items():
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int | float) or not (low <= value <= high):
                 raise ValueError(f"Realism: field '{name}' must be a number in [{low:g}, {high:g}], got {value!r}")
@@ -161,7 +161,22 @@ class Realism:
                        track_width=self.track_width)
 
 
-_RANGES = {
+DESCRIPTIONS = {
+    "odometry_scale_error": "relative error of the distance the wheels report (0.01: 1 % too far)",
+    "odometry_distance_noise": "distance noise of the wheel odometry, m per sqrt(m) rolled",
+    "odometry_heading_noise": "heading noise of the wheel odometry, rad per sqrt(m) rolled",
+    "odometry_heading_bias": "heading the wheel odometry gains per metre driven, rad/m",
+    "track_width": "distance between the wheels, m (a turn on the spot rolls them)",
+    "temperature_offset": "true air temperature minus the assumed (the scene's), K",
+    "temperature_drift": "change of the true air temperature, K/min",
+    "fading_db": "log-normal fading of echo amplitudes, dB (misses near the threshold)",
+    "spurious_rate": "phantom echoes (clutter) per receiver group and ping",
+    "multipath_gain": "amplitude of second-order reflections relative to their reflectivities' product",
+    "late_echoes": "1: an echo arriving after the next ping fired is heard by that ping",
+}
+"""One line per field, with its unit: the driver's parameter descriptions and the command line's help."""
+
+RANGES = {
     "odometry_scale_error": (-0.5, 0.5),
     "odometry_distance_noise": (0.0, 1.0),
     "odometry_heading_noise": (0.0, 1.0),
@@ -258,9 +273,9 @@ def scene_realism(scene: Scene, name: str, overrides=None, where: str = "realism
 
 def _replaced(realism: Realism, overrides, where: str) -> Realism:
     overrides = dict(overrides or {})
-    unknown = sorted(set(overrides) - set(_RANGES))
+    unknown = sorted(set(overrides) - set(RANGES))
     if unknown:
-        raise SceneError(f"{where}: unknown field '{unknown[0]}' (expected some of {sorted(_RANGES)})")
+        raise SceneError(f"{where}: unknown field '{unknown[0]}' (expected some of {sorted(RANGES)})")
     try:
         return replace(realism, **{key: _number(value) for key, value in overrides.items()})
     except ValueError as error:

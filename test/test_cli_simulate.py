@@ -27,8 +27,25 @@ def test_npz_output_holds_the_simulators_ping_with_its_header(tmp_path, capsys):
         assert_allclose(data["pose"], [[0.0, 0.0, 0.0]])
         assert_allclose(data["speed_of_sound"], [expected.speed_of_sound])
     printed = capsys.readouterr().out
-    assert "single_wall / browne_ring: 1 ping(s), 3 echoes (plane 3)" in printed
+    assert "single_wall / browne_ring (ideal world): 1 ping(s), 3 echoes (plane 3)" in printed
     assert printed.count(" wall ") == 3  # one table line per echo
+
+
+def test_the_realistic_world_and_single_effects(tmp_path, capsys):
+    out = tmp_path / "room.npz"
+    assert main(["simulate", "room", "--trajectory", "--world", "realistic", "--realism", "multipath_gain=0",
+                 "--out", str(out)]) == 0
+    with np.load(out) as data:
+        assert str(data["world"]) == "realistic"
+        origins = set(data["truth_origin"].tolist())
+        assert 1 not in origins and 2 in origins  # no multipath, clutter
+        drift = np.hypot(*(data["odometry"][-1, :2] - data["pose"][-1, :2]))
+        assert drift > 0.01  # the wheel odometry drifted
+    assert "of no reflector: spurious" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        build_parser().parse_args(["simulate", "room", "--realism", "fading_db"])
+    assert main(["simulate", "room", "--realism", "fading=1"]) == 1
+    assert "--realism: unknown field 'fading'" in capsys.readouterr().err
 
 
 def test_json_output_and_pose_in_degrees(tmp_path):

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from nav_msgs.msg import Odometry
 from numpy.testing import assert_array_equal
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.rosbag2 import Reader
@@ -80,12 +81,18 @@ def test_record_sim_writes_the_drivers_topics_on_trajectory_time(sim_bag):
     types, messages = read_bag(sim_bag)
     ranges = {f"/range/group_{group:02d}": "sensor_msgs/msg/Range" for group in range(48)}
     assert types == {"/echoes": "sonar_ring/msg/Echoes", "/odom": "nav_msgs/msg/Odometry",
-                     "/truth": "sonar_ring/msg/LandmarkArray", **ranges}
+                     "/truth/pose": "nav_msgs/msg/Odometry", "/truth": "sonar_ring/msg/LandmarkArray", **ranges}
     times = [t for t, _ in messages["/echoes"]]
     assert len(times) == PINGS
     assert times[0] == SIM_START_NS
     assert np.allclose(np.diff(times), 1e9 / 30.0, atol=1)  # browne_ring pings at 30 Hz
-    assert all([t for t, _ in messages[topic]] == times for topic in [*ranges, "/odom", "/truth"])
+    assert all([t for t, _ in messages[topic]] == times for topic in [*ranges, "/odom", "/truth/pose", "/truth"])
+    # The realistic world by default: the odometry drifts away from the true pose, which starts it.
+    odometry, true_pose = ([deserialize_message(data, Odometry).pose.pose.position for _, data in messages[topic]]
+                           for topic in ("/odom", "/truth/pose"))
+    assert (odometry[0].x, odometry[0].y) == (true_pose[0].x, true_pose[0].y)
+    assert (odometry[-1].x, odometry[-1].y) != (true_pose[-1].x, true_pose[-1].y)
+    assert deserialize_message(messages["/truth/pose"][0][1], Odometry).header.frame_id == "world"
     first = deserialize_message(messages["/echoes"][0][1], Echoes)
     assert first.header.frame_id == "sonar_ring" and first.layout == "browne_ring"
     assert first.header.stamp.sec * 10**9 + first.header.stamp.nanosec == SIM_START_NS
@@ -112,7 +119,8 @@ def test_process_of_a_simulated_bag_finds_the_true_reflectors(sim_bag, tmp_path,
     errors = []
     for stamp, message in landmarks.items():
         found, true = landmarks_from_msg(message), landmarks_from_msg(truth[stamp])
-        errors.append(np.linalg.norm(found.position - true.position[found.echo], axis=1))
+        real = true.valid[found.echo]  # not multipath, clutter or a late echo
+        errors.append(np.linalg.norm(found.position[real] - true.position[found.echo[real]], axis=1))
     assert np.median(np.concatenate(errors)) < 0.05
     final_map = deserialize_message(messages["/map/landmarks"][-1][1], LandmarkArray)
     assert final_map.header.frame_id == "odom" and len(landmarks_from_msg(final_map)) >= 5

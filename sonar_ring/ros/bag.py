@@ -63,6 +63,7 @@ class Topic:
 GRAPH_TOPICS = (
     Topic("echoes", Echoes, qos_profile_sensor_data),
     Topic("odom", Odometry, RELIABLE),
+    Topic("truth/pose", Odometry, RELIABLE),
     Topic("truth", LandmarkArray, RELIABLE),
     Topic("landmarks/raw", LandmarkArray, qos_profile_sensor_data),
     Topic("landmarks", LandmarkArray, qos_profile_sensor_data),

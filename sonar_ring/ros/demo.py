@@ -1,19 +1,25 @@
 """demo: the whole graph on a simulated scene for one lap, recorded, drawn and scored.
 
 Runs driver (simulator source) -> localiser -> classifier -> mapper in one
-process, in real time (the driver pings at the layout's rate), follows the ping
-stream with a progress bar, and leaves in the output folder (``demo_output/``):
+process, in real time (the driver pings at the layout's rate), in the
+``realistic`` world by default (drifting wheel odometry, missed, spurious,
+multipath and late echoes, the air's true speed of sound: :mod:`sonar_ring.realism`;
+``--world ideal`` for the forward model alone), follows the ping stream with a
+progress bar, and leaves in the output folder (``demo_output/``):
 
 * ``bag/`` -- a rosbag2 (MCAP) of every topic of the graph, written from raw
   subscriptions as the messages arrived: for ``ros2 bag play``, Foxglove or
   ``sonar-ring process``;
-* ``map.png`` -- the scene's true walls, corners and edges, the robot's path and
-  the estimated map by class with 2-sigma covariance ellipses;
-* ``summary.txt`` -- what it prints: landmarks per class, classification
-  accuracy of the decided ones and position error against the simulator's
-  ``truth`` topic, per-ping compute time per node, and the map.
+* ``map.png`` -- the scene's true walls, corners and edges, the robot's true
+  path and its odometry, and the estimated map by class with 2-sigma
+  covariance ellipses;
+* ``summary.txt`` -- what it prints: the world, landmarks per class,
+  classification accuracy of the decided ones and position error against the
+  simulator's ``truth`` topic, per-ping compute time per node, the map and its
+  score against the scene (:func:`sonar_ring.score.score_map`), the odometry's error.
 
-    demo [--scene room] [--layout browne_ring] [--laps 1] [--pings N] [--seed 0] [--out demo_output]
+    demo [--scene room] [--layout browne_ring] [--laps 1] [--pings N] [--seed 0] [--world realistic]
+         [--realism FIELD=VALUE ...] [--out demo_output]
 """
 
 from __future__ import annotations
@@ -28,21 +34,27 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
+from nav_msgs.msg import Odometry
 from rclpy.experimental import EventsExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 
+from sonar_ring.cli import realism_field
 from sonar_ring.geometry import load_layout
-from sonar_ring.landmarks import CLASS_NAMES, CORNER, EDGE, PLANE, UNKNOWN
+from sonar_ring.landmarks import CLASS_NAMES, UNKNOWN
 from sonar_ring.msg import LandmarkArray
 from sonar_ring.progress import Progress
+from sonar_ring.realism import PROFILES
 from sonar_ring.ros.bag import BagWriter, absolute, graph_topics
 from sonar_ring.ros.convert import landmarks_from_msg
+from sonar_ring.ros.driver import REALISM_PREFIX
 from sonar_ring.ros.executor import DirectExecutor
 from sonar_ring.ros.graph import NODES, compose
+from sonar_ring.ros.mapper import yaw_of
 from sonar_ring.ros.node import SonarNode
 from sonar_ring.ros.offline import describe
 from sonar_ring.ros.run import CONFIG_ERRORS
+from sonar_ring.score import heard_reflectors, score_map, trajectory_error
 
 RECORDER = "demo_recorder"
 """Node name of the recorder."""
@@ -54,8 +66,6 @@ CONNECT_SECONDS = 10.0
 """Longest wait for the recorder to start and be discovered."""
 DRAIN_SECONDS = 3.0
 """Longest wait, after the last ping, for the nodes downstream to finish it."""
-MATCH_DISTANCE = 0.05
-"""m: a map entry within this of a true reflector of its class counts as right."""
 
 
 def record(bag_path: Path, layout: str, stop) -> None:
@@ -125,17 +135,21 @@ def _stamp_key(msg) -> tuple[int, int]:
     return msg.header.stamp.sec, msg.header.stamp.nanosec
 
 
-def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | None = None) -> dict:
+def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | None = None,
+        world: str = "realistic", realism: dict | None = None) -> dict:
     """Run the graph for ``laps`` of the scene's trajectory (or ``pings`` pings); record into ``out/bag``.
 
-    Returns the summary figures, the map and the robot's path for the picture.
+    ``world`` is the driver's profile and ``realism`` replaces single fields of it.
+    Returns the summary figures, the map and the robot's paths for the picture.
     """
     bag_path = out / "bag"
     if bag_path.exists():
         shutil.rmtree(bag_path)
     out.mkdir(parents=True, exist_ok=True)
     overrides = [Parameter("source", value="simulator"), Parameter("scene", value=scene),
-                 Parameter("layout", value=layout), Parameter("loops", value=laps), Parameter("seed", value=seed)]
+                 Parameter("layout", value=layout), Parameter("loops", value=laps), Parameter("seed", value=seed),
+                 Parameter("world", value=world),
+                 *(Parameter(REALISM_PREFIX + name, value=float(value)) for name, value in (realism or {}).items())]
     recorder = _start_recorder(bag_path, layout)
     rclpy.init()
     try:
@@ -144,10 +158,13 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
         driver, localiser, classifier, mapper = nodes
         total = pings or driver.pings_per_lap * laps
         listener = SonarNode("demo_listener")  # no QoS event handlers: the executor keeps its direct path
-        found, truth = {}, {}
+        found, truth, odometry, true_pose = {}, {}, {}, {}
         listener.create_subscription(LandmarkArray, "landmarks", lambda m: found.__setitem__(_stamp_key(m), m),
                                      qos_profile_sensor_data)
         listener.create_subscription(LandmarkArray, "truth", lambda m: truth.__setitem__(_stamp_key(m), m), 100)
+        listener.create_subscription(Odometry, "odom", lambda m: odometry.__setitem__(_stamp_key(m), _pose(m)), 100)
+        listener.create_subscription(Odometry, "truth/pose", lambda m: true_pose.__setitem__(_stamp_key(m), _pose(m)),
+                                     100)
         executor = DirectExecutor()
         for node in [localiser, classifier, mapper, listener]:
             executor.add_node(node)
@@ -177,13 +194,18 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
         figures = _score(found, truth)
         latency = {node.get_name(): float(np.median(node.health.latencies())) * 1e3 for node in nodes}
         snapshot = mapper.map.snapshot(min_observations=mapper.params["min_observations"])
-        robot_path = np.tile(driver.scene.trajectory.poses(driver.layout.ping_rate)[1], (laps, 1))[:total] \
-            if driver.scene.trajectory is not None else driver.scene.sensor_pose[None, :]
+        stamps = sorted(set(odometry) & set(true_pose))
+        paths = {"true path": np.array([true_pose[k] for k in stamps]).reshape(-1, 3),
+                 "odometry": np.array([odometry[k] for k in stamps]).reshape(-1, 3)}
+        heard = heard_reflectors(driver.scene, *_truth_in_world(truth, true_pose))
         return {
-            **figures, "pings": total, "seconds": elapsed, "latency_ms": latency,
+            **figures, "pings": total, "seconds": elapsed, "latency_ms": latency, "world": world,
+            "effects": driver.realism.effects(),
             "map": {CLASS_NAMES[c]: int(np.count_nonzero(snapshot.landmark_class == c)) for c in range(4)},
-            "map_score": map_against_scene(snapshot, driver.scene),
-            "snapshot": snapshot, "scene": driver.scene, "robot_path": robot_path, "bag": bag_path,
+            # odom starts at the true first pose: the map frame is the scene's
+            "map_score": score_map(snapshot, driver.scene, heard),
+            "odometry_error": trajectory_error(paths["odometry"], paths["true path"]) if stamps else None,
+            "snapshot": snapshot, "scene": driver.scene, "paths": paths, "bag": bag_path,
         }
     finally:
         rclpy.try_shutdown()
@@ -192,63 +214,57 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
             recorder.wait()
 
 
+def _pose(msg: Odometry) -> tuple[float, float, float]:
+    pose = msg.pose.pose
+    return pose.position.x, pose.position.y, yaw_of(pose.orientation)
+
+
 def _score(found: dict, truth: dict) -> dict:
-    """Landmarks per class, accuracy of the decided ones, position error: the pings with both messages."""
+    """Landmarks per class, accuracy of the decided ones, position error: the pings with both messages.
+
+    Landmarks of an echo of no reflector (truth not valid: multipath, clutter,
+    a late echo) have no true class or position; they are counted apart.
+    """
     pairs = [(landmarks_from_msg(found[k]), landmarks_from_msg(truth[k])) for k in found if k in truth]
     classes = np.concatenate([f.landmark_class for f, _ in pairs] + [np.empty(0, np.uint8)])
+    real = np.concatenate([t.valid[f.echo] for f, t in pairs] + [np.empty(0, bool)])
     true_classes = np.concatenate([t.landmark_class[f.echo] for f, t in pairs] + [np.empty(0, np.uint8)])
     error = np.concatenate([np.linalg.norm(f.position - t.position[f.echo], axis=1) for f, t in pairs]
-                           + [np.empty(0)])
-    decided = classes != UNKNOWN
+                           + [np.empty(0)])[real]
+    decided = (classes != UNKNOWN) & real
     return {
         "landmarks": int(classes.size),
         "per_class": {CLASS_NAMES[c]: int(np.count_nonzero(classes == c)) for c in range(4)},
+        "of_no_reflector": int(np.count_nonzero(~real)),
         "decided_correct": float(np.mean(classes[decided] == true_classes[decided])) if decided.any() else None,
         "error_percentiles": tuple(np.percentile(error, [50, 95]).tolist()) if error.size else None,
     }
 
 
-def _distance_to_segments(points, segments) -> np.ndarray:
-    """Distance of each point (P, 2) to each segment (S, 2, 2), shape (P, S), m."""
-    start, along = segments[:, 0], segments[:, 1] - segments[:, 0]
-    offset = points[:, None, :] - start[None, :, :]
-    t = np.clip(np.sum(offset * along, axis=-1) / np.maximum(np.sum(along * along, axis=-1), 1e-12), 0.0, 1.0)
-    return np.linalg.norm(offset - t[..., None] * along, axis=-1)
-
-
-def map_against_scene(snapshot, scene) -> dict:
-    """Per decided class of the map: (entries within :data:`MATCH_DISTANCE` of a true reflector of it, entries).
-
-    A wall is right when both ends of its extent lie on one true wall; a corner
-    or an edge when the nearest true corner or edge is of its class.
-    """
-    score = {}
-    walls = snapshot.select(snapshot.landmark_class == PLANE)
-    if len(walls) and len(scene.walls):
-        near = np.maximum(*(_distance_to_segments(walls.segment[:, end], scene.walls) for end in (0, 1)))
-        score["plane"] = (int(np.count_nonzero(near.min(axis=1) <= MATCH_DISTANCE)), len(walls))
-    elif len(walls):
-        score["plane"] = (0, len(walls))
-    true_points = np.concatenate([scene.corner_point.reshape(-1, 2), scene.edges.reshape(-1, 2)])
-    true_class = np.repeat([CORNER, EDGE], [len(scene.corner_point), len(scene.edges)])
-    for code in (CORNER, EDGE):
-        points = snapshot.select(snapshot.landmark_class == code)
-        if not len(points):
+def _truth_in_world(truth: dict, true_pose: dict):
+    """Classes, positions and normals of the truth messages' rows in the world frame (the pings with a true pose)."""
+    classes, positions, normals = [np.empty(0, np.uint8)], [np.empty((0, 2))], [np.empty((0, 2))]
+    for key, message in truth.items():
+        if key not in true_pose:
             continue
-        right = 0
-        if len(true_points):
-            distance = np.linalg.norm(points.position[:, None, :] - true_points[None, :, :], axis=-1)
-            nearest = distance.argmin(axis=1)
-            right = int(np.count_nonzero((distance.min(axis=1) <= MATCH_DISTANCE) & (true_class[nearest] == code)))
-        score[CLASS_NAMES[code]] = (right, len(points))
-    return score
+        rows = landmarks_from_msg(message)
+        x, y, yaw = true_pose[key]
+        rotation = np.array([[np.cos(yaw), np.sin(yaw)], [-np.sin(yaw), np.cos(yaw)]])  # row vectors: R^T
+        classes.append(rows.landmark_class[rows.valid])
+        positions.append(rows.position[rows.valid] @ rotation + (x, y))
+        normals.append(rows.normal[rows.valid] @ rotation)
+    return np.concatenate(classes), np.concatenate(positions), np.concatenate(normals)
 
 
 def summary_text(figures: dict) -> str:
     """The printed summary."""
+    score = figures["map_score"]
+    effects = ", ".join(figures["effects"]) or "none"
     lines = [
-        f"sonar_ring demo: {figures['pings']} pings in {figures['seconds']:.1f} s",
-        "  landmarks per class: " + ", ".join(f"{n} {name}" for name, n in figures["per_class"].items()),
+        f"sonar_ring demo: {figures['pings']} pings in {figures['seconds']:.1f} s, {figures['world']} world "
+        f"(effects: {effects})",
+        "  landmarks per class: " + ", ".join(f"{n} {name}" for name, n in figures["per_class"].items())
+        + (f" ({figures['of_no_reflector']} from echoes of no reflector)" if figures["of_no_reflector"] else ""),
         "  classification: " + (f"{100 * figures['decided_correct']:.1f} % of decided landmarks correct"
                                 if figures["decided_correct"] is not None else "no decisions"),
         "  position error: " + ("no landmarks" if figures["error_percentiles"] is None else
@@ -257,10 +273,21 @@ def summary_text(figures: dict) -> str:
         "  compute per ping (median): "
         + ", ".join(f"{name} {ms:.2f} ms" for name, ms in figures["latency_ms"].items()),
         "  map: " + ", ".join(f"{n} {name}" for name, n in figures["map"].items()),
-        "  map vs scene: " + (", ".join(f"{right} of {n} {name}" for name, (right, n) in figures["map_score"].items())
-                              + f" at a true reflector of their class (within {100 * MATCH_DISTANCE:g} cm)"
-                              if figures["map_score"] else "no plane, corner or edge mapped"),
+        "  map score: " + "; ".join(f"{s.mapped} of {s.heard} {name}s mapped" for name, s in score.per_class.items())
+        + f"; {score.total('duplicates')} duplicate, {score.ghosts} ghost, {score.total('wrong_class')} wrong class, "
+          f"{score.total('misplaced')} misplaced, {score.undecided} undecided",
     ]
+    errors = []
+    if score.point_error.size:
+        errors.append(f"corners and edges median {1e3 * np.median(score.point_error):.1f} mm")
+    if score.wall_offset.size:
+        errors.append(f"walls median {1e3 * np.median(score.wall_offset):.1f} mm, "
+                      f"up to {1e2 * score.wall_overshoot.max():.1f} cm past their ends")
+    if errors:
+        lines.append("  map error (mapped entries): " + ", ".join(errors))
+    if figures["odometry_error"] is not None:
+        lines.append("  odometry error: RMS {:.1f} cm, final {:.1f} cm".format(
+            *(1e2 * e for e in figures["odometry_error"])))
     return "\n".join(lines)
 
 
@@ -269,8 +296,9 @@ def write_outputs(figures: dict, out: Path) -> str:
     from sonar_ring import plot  # matplotlib only here, after the run
 
     found = ", ".join(f"{n} {name}" for name, n in figures["map"].items() if n)
-    plot.save_map_png(out / "map.png", figures["scene"], figures["robot_path"], figures["snapshot"],
-                      f"{figures['scene'].name}: map after {figures['pings']} pings ({found or 'empty'})")
+    plot.save_map_png(out / "map.png", figures["scene"], figures["paths"], figures["snapshot"],
+                      f"{figures['scene'].name}, {figures['world']} world: map after {figures['pings']} pings "
+                      f"({found or 'empty'}), in odom")
     text = "\n".join([
         summary_text(figures),
         f"wrote {describe(figures['bag'])}, {out / 'map.png'}, {out / 'summary.txt'}",
@@ -288,10 +316,16 @@ def main(argv=None) -> int:
     parser.add_argument("--laps", type=int, default=1, help="laps of the scene trajectory (default: 1)")
     parser.add_argument("--pings", type=int, help="stop after this many pings (default: the laps)")
     parser.add_argument("--seed", type=int, default=0, help="noise seed (default: 0)")
+    parser.add_argument("--world", choices=tuple(PROFILES), default="realistic",
+                        help="the world's effects: realistic (drifting odometry, missed, spurious, multipath and late "
+                             "echoes, the air's speed of sound) or ideal (the forward model) (default: realistic)")
+    parser.add_argument("--realism", action="append", type=realism_field, default=[], metavar="FIELD=VALUE",
+                        help="replace one field of the world's profile (e.g. multipath_gain=0); repeat for several")
     parser.add_argument("--out", type=Path, default=Path("demo_output"), help="output folder (default: demo_output)")
     args = parser.parse_args(argv)
     try:
-        figures = run(args.scene, args.layout, args.laps, args.seed, args.out, args.pings)
+        figures = run(args.scene, args.layout, args.laps, args.seed, args.out, args.pings, args.world,
+                      dict(args.realism))
         print(write_outputs(figures, args.out))
     except (*CONFIG_ERRORS, ValueError, OSError, RuntimeError) as error:
         print(f"demo: error: {error}", file=sys.stderr)

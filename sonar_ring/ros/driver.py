@@ -4,9 +4,12 @@ Publishes
     ``echoes`` (sonar_ring/Echoes, sensor-data QoS) -- every ping;
     ``range/group_NN`` (sensor_msgs/Range) -- per group, the nearest echo (REP 117), for Nav2,
     and the groups' frames on ``/tf_static`` (:mod:`sonar_ring.ros.ranges`);
-    ``odom`` (nav_msgs/Odometry) and ``truth`` (sonar_ring/LandmarkArray) --
-    ``source:=simulator`` only: the simulated robot pose and, per echo row, the
-    true reflector class and position in the sensor frame;
+    ``odom`` (nav_msgs/Odometry), ``truth/pose`` (nav_msgs/Odometry) and ``truth``
+    (sonar_ring/LandmarkArray) -- ``source:=simulator`` only: what the robot's
+    wheel odometry reports in ``odom`` (:mod:`sonar_ring.realism`), the true
+    pose in the scene's ``world`` frame (for scoring, never for the mapper) and,
+    per echo row, the true reflector class and position in the sensor frame
+    (``valid`` false for an echo of no reflector: multipath, clutter, a late echo);
     ``/diagnostics``.
 Subscribes
     ``tof_in`` (sonar_ring/Echoes) -- ``source:=topic`` only.
@@ -31,6 +34,7 @@ from sonar_ring.geometry import load_layout, speed_of_sound
 from sonar_ring.landmarks import make_landmarks
 from sonar_ring.msg import Echoes
 from sonar_ring.msg import LandmarkArray as LandmarkArrayMsg
+from sonar_ring.realism import DESCRIPTIONS, PROFILES, RANGES, World, scene_realism
 from sonar_ring.ros.convert import AnyHeader, MessageHeader, as_message_types, echoes_to_msg, landmarks_to_msg
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import FUTURE_TOLERANCE, InputGate, screened, take_echoes
@@ -38,11 +42,15 @@ from sonar_ring.ros.node import SonarNode
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.ranges import RangeOutput, publish_group_frames
 from sonar_ring.ros.run import spin
-from sonar_ring.simulate import Noise, Simulator, load_scene
+from sonar_ring.simulate import DIRECT, Noise, load_scene
 
 SOURCES = ("hardware", "topic", "simulator")
 DEFAULT_SPEED_OF_SOUND = float(speed_of_sound(20.0))
 """m/s in dry air at 20 degC, for sources that report none."""
+REALISM_PREFIX = "realism."
+"""The simulator's effect parameters: ``realism.<field>`` of :class:`sonar_ring.realism.Realism`."""
+WORLD_FRAME = "world"
+"""Frame of the simulator's true poses (``truth/pose``): the scene's."""
 HARDWARE_QUEUE = 64
 """Decoded frames waiting to be published; older ones are dropped (and counted) beyond this."""
 
@@ -63,6 +71,8 @@ PARAMS = [
     Param("silence_timeout", 2.0, "hardware: seconds without bytes before reconnecting", low=0.1, high=60.0,
           read_only=True),
     Param("scene", "room", "simulator: a name in config/scenes or a YAML path", read_only=True),
+    Param("world", "realistic", "simulator: the world's effects, a profile (realism.* parameters and the scene's "
+          "realism block replace single fields)", choices=tuple(PROFILES), read_only=True),
     Param("ping_rate", 0.0, "simulator: pings per second (0: the layout's rate)", low=0.0, high=2000.0),
     Param("sigma_tof", 1e-6, "simulator: time-of-flight noise, s", low=0.0, high=1e-3),
     Param("sigma_amplitude", 0.02, "simulator: amplitude noise relative to A_max", low=0.0, high=1.0),
@@ -105,18 +115,28 @@ class Driver(SonarNode):
 
     def _start_simulator(self) -> None:
         self.scene = load_scene(self.params["scene"])
-        self._simulator = Simulator(self.scene, self.layout)
-        self._rng = np.random.default_rng(self.params["seed"])
+        profile = scene_realism(self.scene, self.params["world"])
+        # Declared now: their defaults are the world's profile with the scene's realism block.
+        realism = declare(self, realism_params(profile))
+        self.realism = scene_realism(self.scene, self.params["world"], {
+            name.removeprefix(REALISM_PREFIX): value for name, value in realism.items()}, where="parameter realism")
         rate = self.params["ping_rate"] or self.layout.ping_rate
+        self.world = World(self.scene, self.layout, self.realism, noise=self._noise(), seed=self.params["seed"],
+                           ping_rate=rate)
         if self.scene.trajectory is not None:
             self._poses = self.scene.trajectory.poses(rate)[1]
         else:
             self._poses = self.scene.sensor_pose[None, :]
         self._pose_index = 0
+        self.pings_simulated = 0
         self._laps_left = self.params["loops"] or -1
         self._odom_publisher = self.create_publisher(Odometry, "odom", 10)
+        self._true_pose_publisher = self.create_publisher(Odometry, "truth/pose", 10)
         self._truth_publisher = self.create_publisher(LandmarkArrayMsg, "truth", 10)
         self._timer = self.create_timer(1.0 / rate, self._simulate_ping)
+
+    def _noise(self) -> Noise:
+        return Noise(tof=self.params["sigma_tof"], amplitude=self.params["sigma_amplitude"])
 
     @property
     def pings_per_lap(self) -> int:
@@ -128,12 +148,15 @@ class Driver(SonarNode):
             return
         started = time.perf_counter()
         pose = self._poses[self._pose_index]
-        noise = Noise(tof=self.params["sigma_tof"], amplitude=self.params["sigma_amplitude"])
-        ping = self._simulator.ping(pose, noise=noise, rng=self._rng)
+        self.world.noise = self._noise()
+        ping = self.world.ping(pose, self.pings_simulated / self.world.ping_rate)
+        odometry = self.world.odometry_pose(pose)
+        self.pings_simulated += 1
         header = self._header()
         self.health.received()
         # First: a mapper in another process may have the pose when the ping's landmarks come (composed, they wait).
-        self._odom_publisher.publish(odometry_message(pose, header))
+        self._odom_publisher.publish(odometry_message(odometry, header))
+        self._true_pose_publisher.publish(odometry_message(pose, header, frame_id=WORLD_FRAME))
         self._truth_publisher.publish(truth_message(ping, header))
         downstream = self._publish(ping.echoes, header)
         self.health.processed(time.perf_counter() - started - downstream, published=1)
@@ -239,6 +262,7 @@ class Driver(SonarNode):
         if "ping_rate" in changed and self.params["source"] == "simulator":
             self._timer.cancel()
             rate = changed["ping_rate"] or self.layout.ping_rate
+            self.world.ping_rate = rate
             self._timer = self.create_timer(1.0 / rate, self._simulate_ping)
 
     def destroy_node(self) -> None:
@@ -259,18 +283,27 @@ def usable_echoes(echoes: EchoArrays, layout, health, header: AnyHeader, speed_o
     return screened(echoes, layout, health, header)
 
 
+def realism_params(realism) -> list[Param]:
+    """The driver's ``realism.*`` parameters, read-only, with ``realism``'s values as their defaults."""
+    return [Param(REALISM_PREFIX + name, float(value), f"simulator: {DESCRIPTIONS[name]}", low=RANGES[name][0],
+                  high=RANGES[name][1], read_only=True) for name, value in vars(realism).items()]
+
+
 def truth_message(ping, header: Header) -> LandmarkArrayMsg:
-    """Ground truth of a simulated ping: per echo row, the true class and position (sensor frame, m)."""
+    """Ground truth of a simulated ping: per echo row, the true class and position (sensor frame, m).
+
+    An echo of no reflector (multipath, clutter, a late echo) is UNKNOWN, at NaN, and not valid.
+    """
     truth = make_landmarks(ping.truth_class, ping.truth_position, normal=np.nan_to_num(ping.truth_normal),
-                           echo=np.arange(ping.n_echoes), group=ping.group)
+                           echo=np.arange(ping.n_echoes), group=ping.group, valid=ping.truth_origin == DIRECT)
     return landmarks_to_msg(truth, header)
 
 
-def odometry_message(pose: np.ndarray, header: Header) -> Odometry:
-    """The simulated robot at ``pose`` (x, y, yaw in ``odom``; m, rad), child frame ``header.frame_id``."""
+def odometry_message(pose: np.ndarray, header: Header, frame_id: str = "odom") -> Odometry:
+    """The simulated robot at ``pose`` (x, y, yaw in ``frame_id``; m, rad), child frame ``header.frame_id``."""
     message = Odometry(child_frame_id=header.frame_id)
     message.header.stamp = header.stamp
-    message.header.frame_id = "odom"
+    message.header.frame_id = frame_id
     message.pose.pose.position.x, message.pose.pose.position.y = float(pose[0]), float(pose[1])
     message.pose.pose.orientation.z = float(np.sin(pose[2] / 2))
     message.pose.pose.orientation.w = float(np.cos(pose[2] / 2))

@@ -50,15 +50,22 @@ from sonar_ring.geometry import Layout, LayoutError, config_path, load_layout
 from sonar_ring.landmarks import CLASS_NAMES, Landmarks
 from sonar_ring.mapping import LandmarkMap, Sightings
 from sonar_ring.progress import Progress
+from sonar_ring.realism import World, scene_realism
 from sonar_ring.ros import classifier, localiser, mapper
 from sonar_ring.ros.bag import TOPIC, BagError, BagReader, BagWriter, absolute, range_topics
 from sonar_ring.ros.convert import MessageError, echoes_from_cdr, echoes_to_msg, serialize_landmarks
-from sonar_ring.ros.driver import DEFAULT_SPEED_OF_SOUND, odometry_message, truth_message, usable_echoes
+from sonar_ring.ros.driver import (
+    DEFAULT_SPEED_OF_SOUND,
+    WORLD_FRAME,
+    odometry_message,
+    truth_message,
+    usable_echoes,
+)
 from sonar_ring.ros.inputs import InputGate, check_echoes, stamp_ns, take_echoes
 from sonar_ring.ros.markers import landmark_markers, serialize_markers
 from sonar_ring.ros.params import file_values
 from sonar_ring.ros.ranges import range_messages
-from sonar_ring.simulate import Noise, Simulator, load_scene
+from sonar_ring.simulate import Noise, load_scene
 
 ECHOES_TYPE = TOPIC["echoes"].type_name
 ODOMETRY_TYPE = TOPIC["odom"].type_name
@@ -611,46 +618,53 @@ class RecordReport:
 
 
 def record_sim(scene, out_path, *, layout="browne_ring", laps: int = 1, pings: int | None = None, seed: int = 0,
-               sigma_t: float = 1e-6, sigma_a: float = 0.02, with_range: bool = True, frame_id: str = "sonar_ring",
-               storage: str = "mcap", progress: bool = True) -> RecordReport:
+               sigma_t: float = 1e-6, sigma_a: float = 0.02, world: str = "realistic", realism=None,
+               with_range: bool = True, frame_id: str = "sonar_ring", storage: str = "mcap",
+               progress: bool = True) -> RecordReport:
     """Write what the driver's simulator source publishes over ``laps`` of the scene's trajectory to a new bag.
 
     ``pings`` stops earlier, after that many pings.
 
-    Topics ``/echoes``, ``/odom``, ``/truth`` and (``with_range``)
+    Topics ``/echoes``, ``/odom`` (the wheel odometry), ``/truth/pose`` (the
+    true pose in ``world``), ``/truth`` and (``with_range``)
     ``/range/group_NN``, with the driver's QoS (not ``/tf_static``: the
     driver's group frames need tf2_msgs).  Ping k is stamped (and written at) trajectory time
     ``k / ping_rate`` plus :data:`SIM_START_NS`; a scene without a trajectory
     pings at its ``sensor_pose``, one ping per lap.  The noise (``sigma_t``,
-    s; ``sigma_a`` relative to A_max) and the seed mean what the driver's
-    ``sigma_tof``, ``sigma_amplitude`` and ``seed`` mean, so with the same
-    values the echoes are the driver's.
+    s; ``sigma_a`` relative to A_max), the ``world`` profile with the
+    ``realism`` field overrides (:mod:`sonar_ring.realism`) and the seed mean
+    what the driver's ``sigma_tof``, ``sigma_amplitude``, ``world``,
+    ``realism.*`` and ``seed`` mean, so with the same values the echoes and
+    the odometry are the driver's.
     """
     started = time.perf_counter()
     scene = load_scene(scene)
     sensor = load_layout(layout)
-    simulator = Simulator(scene, sensor)
     rate = sensor.ping_rate
+    simulated = World(scene, sensor, scene_realism(scene, world, realism, where="--realism"),
+                      noise=Noise(tof=sigma_t, amplitude=sigma_a), seed=seed, ping_rate=rate)
     poses = scene.trajectory.poses(rate)[1] if scene.trajectory is not None else scene.sensor_pose[None, :]
-    noise = Noise(tof=sigma_t, amplitude=sigma_a)
-    rng = np.random.default_rng(seed)
     tally = Tally()
     report = RecordReport()
     total = laps * len(poses) if pings is None else min(pings, laps * len(poses))
     bar = Progress("pings", total) if progress else None
     with BagWriter(out_path, storage) as writer:
-        topics = [TOPIC["echoes"], TOPIC["odom"], TOPIC["truth"], *(range_topics(sensor) if with_range else [])]
+        topics = [TOPIC["echoes"], TOPIC["odom"], TOPIC["truth/pose"], TOPIC["truth"],
+                  *(range_topics(sensor) if with_range else [])]
         connection = {topic.name: writer.connection(absolute(topic.name), topic.message, topic.qos)
                       for topic in topics}
-        ranges = [topic.name for topic in topics[3:]]
+        ranges = [topic.name for topic in topics[4:]]
         for k in range(total):
             pose = poses[k % len(poses)]
-            ping = simulator.ping(pose, noise=noise, rng=rng)
+            ping = simulated.ping(pose, k / rate)
+            odometry = simulated.odometry_pose(pose)
             stamp = SIM_START_NS + round(k * 1e9 / rate)
             header = Header(frame_id=frame_id)
             header.stamp.sec, header.stamp.nanosec = divmod(stamp, 10**9)
             kept = usable_echoes(ping.echoes, sensor, tally, header, DEFAULT_SPEED_OF_SOUND)
-            messages = [("odom", odometry_message(pose, header)), ("truth", truth_message(ping, header))]
+            messages = [("odom", odometry_message(odometry, header)),
+                        ("truth/pose", odometry_message(pose, header, frame_id=WORLD_FRAME)),
+                        ("truth", truth_message(ping, header))]
             if kept is not None:
                 messages.insert(0, ("echoes", echoes_to_msg(kept, header)))
                 if with_range:
