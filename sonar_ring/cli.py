@@ -332,10 +332,25 @@ def _add_bench(subparsers) -> None:
     p.add_argument("--quick", action="store_true",
                    help="small sizes: checks that the report is produced, in seconds; figures not for reading")
     p.add_argument("--seed", type=int, default=None, metavar="N", help="seed of every random stream (default: 0)")
+    p.add_argument("--map", action="store_true",
+                   help="instead: the maps of the room in the ideal world, with each realistic effect alone and in "
+                        "the realistic world, scored over 20 seeds of 3 laps (about half an hour on 2 cores); writes "
+                        "its section of DIR/BENCHMARKS.md and its table in DIR/README.md. With --quick: 2 seeds of "
+                        "200 pings in two worlds")
     p.set_defaults(handler=_run_bench)
 
 
 def _run_bench(args) -> int:
+    if args.map:
+        from sonar_ring.benchmark import worlds
+
+        if args.seed is not None:
+            raise ValueError("--map runs seeds 0 to 19; --seed is for the other tables")
+        if args.quick:
+            worlds.run(args.out, seeds=2, laps=1, pings=200, worlds=("ideal", "realistic"))
+        else:
+            worlds.run(args.out)
+        return 0
     from sonar_ring.benchmark import report  # scipy and matplotlib only when benchmarking
 
     seed = report.DEFAULT_SEED if args.seed is None else args.seed

@@ -30,6 +30,10 @@ from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, Landmarks, make_l
 MODEL_CLASS = {"plane": PLANE, "corner": CORNER, "edge": EDGE}
 """Class code of the landmark each localisation model produces."""
 
+ROBOT_SIGMA_SPEED = 1.2
+"""Speed-of-sound uncertainty a robot's nodes assume, m/s: the air's temperature known to about 2 K (the
+localiser's ``sigma_speed`` default)."""
+
 
 @dataclass(frozen=True)
 class Settings:

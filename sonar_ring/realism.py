@@ -468,11 +468,10 @@ def multipath_paths(simulator: Simulator, placement: Placement, gain: float, fir
     """
     scene = simulator.scene
     walls = len(scene.walls)
-    corner_pairs = {tuple(pair) for pair in scene.corner_walls.tolist()}
-    corner_pairs |= {(b, a) for a, b in corner_pairs}
-    first, second = (np.array(rows, dtype=int) for rows in zip(
-        *[(a, b) for a in range(walls) for b in range(walls) if a != b and (a, b) not in corner_pairs], strict=True)) \
-        if walls > 1 else (np.zeros(0, int), np.zeros(0, int))
+    corner = np.zeros((walls, walls), dtype=bool)
+    corner[scene.corner_walls[:, 0], scene.corner_walls[:, 1]] = True
+    corner |= corner.T
+    first, second = np.nonzero(~corner & ~np.eye(walls, dtype=bool))
     plane = scene.reflectivity[PLANE]
     families = []
     source = first_source
@@ -668,8 +667,8 @@ class World:
             own = simulator.reflections(placement)
         heard = [simulator.measure(own, self.noise, self._rng, speed)]
         source = self._first_source
-        if r.multipath_gain:
-            families = multipath_paths(simulator, placement, r.multipath_gain, source)
+        families = multipath_paths(simulator, placement, r.multipath_gain, source) if r.multipath_gain else []
+        if families:  # a scene of one wall and no edge has no second-order path
             paths = [simulator.hear(family, placement, min(listened, window) if r.late_echoes else window)
                      for family in families]
             heard.append(simulator.measure(Heard.concatenate(paths), self.noise, self._streams["multipath"], speed))

@@ -119,6 +119,11 @@ class MapScore:
         return int(sum(getattr(score, name) for score in self.per_class.values()))
 
     @property
+    def entries(self) -> int:
+        """Entries of the map, of every class."""
+        return self.total("entries") + self.undecided + self.unknown_ghosts
+
+    @property
     def ghosts(self) -> int:
         """Entries of any class, UNKNOWN included, near no true reflector."""
         return self.total("ghosts") + self.unknown_ghosts
@@ -286,7 +291,8 @@ class _Truth:
             right = (line <= RIGHT_DISTANCE) & (angle <= RIGHT_ANGLE) & _overlaps(ends, self.walls)
             return segment, right, angle
         points = self.points[code]
-        distance = np.linalg.norm(entries.position[:, None, :] - points[None, :, :], axis=-1).reshape(count, -1)
+        offset = entries.position[:, None, :] - points[None, :, :]
+        distance = np.linalg.norm(offset, axis=-1).reshape(count, len(points))
         return distance, distance <= RIGHT_DISTANCE, None
 
     def near_any(self, entries: Landmarks) -> np.ndarray:

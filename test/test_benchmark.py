@@ -3,6 +3,7 @@
 import importlib.util
 import re
 
+from sonar_ring.benchmark import worlds
 from sonar_ring.benchmark.measure import LSQ_NAME
 from sonar_ring.benchmark.methods import BEARING, RING_FAMILIES
 from sonar_ring.benchmark.report import PLOT_DIR, REPORT, TABLE_BEGIN, TABLE_END
@@ -14,9 +15,12 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 def test_quick_report_has_every_row_the_targets_and_the_plots(tmp_path):
     readme = tmp_path / "README.md"
     readme.write_text(f"# Project\n\n{TABLE_BEGIN}\nan old table\n{TABLE_END}\n\n## Next section\n")
+    kept = f"{worlds.SECTION_BEGIN}\n## Maps in a real robot's world\n\nthe map study's table\n{worlds.SECTION_END}"
+    (tmp_path / REPORT).write_text(f"# An old report\n\n{kept}\n")
     assert main(["bench", "--quick", "--out", str(tmp_path), "--seed", "3"]) == 0
 
     text = (tmp_path / REPORT).read_text()
+    assert "An old report" not in text and kept in text  # the map study's section survives a rerun
     tables = text[text.index(TABLE_BEGIN):text.index(TABLE_END)]
     for family in (BEARING, *RING_FAMILIES):
         for method in family.methods:
@@ -53,6 +57,21 @@ def test_quick_report_has_every_row_the_targets_and_the_plots(tmp_path):
     assert "an old table" not in updated
     assert updated.startswith("# Project\n\n" + TABLE_BEGIN) and updated.endswith(TABLE_END + "\n\n## Next section\n")
     assert tables.strip() in updated
+
+
+def test_quick_map_study_writes_its_section_and_readme_table(tmp_path):
+    readme = tmp_path / "README.md"
+    readme.write_text(f"# Project\n\n{worlds.SUMMARY_BEGIN}\nold\n{worlds.SUMMARY_END}\n")
+    assert main(["bench", "--map", "--quick", "--out", str(tmp_path)]) == 0
+    text = (tmp_path / REPORT).read_text()
+    section = text[text.index(worlds.SECTION_BEGIN):text.index(worlds.SECTION_END)]
+    for world in ("ideal", "realistic"):
+        row = next(line for line in section.splitlines() if line.startswith(f"| {world} | odom-frame map"))
+        assert re.search(r"\| \d+\.\d of \d+\.\d \|", row) and "ms |" in row, row
+    assert "sonar-ring bench --map" in section and "2 seeds" in section
+    summary = readme.read_text()
+    assert "old" not in summary and "| realistic | odom-frame map (today) |" in summary
+    assert main(["bench", "--map", "--seed", "1", "--out", str(tmp_path)]) == 1  # the study's seeds are fixed
 
 
 def test_graph_targets_are_judged_on_one_cpu_with_any_cpu_beside():

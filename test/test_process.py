@@ -164,6 +164,20 @@ def test_process_of_the_demo_bag_gives_the_live_graphs_messages(tmp_path):
                 assert got[stamp] == expected[stamp]
             compared += 1
     assert compared >= 3 * (PINGS - 2)
+    # record-sim with the demo's seed gives the demo driver's echoes and odometry, in order (its stamps are
+    # trajectory time, the driver's the clock's), in the realistic world with every effect drawing its numbers.
+    assert figures["world"] == "realistic" and figures["effects"]
+    assert main(["record-sim", "room", str(tmp_path / "recorded"), "--pings", str(PINGS), "--quiet"]) == 0
+    _, recorded = read_bag(tmp_path / "recorded")
+    assert len(live["/odom"]) == len(recorded["/odom"]) == len(recorded["/echoes"]) == PINGS
+    for (_, live_data), (_, recorded_data) in zip(live["/odom"], recorded["/odom"], strict=True):
+        live_odometry, recorded_odometry = (deserialize_message(data, Odometry) for data in (live_data, recorded_data))
+        assert live_odometry.pose == recorded_odometry.pose
+    for (_, live_data), (_, recorded_data) in zip(live["/echoes"], recorded["/echoes"], strict=True):
+        live_echoes, recorded_echoes = (echoes_from_cdr(data)[1] for data in (live_data, recorded_data))
+        assert live_echoes.speed_of_sound == recorded_echoes.speed_of_sound
+        for name in ("group", "transmitter", "tof", "amplitude", "phase_delay"):  # NaN: a receiver heard nothing
+            assert_array_equal(getattr(live_echoes, name), getattr(recorded_echoes, name), err_msg=name)
     # The final maps: the same sightings with the same poses give the same map (the stamp is the publication time).
     live_map = deserialize_message(live["/map/landmarks"][-1][1], LandmarkArray)
     offline_map = deserialize_message(offline["/map/landmarks"][-1][1], LandmarkArray)

@@ -362,6 +362,19 @@ def test_iso_9613_absorption_reference_values():
     assert 1e3 * air_absorption(50.0, -20.0, 10.0) == pytest.approx(0.589, rel=0.005)
 
 
+@pytest.mark.parametrize("scene_name", ["single_wall", "single_corner", "single_pole", "room", "barshan_kuc_bench"])
+@pytest.mark.parametrize("layout_name", sorted(FIXTURE_CASES))
+def test_the_realistic_world_runs_in_every_scene_with_every_layout(scene_name, layout_name):
+    scene, layout = load_scene(scene_name), load_layout(layout_name)
+    pose = scene.sensor_pose
+    pings, _ = _run(REALISTIC, [pose, pose + [0.05, 0.0, 0.1], pose + [0.1, 0.0, 0.2]], scene=scene, layout=layout,
+                    noise=FIXTURE_CASES[layout_name][1])
+    for ping in pings:
+        assert ping.tof.shape == (ping.n_echoes, layout.receivers_per_group)
+        assert np.all(np.isfinite(ping.tof).any(axis=1))  # every row heard by some receiver
+        assert np.all(np.nan_to_num(ping.tof, nan=1.0) > 0)
+
+
 # --------------------------------------------------------------------------- profiles
 
 

@@ -45,6 +45,13 @@ def test_a_perfect_map_scores_perfect():
     assert np.all(score.wall_angle < 1e-12) and np.all(score.wall_overshoot < 1e-12)
 
 
+def test_an_empty_map_misses_everything():
+    score = score_map(Landmarks.empty(), ROOM)
+    assert score.total("missing") == ROOM.n_reflectors and score.entries == 0 and not score.complete
+    assert score.point_error.size == score.wall_offset.size == 0
+    assert "nothing mapped" in score.summary()
+
+
 def test_each_fault_is_counted_once():
     perfect = _perfect()
     ghost = score_map(_with(perfect, CORNER, [3.0, 3.5]), ROOM)

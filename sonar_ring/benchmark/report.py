@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sonar_ring.benchmark import worlds
 from sonar_ring.benchmark.classification import INCLINATIONS_DEG, RANGES_MM, SIGMA_REL
 from sonar_ring.benchmark.environment import machine, revision, today, versions
 from sonar_ring.benchmark.measure import (
@@ -497,8 +498,13 @@ def _method_notes(results: Results) -> list[str]:
     ]
 
 
-def render(results: Results, plots: list[Path], out_dir: Path, seconds: float, code: str) -> str:
-    """The Markdown of the report; ``code`` names the sonar_ring measured (:func:`revision`)."""
+def render(results: Results, plots: list[Path], out_dir: Path, seconds: float, code: str,
+           map_section: list[str]) -> str:
+    """The Markdown of the report; ``code`` names the sonar_ring measured (:func:`revision`).
+
+    ``map_section`` is the section of ``sonar-ring bench --map`` (:func:`sonar_ring.benchmark.worlds.kept_section`),
+    which this run does not measure.
+    """
     quick = (" This is a `--quick` run: small sizes, to check that the report is produced; its figures are not "
              "for reading.") if results.quick else ""
     streams = ", ".join(f"{stream} {name}" for name, stream in STREAMS.items())
@@ -530,6 +536,7 @@ def render(results: Results, plots: list[Path], out_dir: Path, seconds: float, c
     lines += _classification_section(results)
     lines += _triad_section(results)
     lines += _graph_section(results)
+    lines += [*map_section, ""]
     lines += _method_notes(results)
     return "\n".join(lines)
 
@@ -571,7 +578,7 @@ def run(out_dir: Path = Path("."), quick: bool = False, seed: int = DEFAULT_SEED
     pictures = plots.save_all(results, out_dir / PLOT_DIR)
     seconds = time.perf_counter() - started
     report = out_dir / REPORT
-    report.write_text(render(results, pictures, out_dir, seconds, code) + "\n")
+    report.write_text(render(results, pictures, out_dir, seconds, code, worlds.kept_section(report)) + "\n")
     tell(f"wrote {report} and {len(pictures)} plots in {out_dir / PLOT_DIR} ({seconds:.0f} s)")
     if _replace_between_markers(out_dir / "README.md", main_tables(results)):
         tell(f"updated the main tables in {out_dir / 'README.md'}")

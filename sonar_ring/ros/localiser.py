@@ -42,8 +42,8 @@ PARAMS = [
     Param("vertical_correction", True, "use the exact horizontal path sqrt(d^2 - dz^2) (vertically extruded "
           "reflectors)"),
     Param("sigma_tof", 1e-6, "time-of-flight noise for covariances, s", low=1e-9, high=1e-3),
-    Param("sigma_speed", 1.2, "speed-of-sound uncertainty for covariances, m/s (1.2: the air's temperature known to "
-          "about 2 K)", low=0.0, high=20.0),
+    Param("sigma_speed", pipeline.ROBOT_SIGMA_SPEED, "speed-of-sound uncertainty for covariances, m/s (the "
+          "default: the air's temperature known to about 2 K)", low=0.0, high=20.0),
     Param("triad_eps", 0.0, "triads: Kreczmer eq 6 tolerance (0: from his robustness procedure for the layout)",
           low=0.0, high=1.0),
     Param("triad_max_angle", 50.0, "triads: largest azimuth accepted, deg", low=1.0, high=90.0),

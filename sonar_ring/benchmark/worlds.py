@@ -1,0 +1,263 @@
+"""``sonar-ring bench --map``: maps in the ideal world, with each realistic effect alone and in the realistic world.
+
+Scored against the scene over many seeds.  For every world and seed, :func:`simulate_run` simulates ``laps`` laps of the
+room with Browne's ring (σ_t = 1 µs, σ_A = 2 %; :class:`sonar_ring.realism.World`)
+and keeps what a robot has -- the usable echoes of every ping and the wheel
+odometry's pose -- beside the truth.  Every mapper of :data:`MAPPERS` then
+builds its map from the same pings (``echoes`` -> :func:`sonar_ring.pipeline.label_pings`
+-> the mapper), and :func:`sonar_ring.score.score_map` scores the final map
+against the reflectors the sensor heard.  Runs go to one process per CPU.
+
+The report section lies between :data:`SECTION_BEGIN` and :data:`SECTION_END` of
+``BENCHMARKS.md`` (``sonar-ring bench`` keeps it when it rewrites the rest), its
+summary table between :data:`SUMMARY_BEGIN` and :data:`SUMMARY_END` of the README.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+
+import numpy as np
+
+from sonar_ring import pipeline
+from sonar_ring.benchmark.environment import machine, revision, today
+from sonar_ring.echoes import screen_ping
+from sonar_ring.geometry import load_layout
+from sonar_ring.mapping import LandmarkMap, transform_landmarks
+from sonar_ring.realism import EFFECTS, IDEAL, REALISTIC, World
+from sonar_ring.score import MapScore, score_map, trajectory_error
+from sonar_ring.simulate import DIRECT, Noise, load_scene
+
+SCENE = "room"
+LAYOUT = "browne_ring"
+NOISE = Noise(tof=1e-6, amplitude=0.02)
+SEEDS = 20
+LAPS = 3
+WORLDS = {"ideal": IDEAL, **{f"{effect} alone": REALISTIC.only(effect) for effect in EFFECTS},
+          "realistic": REALISTIC}
+"""The worlds of the study: ideal, each effect of the realistic profile alone, realistic."""
+
+SECTION_BEGIN = "<!-- sonar-ring bench --map: section -->"
+SECTION_END = "<!-- /sonar-ring bench --map: section -->"
+SUMMARY_BEGIN = "<!-- sonar-ring bench --map: summary -->"
+SUMMARY_END = "<!-- /sonar-ring bench --map: summary -->"
+
+
+@dataclass
+class Recorded:
+    """What a robot had of one run (usable echoes, odometry) and the truth to score it against.
+
+    Attributes
+    ----------
+    echoes : list of EchoArrays or None
+        Each ping's screened echoes (None where nothing was usable).
+    odometry, truth : ndarray, shape (P, 3)
+        The wheel odometry's pose in ``odom`` and the true pose in the world, per ping.
+    heard : ndarray of int
+        The scene's reflectors with a direct echo heard by every receiver of its group.
+    """
+
+    echoes: list
+    odometry: np.ndarray
+    truth: np.ndarray
+    heard: np.ndarray
+
+
+@dataclass
+class Outcome:
+    """One mapper's result on one run.
+
+    Attributes
+    ----------
+    score : MapScore
+    trajectory : tuple of float
+        RMS and final error of the mapper's pose estimate (the odometry for a mapper in ``odom``), m.
+    label_ms, map_ms : ndarray
+        Per ping: localisation and classification, and the mapper's update, ms.
+    """
+
+    score: MapScore
+    trajectory: tuple
+    label_ms: np.ndarray = field(default_factory=lambda: np.empty(0))
+    map_ms: np.ndarray = field(default_factory=lambda: np.empty(0))
+
+
+def odometry_frame_map(recorded: Recorded, layout) -> Outcome:
+    """Today's mapper: every ping's landmarks at the odometry's pose in ``odom`` (:class:`LandmarkMap`).
+
+    ``odom`` starts at the true first pose, so the map is scored in the world frame.
+    """
+    settings = pipeline.Settings(sigma_speed=pipeline.ROBOT_SIGMA_SPEED)
+    landmark_map = LandmarkMap(max_points=2000, max_walls=500)
+    label_ms, map_ms = [], []
+    for echoes, pose in zip(recorded.echoes, recorded.odometry, strict=True):
+        if echoes is None:
+            continue
+        started = time.perf_counter()
+        ((_, labelled),) = pipeline.label_pings(layout, [echoes], settings, settings)
+        placed = time.perf_counter()
+        landmark_map.update(transform_landmarks(labelled, pose), pose)
+        label_ms.append(1e3 * (placed - started))
+        map_ms.append(1e3 * (time.perf_counter() - placed))
+    snapshot = landmark_map.snapshot(min_observations=2)
+    return Outcome(score_map(snapshot, load_scene(SCENE), recorded.heard),
+                   trajectory_error(recorded.odometry, recorded.truth), np.array(label_ms), np.array(map_ms))
+
+
+MAPPERS: dict[str, Callable[[Recorded, object], Outcome]] = {"odom-frame map (today)": odometry_frame_map}
+"""The mappers compared, on the same runs."""
+
+
+def simulate_run(world: str, seed: int, laps: int, pings: int | None = None) -> Recorded:
+    """Simulate ``laps`` laps of :data:`SCENE` (``pings`` stops earlier) in world ``world``, seed ``seed``."""
+    scene, layout = load_scene(SCENE), load_layout(LAYOUT)
+    simulated = World(scene, layout, WORLDS[world], noise=NOISE, seed=seed)
+    poses = scene.trajectory.poses(layout.ping_rate)[1]
+    total = laps * len(poses) if pings is None else pings
+    echoes, odometry, truth, heard = [], [], [], set()
+    for k in range(total):
+        pose = poses[k % len(poses)]
+        ping = simulated.ping(pose, k / layout.ping_rate)
+        odometry.append(simulated.odometry_pose(pose))
+        truth.append(pose)
+        complete = (ping.truth_origin == DIRECT) & np.isfinite(ping.tof).all(axis=1)
+        heard.update(ping.truth_reflector[complete].tolist())
+        echoes.append(screen_ping(ping.echoes, layout).echoes)
+    return Recorded(echoes, np.array(odometry), np.array(truth), np.array(sorted(heard), dtype=int))
+
+
+def _job(world: str, seed: int, laps: int, pings: int | None) -> dict[str, Outcome]:
+    recorded = simulate_run(world, seed, laps, pings)
+    layout = load_layout(LAYOUT)
+    return {name: mapper(recorded, layout) for name, mapper in MAPPERS.items()}
+
+
+def measure(seeds: int = SEEDS, laps: int = LAPS, pings: int | None = None, worlds=tuple(WORLDS),
+            jobs: int | None = None, tell=print) -> dict:
+    """Every mapper in every world over ``seeds`` seeds: ``{world: {mapper: [Outcome per seed]}}``."""
+    jobs = jobs or len(os.sched_getaffinity(0))
+    work = [(world, seed) for world in worlds for seed in range(seeds)]
+    results = {world: {name: [] for name in MAPPERS} for world in worlds}
+    with ProcessPoolExecutor(jobs, mp_context=get_context("fork")) as pool:
+        futures = {pool.submit(_job, world, seed, laps, pings): (world, seed) for world, seed in work}
+        for done, (future, (world, seed)) in enumerate(futures.items(), 1):
+            for name, outcome in future.result().items():
+                results[world][name].append(outcome)
+            tell(f"map study: {done}/{len(work)} runs ({world}, seed {seed})")
+    return results
+
+
+# --------------------------------------------------------------------------- report
+
+
+def _mean(values) -> str:
+    values = np.asarray(values, dtype=float)
+    return f"{values.mean():.1f}" if values.size else "—"
+
+
+def _mm(values) -> str:
+    values = np.asarray(values, dtype=float)
+    values = values[np.isfinite(values)]
+    return f"{1e3 * np.median(values):.1f} mm" if values.size else "—"
+
+
+def _row(world: str, name: str, outcomes: list[Outcome]) -> str:
+    scores = [o.score for o in outcomes]
+    heard = [s.total("heard") for s in scores]
+    mapped = [s.total("mapped") for s in scores]
+    errors = [np.median(s.point_error) if s.point_error.size else np.nan for s in scores]
+    complete = sum(s.total("missing") == 0 and s.ghosts == 0 and s.total("duplicates") == 0
+                   and s.total("wrong_class") == 0 for s in scores)
+    final = [o.trajectory[1] for o in outcomes]
+    label = np.concatenate([o.label_ms for o in outcomes])
+    update = np.concatenate([o.map_ms for o in outcomes])
+    timing = (f"{np.median(label):.2f} / {np.median(update):.2f} ms" if label.size else "—")
+    return (f"| {world} | {name} | {_mean([s.entries for s in scores])} "
+            f"| {_mean(mapped)} of {_mean(heard)} | {_mean([s.total('duplicates') for s in scores])} "
+            f"| {_mean([s.ghosts for s in scores])} | {_mean([s.total('wrong_class') for s in scores])} "
+            f"| {_mean([s.undecided for s in scores])} | {_mm(errors)} | {complete} of {len(scores)} "
+            f"| {100 * np.median(final):.1f} cm | {timing} |")
+
+
+HEADER = ("| world | mapper | entries | mapped right, of heard | duplicates | ghosts | wrong class | undecided "
+          "| median point error | runs complete | pose error, final | per ping: label / map |",
+          "|---|---|---|---|---|---|---|---|---|---|---|---|")
+
+
+def table(results: dict) -> list[str]:
+    """The study's table: per world and mapper, means over the seeds (medians for errors and times)."""
+    return [*HEADER, *(_row(world, name, outcomes) for world, by_mapper in results.items()
+                       for name, outcomes in by_mapper.items())]
+
+
+def section(results: dict, seeds: int, laps: int, seconds: float, code: str) -> list[str]:
+    """The ``BENCHMARKS.md`` section: how it was made, the table, what the columns mean."""
+    return [
+        SECTION_BEGIN,
+        "## Maps in a real robot's world",
+        "",
+        f"Regenerate with `sonar-ring bench --map` (this run: {seeds} seeds × {len(results)} worlds, {laps} laps "
+        f"of the `{SCENE}` scene each, {seconds / 60:.0f} min on {len(os.sched_getaffinity(0))} CPUs; "
+        f"{today()}; sonar_ring at git {code}; {machine()}).",
+        "Each world is the `realistic` profile of `sonar_ring.realism` with only the named effect on (`ideal`: none, "
+        "`realistic`: all); every mapper maps the same simulated pings (σ_t = 1 µs, σ_A = 2 %) from the wheel "
+        "odometry's poses. Scored by `sonar_ring.score.score_map` against the reflectors the sensor heard: "
+        "*mapped right* within 5 cm (walls: 5 cm and 2° of the true line), *ghosts* with no true reflector within "
+        "10 cm, *runs complete* where every heard reflector is mapped once with its class and no entry is a ghost, "
+        "a duplicate or of the wrong class. Means over the seeds; the point error, the final pose error and the "
+        "compute per ping are medians (compute on a machine running two studies at once).",
+        "",
+        *table(results),
+        SECTION_END,
+    ]
+
+
+def _replace(path: Path, begin: str, end: str, lines: list[str]) -> bool:
+    if not path.is_file():
+        return False
+    text = path.read_text()
+    start, stop = text.find(begin), text.find(end)
+    if start < 0 or stop < start:
+        return False
+    path.write_text(text[:start] + "\n".join(lines) + text[stop + len(end):])
+    return True
+
+
+def kept_section(report: Path) -> list[str]:
+    """The map section of an existing ``BENCHMARKS.md`` (markers included), or a line that says how to make it."""
+    if report.is_file():
+        text = report.read_text()
+        start, stop = text.find(SECTION_BEGIN), text.find(SECTION_END)
+        if 0 <= start < stop:
+            return text[start:stop + len(SECTION_END)].splitlines()
+    return [SECTION_BEGIN, "## Maps in a real robot's world", "", "Not measured yet: run `sonar-ring bench --map`.",
+            SECTION_END]
+
+
+def run(out_dir: Path = Path("."), seeds: int = SEEDS, laps: int = LAPS, pings: int | None = None,
+        worlds=tuple(WORLDS), tell=print) -> Path:
+    """Measure, and put the section into ``out_dir/BENCHMARKS.md`` and the table into ``out_dir/README.md``.
+
+    ``BENCHMARKS.md`` gets the section appended when it has none (or is
+    created); the README's table is replaced only between its markers.
+    """
+    started = time.perf_counter()
+    code = revision(Path(__file__).parent)
+    results = measure(seeds, laps, pings, worlds, tell=tell)
+    lines = section(results, seeds, laps, time.perf_counter() - started, code)
+    report = Path(out_dir) / "BENCHMARKS.md"
+    if not _replace(report, SECTION_BEGIN, SECTION_END, lines):
+        existing = report.read_text() if report.is_file() else "# Benchmarks\n"
+        report.write_text(existing.rstrip("\n") + "\n\n" + "\n".join(lines) + "\n")
+    if _replace(Path(out_dir) / "README.md", SUMMARY_BEGIN, SUMMARY_END,
+                [SUMMARY_BEGIN, *table(results), SUMMARY_END]):
+        tell(f"updated the map table in {Path(out_dir) / 'README.md'}")
+    tell(f"wrote the map section of {report}")
+    return report
+
