@@ -118,12 +118,17 @@ class Trajectory:
     yaw : float or None
         Fixed sensor yaw, rad (a rail or a sideways-moving robot); None to face
         along the direction of travel.
+    turn_rate : float
+        Facing the direction of travel, the robot turns on the spot at each way
+        point at this rate, rad/s (a loop also turns back to its first leg at
+        the end of the lap).
     """
 
     waypoints: np.ndarray
     speed: float
     loop: bool
     yaw: float | None
+    turn_rate: float = math.radians(60.0)
 
     def poses(self, rate: float) -> tuple[np.ndarray, np.ndarray]:
         """Sample one pass of the path at ``rate`` pings per second.
@@ -142,20 +147,31 @@ class Trajectory:
         """
         points = np.vstack([self.waypoints, self.waypoints[:1]]) if self.loop else self.waypoints
         legs = np.diff(points, axis=0)
-        leg_length = np.hypot(legs[:, 0], legs[:, 1])
-        start = np.concatenate([[0.0], np.cumsum(leg_length)])
-        step = self.speed / rate
-        # A loop's last sample would repeat the first; an open path ends on its last way point.
-        count = int(math.floor(start[-1] / step + 1e-9)) + (0 if self.loop else 1)
-        s = np.arange(count) * step
-        x = np.interp(s, start, points[:, 0])
-        y = np.interp(s, start, points[:, 1])
+        heading = np.arctan2(legs[:, 1], legs[:, 0])
+        # The way points' knots: (time, x, y, yaw) at the start and end of every leg and turn.
+        turns = np.zeros(len(legs) + 1)  # before each leg, and after the last
         if self.yaw is None:
-            leg = np.clip(np.searchsorted(start, s, side="right") - 1, 0, len(legs) - 1)
-            yaw = np.arctan2(legs[leg, 1], legs[leg, 0])
-        else:
-            yaw = np.full(count, self.yaw)
-        return s / self.speed, np.column_stack([x, y, yaw])
+            turns[1:-1] = np.remainder(np.diff(heading) + np.pi, 2.0 * np.pi) - np.pi
+            if self.loop:
+                turns[-1] = np.remainder(heading[0] - heading[-1] + np.pi, 2.0 * np.pi) - np.pi
+        knot_time, knot = [0.0], [[*points[0], heading[0] if self.yaw is None else self.yaw]]
+        for index, leg in enumerate(legs):
+            yaw = knot[-1][2]
+            if turns[index]:
+                knot_time.append(knot_time[-1] + abs(turns[index]) / self.turn_rate)
+                yaw = yaw + turns[index]
+                knot.append([*points[index], yaw])
+            knot_time.append(knot_time[-1] + math.hypot(*leg) / self.speed)
+            knot.append([*points[index + 1], yaw])
+        if turns[-1]:
+            knot_time.append(knot_time[-1] + abs(turns[-1]) / self.turn_rate)
+            knot.append([*points[-1], knot[-1][2] + turns[-1]])
+        knot_time, knot = np.array(knot_time), np.array(knot)
+        # A loop's last sample would repeat the first; an open path ends on its last way point.
+        count = int(math.floor(knot_time[-1] * rate + 1e-9)) + (0 if self.loop else 1)
+        time = np.arange(count) / rate
+        x, y, yaw = (np.interp(time, knot_time, knot[:, axis]) for axis in range(3))
+        return time, np.column_stack([x, y, np.remainder(yaw + np.pi, 2.0 * np.pi) - np.pi])
 
 
 @dataclass(frozen=True)
@@ -399,8 +415,9 @@ MAX_LAP_SECONDS = 3600.0
 
 
 def _trajectory(t, where) -> Trajectory:
-    if not isinstance(t, dict) or set(t) - {"waypoints", "speed", "loop", "yaw_deg"}:
-        raise SceneError(f"{where}: expected a mapping with 'waypoints', 'speed' and optional 'loop', 'yaw_deg'")
+    if not isinstance(t, dict) or set(t) - {"waypoints", "speed", "loop", "yaw_deg", "turn_rate_deg"}:
+        raise SceneError(f"{where}: expected a mapping with 'waypoints', 'speed' and optional 'loop', 'yaw_deg', "
+                         "'turn_rate_deg'")
     points = t.get("waypoints")
     if not isinstance(points, list) or len(points) < 2:
         raise SceneError(f"{where}: field 'waypoints' must be a list of at least two [x, y], got {points!r}")
@@ -418,11 +435,13 @@ def _trajectory(t, where) -> Trajectory:
     if not length / speed <= MAX_LAP_SECONDS:  # the driver samples a whole lap of poses at start
         raise SceneError(f"{where}: field 'speed' must make one lap last at most {MAX_LAP_SECONDS:g} s "
                          f"(the path is {length:.6g} m long), got {speed!r}")
+    turn_rate = _number(t.get("turn_rate_deg", 60.0), where, "turn_rate_deg", low=0.0, high=3600.0, low_open=True)
     return Trajectory(
         waypoints=waypoints,
         speed=speed,
         loop=loop,
         yaw=None if yaw is None else math.radians(_number(yaw, where, "yaw_deg")),
+        turn_rate=math.radians(turn_rate),
     )
 
 
