@@ -118,6 +118,7 @@ The pose is taken as exact: the map is consistent in ``odom`` as far as odometry
 
 from __future__ import annotations
 
+import copy
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -572,6 +573,8 @@ class Sightings:
     ----------
     offered, invalid, not_finite, degenerate : int
         Landmarks screened, and those left out as in :class:`MapCounts`.
+    rows : ndarray of int, shape (N,)
+        Index of each sighting among the landmarks screened.
     landmark_class : ndarray of uint8, shape (N,)
     position : ndarray, shape (N, 2)
         ``G``, m.
@@ -589,6 +592,7 @@ class Sightings:
         Sensor position ``S``, m.
     """
 
+    rows: np.ndarray
     landmark_class: np.ndarray
     position: np.ndarray
     covariance: np.ndarray
@@ -611,6 +615,58 @@ class Sightings:
         """
         value, jacobian = _line_of_sight(self.normal[rows], self.position[rows], anchor, self.distance[rows])
         return value, _sandwich(jacobian, self.covariance[rows])
+
+
+@dataclass(frozen=True)
+class Entries:
+    """The entries of a :class:`LandmarkMap` (:meth:`LandmarkMap.entries`), E of them.
+
+    Attributes
+    ----------
+    uid : ndarray of int, shape (E,)
+        Each entry's stable number.
+    is_wall : ndarray of bool, shape (E,)
+    landmark_class : ndarray of uint8, shape (E,)
+        PLANE for walls; a point's class (UNKNOWN while undecided).
+    position : ndarray, shape (E, 2)
+        A wall's middle (on its line), a point's fused position, m.
+    normal : ndarray, shape (E, 2)
+        A wall's unit normal towards the side it was seen from; zero for points.
+    observations : ndarray of int, shape (E,)
+        Sightings fused.
+    baseline : ndarray, shape (E,)
+        An UNKNOWN point's spread of sensor positions across its first line of sight (what separates the
+        plane and corner hypotheses; 0 for walls and once decided), m.
+    """
+
+    uid: np.ndarray
+    is_wall: np.ndarray
+    landmark_class: np.ndarray
+    position: np.ndarray
+    normal: np.ndarray
+    observations: np.ndarray
+    baseline: np.ndarray
+
+
+@dataclass(frozen=True)
+class Placed:
+    """Where :meth:`LandmarkMap.add` put one ping's usable sightings.
+
+    Attributes
+    ----------
+    rows : ndarray of int, shape (N,)
+        Index of each usable sighting among the landmarks given (:attr:`Sightings.rows`).
+    uid : ndarray of int, shape (N,)
+        The entry each went into (a stable number, :meth:`LandmarkMap.entries`), -1 where it was
+        ambiguous or found no room.
+    renamed : dict of int to int
+        Entries of this update that live on under another uid: an UNKNOWN point that became a wall, a
+        wall absorbed by another (old uid to new).
+    """
+
+    rows: np.ndarray
+    uid: np.ndarray
+    renamed: dict
 
 
 @kernel
@@ -732,6 +788,7 @@ class _Points:
         self.group = np.zeros(capacity, np.uint16)
         self.confidence_sum = np.zeros(capacity)
         self.confidence_count = np.zeros(capacity)
+        self.uid = np.full(capacity, -1, np.int64)
 
 
 class _Walls:
@@ -754,6 +811,7 @@ class _Walls:
         self.group = np.zeros(capacity, np.uint16)
         self.confidence_sum = np.zeros(capacity)
         self.confidence_count = np.zeros(capacity)
+        self.uid = np.full(capacity, -1, np.int64)
 
     def end_points(self, rows):
         """Segment end points, shape (K, 2, 2), m."""
@@ -961,6 +1019,8 @@ class LandmarkMap:
         self._walls = _Walls(self.max_walls)
         self._counts = MapCounts()
         self._ping = 0
+        self._next_uid = 0
+        self._renamed: dict[int, int] = {}  # this update's entries that became (or merged into) another
 
     def __len__(self) -> int:
         """Number of map entries (points and walls)."""
@@ -973,8 +1033,8 @@ class LandmarkMap:
 
     # ------------------------------------------------------------------ update
 
-    def update(self, landmarks: Landmarks, sensor_pose) -> None:
-        """Add one ping's landmarks, already in ``odom``: :meth:`screen`, then :meth:`add`.
+    def update(self, landmarks: Landmarks, sensor_pose) -> Placed:
+        """Add one ping's landmarks, already in ``odom``: :meth:`screen`, then :meth:`add`; where each went.
 
         Parameters
         ----------
@@ -992,7 +1052,7 @@ class LandmarkMap:
             If ``landmarks`` is not a :class:`Landmarks` with consistent shapes or
             ``sensor_pose`` is not three numbers.  Bad data is counted, never raised.
         """
-        self.add(self.screen(landmarks, sensor_pose))
+        return self.add(self.screen(landmarks, sensor_pose))
 
     def screen(self, landmarks: Landmarks, sensor_pose) -> Sightings | None:
         """The usable landmarks of one ping as sightings, the others counted by kind; None for a bad pose.
@@ -1008,11 +1068,15 @@ class LandmarkMap:
             return None
         return self._screen(landmarks, pose[:2])
 
-    def add(self, sightings: Sightings | None) -> None:
-        """Associate and fuse one ping's sightings (:meth:`screen`); None counts a rejected ping."""
+    def add(self, sightings: Sightings | None) -> Placed:
+        """Associate and fuse one ping's sightings (:meth:`screen`); None counts a rejected ping.
+
+        Returns where each usable sighting went (:class:`Placed`).
+        """
+        self._renamed = {}
         if sightings is None:
             self._counts.rejected_pings += 1
-            return
+            return Placed(np.empty(0, np.int64), np.empty(0, np.int64), {})
         self._ping += 1
         self._counts.pings += 1
         self._counts.sightings += sightings.offered
@@ -1020,7 +1084,7 @@ class LandmarkMap:
         self._counts.not_finite += sightings.not_finite
         self._counts.degenerate += sightings.degenerate
         if sightings.landmark_class.size == 0:
-            return
+            return Placed(sightings.rows, np.empty(0, np.int64), {})
         target = self._associate(sightings)
         self._mark_seen(target)
         self._counts.ambiguous += int(np.count_nonzero(target == _AMBIGUOUS))
@@ -1033,6 +1097,24 @@ class LandmarkMap:
         grown_walls = self._fuse_walls(sightings, np.flatnonzero(fusing & is_wall), target)
         made_walls = self._resolve(touched_points)
         self._merge_walls(np.unique(np.concatenate([new_walls, grown_walls, made_walls])))
+        return Placed(sightings.rows, self._uids_of(target), dict(self._renamed))
+
+    def _uids_of(self, target) -> np.ndarray:
+        """The entry uid each sighting ended in (its target slot's, through this update's renames); -1 for none."""
+        uid = np.full(target.size, -1, np.int64)
+        point = (target >= 0) & (target < self.max_points)
+        wall = target >= self.max_points
+        uid[point] = self._points.uid[target[point]]
+        uid[wall] = self._walls.uid[target[wall] - self.max_points]
+        for index in np.flatnonzero(uid >= 0):
+            while uid[index] in self._renamed:
+                uid[index] = self._renamed[uid[index]]
+        return uid
+
+    def _new_uids(self, count: int) -> np.ndarray:
+        uids = np.arange(self._next_uid, self._next_uid + count, dtype=np.int64)
+        self._next_uid += count
+        return uids
 
     def _screen(self, landmarks: Landmarks, sensor: np.ndarray) -> Sightings:
         """The usable landmarks, with the unusable ones counted by kind."""
@@ -1044,6 +1126,7 @@ class LandmarkMap:
             np.array(landmarks.covariance, dtype=float), segment, np.array(landmarks.normal, dtype=float),
             sensor[0], sensor[1], self.sighting_sigma ** 2)
         return Sightings(
+            rows=keep,
             landmark_class=landmarks.landmark_class[keep].astype(np.uint8),
             position=position[keep],
             covariance=covariance,
@@ -1188,6 +1271,7 @@ class LandmarkMap:
         tangent = _left(s.normal[rows])
         classified = s.landmark_class[rows] != UNKNOWN
         p.active[slots] = True
+        p.uid[slots] = self._new_uids(slots.size)
         p.landmark_class[slots] = s.landmark_class[rows]
         p.by_motion[slots] = False
         p.mean[slots] = position
@@ -1224,6 +1308,7 @@ class LandmarkMap:
         value, covariance = s.line(rows, position)
         along = _dot(s.segment[rows] - position[:, None, :], _left(s.normal[rows])[:, None, :])
         w.active[slots] = True
+        w.uid[slots] = self._new_uids(slots.size)
         w.anchor[slots] = position
         w.line[slots] = value
         w.information[slots] = _inverse(covariance)
@@ -1339,6 +1424,8 @@ class LandmarkMap:
         p.landmark_class[slots[walls.size:]] = UNKNOWN
         slots = slots[:walls.size]
         w.active[walls] = True
+        w.uid[walls] = self._new_uids(walls.size)
+        self._renamed.update(zip(p.uid[slots].tolist(), w.uid[walls].tolist(), strict=True))
         w.anchor[walls] = p.anchor[slots]
         w.line[walls] = p.line[slots]
         w.information[walls] = p.line_information[slots]
@@ -1406,18 +1493,95 @@ class LandmarkMap:
         w.confidence_sum[keep] += w.confidence_sum[other]
         w.confidence_count[keep] += w.confidence_count[other]
         w.active[other] = False
+        self._renamed[int(w.uid[other])] = int(w.uid[keep])
         self._counts.merged_walls += 1
         w.recentre(keep_row)
 
+    # ------------------------------------------------------------------ entries by uid
+
+    def entries(self) -> Entries:
+        """Every entry of the map: walls first, then points, each in table order (:class:`Entries`)."""
+        w, p = self._walls, self._points
+        walls, points = np.flatnonzero(w.active), np.flatnonzero(p.active)
+        return Entries(
+            uid=np.concatenate([w.uid[walls], p.uid[points]]),
+            is_wall=np.concatenate([np.ones(walls.size, bool), np.zeros(points.size, bool)]),
+            landmark_class=np.concatenate([np.full(walls.size, PLANE, np.uint8), p.landmark_class[points]]),
+            position=np.concatenate([w.anchor[walls], p.mean[points]]),
+            normal=np.concatenate([w.normal[walls], np.zeros((points.size, 2))]),
+            observations=np.concatenate([w.observations[walls], p.observations[points]]),
+            baseline=np.concatenate([np.zeros(walls.size), p.baseline[points, 1] - p.baseline[points, 0]]),
+        )
+
+    def _slots(self, table, uids) -> np.ndarray:
+        """The slots of ``table`` holding the active entries ``uids`` (-1 where none does)."""
+        active = np.flatnonzero(table.active)
+        by_uid = dict(zip(table.uid[active].tolist(), active.tolist(), strict=True))
+        return np.array([by_uid.get(uid, -1) for uid in np.asarray(uids).tolist()], dtype=np.int64)
+
+    def set_points(self, uids, position) -> None:
+        """Move the points ``uids`` (K,) to ``position`` (K, 2) (a better estimate: a smoother's); others ignored."""
+        slots = self._slots(self._points, np.asarray(uids, dtype=np.int64))
+        found = slots >= 0
+        self._points.mean[slots[found]] = np.asarray(position, dtype=float)[found]
+
+    def set_walls(self, uids, theta, distance) -> None:
+        """Move the walls ``uids`` (K,) to the lines ``n(theta) . x = distance`` (K,), keeping their seen extents.
+
+        Each wall's middle moves perpendicularly onto its new line; others ignored.
+        """
+        slots = self._slots(self._walls, np.asarray(uids, dtype=np.int64))
+        found = slots >= 0
+        slots, theta, distance = slots[found], np.asarray(theta, float)[found], np.asarray(distance, float)[found]
+        w = self._walls
+        normal = np.stack([np.cos(theta), np.sin(theta)], axis=-1)
+        w.anchor[slots] -= (_dot(normal, w.anchor[slots]) - distance)[:, None] * normal
+        w.line[slots] = np.stack([theta, np.zeros(theta.size)], axis=-1)
+        w.normal[slots] = normal
+        w.tangent[slots] = _left(normal)
+
+    def walls_ended_at(self, uids, points, reach: float, tolerance: float) -> LandmarkMap:
+        """A copy of the map whose walls ``uids`` end at the points ``points`` (P, 2) on their lines near their ends.
+
+        A wall ends at a corner or an edge.  A point within ``tolerance`` (m) of
+        a wall's line and within ``reach`` (m) of an end of its seen extent, the
+        nearest to that end, becomes that end: the extent grows or shrinks to it
+        (what the wall's sightings near its ends, bearing-limited, blur).  For
+        output: this map is unchanged, so what it maps next does not depend on
+        when it was published.
+        """
+        ended = copy.copy(self)
+        ended._walls = copy.deepcopy(self._walls)
+        slots = ended._slots(ended._walls, np.asarray(uids, dtype=np.int64))
+        slots = slots[slots >= 0]
+        points = np.asarray(points, dtype=float).reshape(-1, 2)
+        if not slots.size or not points.size:
+            return ended
+        w = ended._walls
+        offset = points[None, :, :] - w.anchor[slots][:, None, :]  # (W, P, 2)
+        across = np.abs(np.einsum("wpi,wi->wp", offset, w.normal[slots]))
+        along = np.einsum("wpi,wi->wp", offset, w.tangent[slots])
+        on_line = across <= tolerance
+        for end in (0, 1):
+            gap = np.where(on_line, np.abs(along - w.extent[slots, end][:, None]), np.inf)
+            nearest = np.argmin(gap, axis=1)
+            close = gap[np.arange(slots.size), nearest] <= reach
+            w.extent[slots[close], end] = along[close, nearest[close]]
+        w.extent[slots] = np.sort(w.extent[slots], axis=1)
+        w.recentre(slots)
+        return ended
+
     # ------------------------------------------------------------------ output
 
-    def snapshot(self, min_observations: int = 1) -> Landmarks:
+    def snapshot(self, min_observations: int = 1, only=None) -> Landmarks:
         """The map as landmarks in ``odom``: walls first, then points, each in table order.
 
         Parameters
         ----------
         min_observations : int
             Leave out entries with fewer sightings (1 keeps everything).
+        only : array_like of int, optional
+            Only these entries (uids, :meth:`entries`).
 
         Returns
         -------
@@ -1434,9 +1598,8 @@ class LandmarkMap:
             confidence of the classified sightings (0 if none); ``group`` is the first
             sighting's; ``echo`` 0; all valid.
         """
+        walls, points = self._chosen(min_observations, only)
         w, p = self._walls, self._points
-        walls = np.flatnonzero(w.active & (w.observations >= min_observations))
-        points = np.flatnonzero(p.active & (p.observations >= min_observations))
         normal, tangent = w.normal[walls], w.tangent[walls]
         offset_variance = self._wall_covariance(walls)[:, 1, 1]
         along_variance = (w.extent[walls, 1] - w.extent[walls, 0]) ** 2 / 12.0 + offset_variance
@@ -1461,7 +1624,17 @@ class LandmarkMap:
             reason=np.zeros(count, np.uint8),
         )
 
-    def points(self, min_observations: int = 1) -> np.ndarray:
+    def _chosen(self, min_observations: int, only) -> tuple[np.ndarray, np.ndarray]:
+        """Slots of the walls and points seen ``min_observations`` times, among ``only`` (uids) if given."""
+        chosen = []
+        for table in (self._walls, self._points):
+            keep = table.active & (table.observations >= min_observations)
+            if only is not None:
+                keep &= np.isin(table.uid, np.asarray(only, dtype=np.int64))
+            chosen.append(np.flatnonzero(keep))
+        return chosen[0], chosen[1]
+
+    def points(self, min_observations: int = 1, only=None) -> np.ndarray:
         """Landmark points for a costmap, shape (P, 2), ``odom``, m.
 
         Every wall is sampled from end to end at equal steps no longer than
@@ -1473,9 +1646,11 @@ class LandmarkMap:
         ----------
         min_observations : int
             Leave out entries with fewer sightings.
+        only : array_like of int, optional
+            Only these entries (uids, :meth:`entries`).
         """
+        walls, points = self._chosen(min_observations, only)
         w, p = self._walls, self._points
-        walls = np.flatnonzero(w.active & (w.observations >= min_observations))
         ends = w.end_points(walls)
         length = w.extent[walls, 1] - w.extent[walls, 0]
         samples = np.ceil(length / self.wall_point_spacing).astype(np.int64) + 1
@@ -1484,7 +1659,6 @@ class LandmarkMap:
         index = np.arange(wall.size) - np.repeat(np.cumsum(samples) - samples, samples)
         fraction = (index / (samples[wall] - 1))[:, None]
         along_walls = ends[wall, 0] + fraction * (ends[wall, 1] - ends[wall, 0])
-        points = np.flatnonzero(p.active & (p.observations >= min_observations))
         return np.concatenate([along_walls.reshape(-1, 2), p.mean[points]])
 
 

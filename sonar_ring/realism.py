@@ -67,6 +67,7 @@ from dataclasses import dataclass, fields, replace
 import numpy as np
 
 from sonar_ring.geometry import Layout, speed_of_sound
+from sonar_ring.poses import compose, relative_pose
 from sonar_ring.simulate import (
     DEFAULT_THRESHOLD,
     EDGE,
@@ -338,20 +339,6 @@ class WheelOdometry:
                 self._rng.standard_normal()
         self._pose = compose(self._pose, (forward, sideways, turn))
         return self._pose.copy()
-
-
-def relative_pose(start, end) -> tuple[float, float, float]:
-    """``end`` in the frame of ``start`` (both ``(x, y, yaw)`` in one frame): forward, sideways (m), turn (rad)."""
-    c, s = math.cos(start[2]), math.sin(start[2])
-    dx, dy = end[0] - start[0], end[1] - start[1]
-    turn = math.remainder(end[2] - start[2], 2.0 * math.pi)
-    return c * dx + s * dy, -s * dx + c * dy, turn
-
-
-def compose(pose, step) -> np.ndarray:
-    """``pose`` moved by ``step`` (forward, sideways, turn) given in its own frame; ``(x, y, yaw)``."""
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    return np.array([pose[0] + c * step[0] - s * step[1], pose[1] + s * step[0] + c * step[1], pose[2] + step[2]])
 
 
 # --------------------------------------------------------------------------- air

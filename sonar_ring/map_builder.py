@@ -1,0 +1,219 @@
+"""The mapper's core: pings placed at the robot's pose at their stamps, and the map they build.
+
+One object for the ``mapper`` node and ``sonar-ring process`` (which feed it
+the same messages in the same order, so they build the same map).  It keeps
+the odometry (:class:`~sonar_ring.poses.PoseHistory`), holds a ping back until
+the odometry covers its stamp, and maps it:
+
+* ``slam`` on (default): :class:`~sonar_ring.slam.LandmarkSlam` estimates the
+  robot's pose in ``map`` from the odometry and the landmarks, the map is in
+  ``map``;
+* ``slam`` off: the pose is the odometry's, the map a
+  :class:`~sonar_ring.mapping.LandmarkMap` in ``odom``.
+
+What it leaves out is counted on ``health`` (anything with ``problem(reason,
+detail, count)`` and ``note(reason, count)``: the node's
+:class:`~sonar_ring.ros.diagnostics.NodeHealth`, ``process``'s tally):
+``pose_too_old``, ``no_odometry``, ``sightings not_finite`` and
+``sightings degenerate`` (problems), ``sightings ambiguous``, ``sightings dropped``,
+``sightings evicted`` (notes); with SLAM also ``odometry_jump`` (a new map
+segment starts) and ``no_landmarks`` (a stretch of travel without a confirmed
+landmark) as problems.  Nothing raises on bad data.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sonar_ring.landmarks import Landmarks
+from sonar_ring.mapping import LandmarkMap, MapCounts, transform_landmarks
+from sonar_ring.poses import PoseHistory, compose
+from sonar_ring.slam import LandmarkSlam, SlamSettings
+
+PENDING_LIMIT = 32
+"""Pings waiting for a later odometry message; the oldest is dropped (and counted) beyond this."""
+
+SIGHTING_PROBLEMS = ("not_finite", "degenerate")
+"""Sightings the map refused as bad data (:class:`~sonar_ring.mapping.MapCounts` fields)."""
+SIGHTING_NOTES = ("ambiguous", "dropped", "evicted")
+"""Sightings the map left out by design."""
+
+
+@dataclass(frozen=True)
+class MapperSettings:
+    """What the mapper does; the mapper node's parameters map onto it.
+
+    Attributes
+    ----------
+    slam : bool
+        Estimate the pose (SLAM, map in ``map_frame``) or take the odometry's (map in ``odom_frame``).
+    use_odometry : bool
+        Place pings with the odometry; False: at ``fixed_pose``.
+    fixed_pose, sensor_offset : tuple of float
+        The robot's pose without odometry, and the sensor's pose in the robot frame, ``(x, y, yaw)``.
+    map_frame, odom_frame : str
+        Frame names (REP 105).
+    max_points, max_walls : int
+        Capacities of the map.
+    gate : float
+        Mahalanobis gate for association.
+    min_observations : int
+        Sightings an entry needs before it is published.
+    slam_settings : SlamSettings
+    pose_history : int or None
+        Odometry poses kept (None: all, for a whole bag).
+    """
+
+    slam: bool = True
+    use_odometry: bool = True
+    fixed_pose: tuple = (0.0, 0.0, 0.0)
+    sensor_offset: tuple = (0.0, 0.0, 0.0)
+    map_frame: str = "map"
+    odom_frame: str = "odom"
+    max_points: int = 2000
+    max_walls: int = 500
+    gate: float = 9.21
+    min_observations: int = 2
+    slam_settings: SlamSettings = field(default_factory=SlamSettings)
+    pose_history: int | None = 500
+
+
+class MapBuilder:
+    """Pings and odometry in, the map (and, with SLAM, the robot's pose in ``map``) out (module docstring).
+
+    Parameters
+    ----------
+    settings : MapperSettings
+    health
+        Where refusals are counted (``problem``, ``note``).
+    """
+
+    def __init__(self, settings: MapperSettings, health):
+        self.settings = settings
+        self.health = health
+        self.history = PoseHistory(settings.pose_history)
+        self._pending: deque = deque()
+        front = dict(max_points=settings.max_points, max_walls=settings.max_walls, gate=settings.gate)
+        self.slam = LandmarkSlam(settings.slam_settings, front) if settings.slam else None
+        self._odom_map = None if settings.slam else LandmarkMap(**front)
+        self._counts = MapCounts()
+        self._lost = False
+        self.changed = False
+        self.robot_pose = None
+        """The robot's pose in the map's frame ``(x, y, yaw)`` at the latest ping mapped, None before the first."""
+        self.latest_stamp = None
+        """Stamp (ns) of the latest ping mapped."""
+
+    @property
+    def frame(self) -> str:
+        """The map's frame: ``map_frame`` with SLAM, else ``odom_frame``."""
+        return self.settings.map_frame if self.slam else self.settings.odom_frame
+
+    @property
+    def pending(self) -> int:
+        """Pings waiting for odometry at or after their stamp."""
+        return len(self._pending)
+
+    # ------------------------------------------------------------------ input
+
+    def add_odometry(self, stamp: int, pose) -> int:
+        """The robot's odometry pose ``(x, y, yaw)`` in ``odom`` at ``stamp`` (ns); returns the pings it placed."""
+        self.history.add(stamp, pose)
+        placed = 0
+        while self._pending and self.history.at(self._pending[0][0]) is not None:
+            self._map(*self._pending.popleft())
+            placed += 1
+        return placed
+
+    def forget_odometry(self) -> None:
+        """Time went backwards (a bag replayed again): the odometry history and waiting pings no longer apply."""
+        self.history.clear()
+        self._pending.clear()
+
+    def give_up_waiting(self) -> None:
+        """No more odometry will come (a bag ended): the waiting pings are dropped (``no_odometry``)."""
+        self.health.problem("no_odometry", "no odometry at or after the ping's stamp", count=len(self._pending))
+        self._pending.clear()
+
+    def add_ping(self, stamp: int, landmarks: Landmarks) -> bool:
+        """A ping's labelled landmarks (sensor frame) at ``stamp`` (ns); True when mapped now, False when not (yet).
+
+        A ping older than the odometry history is dropped (``pose_too_old``);
+        one after the latest odometry waits for it (``no_odometry`` when more
+        than :data:`PENDING_LIMIT` wait).
+        """
+        if not self.settings.use_odometry:
+            self._map(stamp, landmarks)
+            return True
+        if self.history.too_old(stamp):
+            self.health.problem("pose_too_old", "ping older than the odometry history")
+            return False
+        if self.history.at(stamp) is None:
+            self._pending.append((stamp, landmarks))
+            if len(self._pending) > PENDING_LIMIT:
+                self._pending.popleft()
+                self.health.problem("no_odometry", "no odometry at or after the ping's stamp")
+            return False
+        self._map(stamp, landmarks)
+        return True
+
+    def _map(self, stamp: int, landmarks: Landmarks) -> None:
+        odometry = self.history.at(stamp) if self.settings.use_odometry else np.asarray(self.settings.fixed_pose,
+                                                                                           dtype=float)
+        if not np.all(np.isfinite(odometry)):
+            self.health.problem("not_finite_pose", "odometry pose not finite")
+            return
+        offset = np.asarray(self.settings.sensor_offset, dtype=float)
+        if self.slam is None:
+            sensor = compose(odometry, offset)
+            self.landmark_map.update(transform_landmarks(landmarks, sensor), sensor)
+            self.robot_pose = odometry
+        else:
+            report = self.slam.add_ping(landmarks, odometry, stamp * 1e-9, offset)
+            self.robot_pose = report.pose
+            if report.fault:
+                self.health.problem(report.fault.replace(" ", "_"), f"{report.fault}: a new map segment starts")
+            lost = self.slam.lost(stamp * 1e-9)
+            if lost and not self._lost:
+                self.health.problem("no_landmarks", f"no known landmark for {self.slam.settings.lost_after:g} s")
+            self._lost = lost
+        self._count_sightings()
+        self.latest_stamp = stamp
+        self.changed = True
+
+    def _count_sightings(self) -> None:
+        """What the map refused or left out since the last ping, on ``health``."""
+        counts = self.landmark_map.counts
+        if self.slam is not None and counts.pings < self._counts.pings:  # a new segment's map starts at zero
+            self._counts = MapCounts()
+        for reason in SIGHTING_PROBLEMS:
+            self.health.problem(f"sightings {reason}", count=getattr(counts, reason) - getattr(self._counts, reason))
+        for reason in SIGHTING_NOTES:
+            self.health.note(f"sightings {reason}", getattr(counts, reason) - getattr(self._counts, reason))
+        self._counts = counts
+
+    # ------------------------------------------------------------------ output
+
+    @property
+    def landmark_map(self) -> LandmarkMap:
+        """The map of landmarks: SLAM's front end (its current segment's), or the odom-frame map."""
+        return self.slam.front if self.slam is not None else self._odom_map
+
+    def snapshot(self) -> Landmarks:
+        """The map in :attr:`frame`, entries seen ``min_observations`` times (with SLAM: those in its graph)."""
+        if self.slam is not None:
+            return self.slam.snapshot(self.settings.min_observations)
+        return self.landmark_map.snapshot(min_observations=self.settings.min_observations)
+
+    def points(self) -> np.ndarray:
+        """Costmap points of :meth:`snapshot`, (P, 2), in :attr:`frame`."""
+        if self.slam is not None:
+            return self.slam.points(self.settings.min_observations)
+        return self.landmark_map.points(min_observations=self.settings.min_observations)
+
+    def map_to_odom(self) -> np.ndarray:
+        """``map -> odom`` ``(x, y, yaw)`` (SLAM's estimate; identity without SLAM)."""
+        return self.slam.map_to_odom() if self.slam is not None else np.zeros(3)

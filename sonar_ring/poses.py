@@ -1,0 +1,89 @@
+"""2-D poses: composition, relative poses, and a robot's odometry history to place pings at their stamps.
+
+A pose is ``(x, y, yaw)`` of a frame in its parent frame, m and rad (REP 103).
+:class:`PoseHistory` is the one pose policy of the mapper node and of
+``sonar-ring process``: a ping is placed at the robot's pose at its stamp,
+interpolated between the odometry messages around it.
+"""
+
+from __future__ import annotations
+
+import bisect
+import math
+
+import numpy as np
+
+
+def compose(pose, step) -> np.ndarray:
+    """``pose`` moved by ``step`` given in its own frame: the pose of ``step``'s frame in ``pose``'s parent, (3,)."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    return np.array([pose[0] + c * step[0] - s * step[1], pose[1] + s * step[0] + c * step[1], pose[2] + step[2]])
+
+
+def relative_pose(start, end) -> tuple[float, float, float]:
+    """``end`` in the frame of ``start`` (both in one frame): forward, sideways (m) and turn (rad, wrapped)."""
+    c, s = math.cos(start[2]), math.sin(start[2])
+    dx, dy = end[0] - start[0], end[1] - start[1]
+    turn = math.remainder(end[2] - start[2], 2.0 * math.pi)
+    return c * dx + s * dy, -s * dx + c * dy, turn
+
+
+def inverse(pose) -> np.ndarray:
+    """The pose of the parent frame in ``pose``'s frame, (3,)."""
+    return np.array(relative_pose(pose, (0.0, 0.0, 0.0)))
+
+
+def yaw_of(orientation) -> float:
+    """Yaw (rotation about z) of a quaternion with fields ``x, y, z, w``, rad."""
+    return float(math.atan2(2.0 * (orientation.w * orientation.z + orientation.x * orientation.y),
+                            1.0 - 2.0 * (orientation.y ** 2 + orientation.z ** 2)))
+
+
+class PoseHistory:
+    """Odometry poses by stamp, to place a ping at its stamp.
+
+    Parameters
+    ----------
+    limit : int or None
+        Poses kept at least (the oldest go first, in batches); None keeps all (a whole bag).
+    """
+
+    def __init__(self, limit: int | None = 500):
+        self._limit = limit
+        self._stamps: list[int] = []
+        self._poses: list[np.ndarray] = []
+
+    def __len__(self) -> int:
+        return len(self._stamps)
+
+    def add(self, stamp: int, pose) -> None:
+        """Append the pose ``(x, y, yaw)`` stamped ``stamp`` (ns, after the last one's)."""
+        self._stamps.append(stamp)
+        self._poses.append(np.asarray(pose, dtype=float))
+        if self._limit is not None and len(self._stamps) >= 2 * self._limit:
+            del self._stamps[:-self._limit], self._poses[:-self._limit]
+
+    def clear(self) -> None:
+        """Forget every pose (time jumped back)."""
+        self._stamps.clear()
+        self._poses.clear()
+
+    def too_old(self, stamp: int) -> bool:
+        """Whether ``stamp`` (ns) lies before the oldest pose kept."""
+        return bool(self._stamps) and stamp < self._stamps[0]
+
+    def at(self, stamp: int) -> np.ndarray | None:
+        """The pose at ``stamp`` (ns), interpolated; None while no pose at or after it exists.
+
+        A stamp before the first pose gets the first pose (a ping older than
+        the history: check :meth:`too_old` first where that matters).
+        """
+        index = bisect.bisect_left(self._stamps, stamp)
+        if index == len(self._stamps):
+            return None
+        if self._stamps[index] == stamp or index == 0:
+            return self._poses[index]
+        before, after = self._poses[index - 1], self._poses[index]
+        weight = (stamp - self._stamps[index - 1]) / (self._stamps[index] - self._stamps[index - 1])
+        turn = math.remainder(after[2] - before[2], 2.0 * math.pi)
+        return np.array([*(before[:2] + weight * (after[:2] - before[:2])), before[2] + weight * turn])

@@ -1,0 +1,638 @@
+"""Landmark SLAM: the robot's pose in ``map`` from its odometry and the landmarks it maps (GTSAM, iSAM2).
+
+The mapper's core when ``slam`` is on.  Per ping, :meth:`LandmarkSlam.add_ping`
+takes the classifier's landmarks (sensor frame) and the robot's odometry pose
+(``odom``) at the ping, and:
+
+1. **predicts** the robot's pose in ``map`` from the latest keyframe's estimate
+   and the odometry since (``X = X_k (+) (o_k^-1 (+) o)``), with its uncertainty;
+2. **associates** the landmarks with the map in ``map``: the front end is a
+   :class:`~sonar_ring.mapping.LandmarkMap` (gates, walls as lines with seen
+   extents, points, PLANE vs CORNER over motion), fed with the sightings'
+   covariances widened by the pose's uncertainty, so its gates include it;
+3. **keeps** each associated sighting as a measurement of its entry, relative to
+   the latest keyframe (the odometry between the two, a few centimetres, is
+   folded in);
+4. at a **keyframe** (every ``keyframe_distance`` of travel, ``keyframe_turn``
+   of turn or ``keyframe_pings`` pings), adds to the factor graph the
+   odometry between the keyframes (``BetweenFactorPose2``), one fused
+   measurement per entry seen since the last keyframe -- a corner, an edge:
+   ``BearingRangeFactor2D``; a wall: a foot-point factor (:func:`wall_factor`)
+   on the line ``n(theta) . x = d`` -- and updates the estimate incrementally
+   (``IncrementalFixedLagSmoother``: iSAM2 that marginalises what is older than
+   ``smoother_lag``, so memory stays flat).  The new estimates of the landmarks
+   go back into the front end.
+
+Only **confirmed** entries enter the graph: an entry must persist
+(:meth:`LandmarkSlam.persistent`): seen in at least ``min_support_pings`` pings
+from sensor positions at least ``min_support_travel`` apart.  A one-ping
+phantom never is; a reflector seen from a few poses is.  An undecided point
+must not pull the pose towards the wrong model:
+
+* an UNKNOWN *sighting* is placed with the corner model (Browne s7), which
+  for a convex edge is off across the line of sight by about a degree (the
+  same way from the same side: fusing does not average it away) and along it
+  by a tenth of a millimetre; a point's UNKNOWN sightings therefore keep only
+  their range (``undecided_bearing_sigma`` across the line of sight), its
+  EDGE or CORNER sightings everything;
+* an UNKNOWN *entry* -- still a plane seen head-on or a corner -- predicts the
+  same range under both models (to second order) while the sensor has moved
+  less than ``undecided_baseline`` across its line of sight; beyond that, until
+  motion decides it, it gives no factor.  A wall straight ahead or behind,
+  which motion along it cannot decide, thus still holds the position along
+  the travel.  Re-observing the first
+lap's landmarks associates with them (the gates include the pose's
+uncertainty), which closes the loop without duplicating them.
+
+Faults never raise: an odometry increment faster than ``max_speed`` or
+``max_turn_rate`` (a slip, a pushed robot) starts a new **segment** -- a new
+map from that pose on, never merged with the old one -- and is reported, as is
+a stretch of ``lost_after`` seconds of travel without a confirmed landmark.
+
+Frames (REP 105): ``map`` (the estimate's frame; it starts equal to ``odom`` at
+the first ping), ``odom`` (the odometry's), the robot (``base_link``) and the
+sensor at ``sensor_offset`` in it.  Units m, rad.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import gtsam
+import numpy as np
+
+from sonar_ring.landmarks import UNKNOWN, Landmarks
+from sonar_ring.mapping import LandmarkMap, transform_landmarks
+from sonar_ring.poses import compose, inverse, relative_pose
+
+POSE, POINT, WALL = "x", "l", "w"
+"""Symbol characters of the graph's keyframe poses, point landmarks and walls."""
+
+
+@dataclass(frozen=True)
+class SlamSettings:
+    """How the SLAM works; see the module docstring.
+
+    Attributes
+    ----------
+    keyframe_distance, keyframe_turn : float
+        Travel (m) and turn (rad) after which a new keyframe is made.
+    keyframe_pings : int
+        Pings after which a new keyframe is made even without motion.
+    odometry_distance_noise : float
+        Odometry noise assumed along the travel, m per sqrt(m) rolled.
+    odometry_heading_noise : float
+        Odometry heading noise assumed, rad per sqrt(m) rolled.
+    odometry_scale : float
+        Relative distance error assumed on top (a scale error, modelled as noise), fraction.
+    odometry_heading_bias : float
+        Heading error assumed per metre driven on top, rad/m.
+    track_width : float
+        Distance between the wheels, m: a turn on the spot rolls them ``track_width / 2 * |turn|``.
+    sighting_sigma : float
+        Unmodelled error of one sighting, m (added to its covariance in the graph).
+    min_support_pings : int
+        Pings an entry must be seen in before it enters the graph.
+    min_support_travel : float
+        How far apart (m) the sensor positions of those sightings must be at least.
+    undecided_baseline : float
+        Sideways travel (m) across an UNKNOWN point's line of sight up to which its sightings are factors.
+    undecided_bearing_sigma : float
+        Uncertainty across the line of sight (m) given to an UNKNOWN point's sightings.
+    wall_end_reach, wall_end_tolerance : float
+        A wall ends at a corner or edge within ``wall_end_tolerance`` (m) of its line and ``wall_end_reach``
+        (m) of an end of its seen extent (:meth:`LandmarkSlam.published`).
+    max_speed, max_turn_rate : float
+        Odometry increments beyond these (m/s, rad/s, with the ping interval) are a fault.
+    lost_after : float
+        Seconds of travel without a confirmed landmark after which the SLAM says so.
+    smoother_lag : float
+        Seconds of keyframes the smoother keeps; older ones are marginalised.
+    """
+
+    keyframe_distance: float = 0.05
+    keyframe_turn: float = 0.05
+    keyframe_pings: int = 30
+    odometry_distance_noise: float = 0.02
+    odometry_heading_noise: float = 0.02
+    odometry_scale: float = 0.02
+    odometry_heading_bias: float = 0.01
+    track_width: float = 0.4
+    sighting_sigma: float = 0.002
+    min_support_pings: int = 5
+    min_support_travel: float = 0.05
+    undecided_baseline: float = 0.05
+    undecided_bearing_sigma: float = 0.1
+    wall_end_reach: float = 0.2
+    wall_end_tolerance: float = 0.03
+    max_speed: float = 2.0
+    max_turn_rate: float = 4.0
+    lost_after: float = 5.0
+    smoother_lag: float = 60.0
+
+
+@dataclass
+class SlamReport:
+    """What one :meth:`LandmarkSlam.add_ping` did.
+
+    Attributes
+    ----------
+    pose : ndarray, shape (3,)
+        The robot's estimated pose in ``map`` at the ping.
+    associated : int
+        Sightings that went into a confirmed landmark.
+    tentative : int
+        Sightings that went into an entry not yet in the graph.
+    keyframe : bool
+        Whether the ping made a keyframe (and the graph was updated).
+    fault : str
+        Empty, or why a new segment started (``odometry jump``).
+    """
+
+    pose: np.ndarray
+    associated: int = 0
+    tentative: int = 0
+    keyframe: bool = False
+    fault: str = ""
+
+
+@dataclass
+class _Confirmed:
+    """An entry in the graph: its key, kind (:data:`POINT` or :data:`WALL`) and when it was last measured, s."""
+
+    key: int
+    kind: str
+    stamp: float
+
+
+@dataclass
+class _Support:
+    """How an entry was seen: pings, the first sensor position and the farthest one from it."""
+
+    pings: int = 0
+    first: np.ndarray | None = None
+    spread: float = 0.0
+    last_ping: int = -1
+
+
+@dataclass
+class _Window:
+    """The sightings since the latest keyframe, in its robot frame, a tuple of arrays per ping.
+
+    The entry uid (n,), whether it is a wall (n,), the measurement (n, 2) -- a point's position, a wall's foot
+    point -- and its information matrix (n, 2, 2).
+    """
+
+    pings: list = field(default_factory=list)
+
+    def fused(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Per entry seen: uid (E,), is_wall (E,), the information-weighted mean (E, 2) and its covariance (E, 2, 2)."""
+        uid, wall, measurement, information = (np.concatenate(column) for column in zip(*self.pings, strict=True))
+        entries, index = np.unique(uid, return_inverse=True)
+        total = np.zeros((entries.size, 2, 2))
+        np.add.at(total, index, information)
+        pulled = np.zeros((entries.size, 2))
+        np.add.at(pulled, index, np.einsum("nij,nj->ni", information, measurement))
+        covariance = _inverse(total)
+        is_wall = np.zeros(entries.size, bool)
+        is_wall[index] = wall
+        return entries, is_wall, np.einsum("eij,ej->ei", covariance, pulled), covariance
+
+    def rename(self, old: int, new: int) -> None:
+        for uid, *_ in self.pings:
+            uid[uid == old] = new
+
+
+# --------------------------------------------------------------------------- factors
+
+
+def wall_error(pose: gtsam.Pose2, line: np.ndarray, measured: np.ndarray, jacobians=None) -> np.ndarray:
+    """Foot-point residual of a wall ``n(theta) . x = d`` (``line = (theta, d)``, map frame) seen from ``pose``.
+
+    The foot of the perpendicular from the robot's origin onto the line, in the
+    robot frame, is ``f = s R^T n`` with ``s = d - n . t``; the residual is
+    ``f - measured`` (2,).  ``jacobians`` (a list of two, or None) receives
+    d(residual)/d(pose) (2, 3), in the pose's body-frame tangent space (GTSAM's
+    ``Pose2.retract``), and d(residual)/d(line) (2, 2).
+    """
+    theta, distance = line[0], line[1]
+    normal = np.array([math.cos(theta), math.sin(theta)])
+    across = np.array([-normal[1], normal[0]])
+    rotation = pose.rotation().matrix()
+    t = np.array([pose.x(), pose.y()])
+    s = distance - normal @ t
+    m = rotation.T @ normal
+    residual = s * m - measured
+    if jacobians is not None:
+        jacobians[0] = np.column_stack([-np.outer(m, m), s * np.array([m[1], -m[0]])])
+        jacobians[1] = np.column_stack([(across @ -t) * m + s * (rotation.T @ across), m])
+    return residual
+
+
+def wall_factor(pose_key: int, line_key: int, measured: np.ndarray, noise) -> gtsam.CustomFactor:
+    """The factor of a wall's foot point ``measured`` (robot frame, (2,)) with ``noise``: :func:`wall_error`."""
+
+    def error(factor, values, jacobians):
+        residual = wall_error(values.atPose2(pose_key), values.atVector(line_key), measured,
+                              jacobians)
+        return residual
+
+    return gtsam.CustomFactor(noise, [pose_key, line_key], error)
+
+
+def _foot_points(point: np.ndarray, sensor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Feet from the origin onto the lines through ``point`` (n, 2) perpendicular to ``point - sensor``, Jacobians.
+
+    Returns ``f = (n . point) n`` with ``n = (point - sensor) / |point - sensor|`` (n, 2) and
+    d f / d point (n, 2, 2) (``sensor`` (2,) held fixed).
+    """
+    offset = point - sensor
+    distance = np.hypot(offset[:, 0], offset[:, 1])
+    normal = offset / distance[:, None]
+    along = np.einsum("ni,ni->n", normal, point)
+    outer = normal[:, :, None] * normal[:, None, :]
+    turn = (np.eye(2) - outer) / distance[:, None, None]  # d n / d point, symmetric
+    return along[:, None] * normal, normal[:, :, None] * (normal + np.einsum("nij,nj->ni", turn, point))[:, None, :] \
+        + along[:, None, None] * turn
+
+
+def _inverse(matrix: np.ndarray) -> np.ndarray:
+    """Inverses of (n, 2, 2) matrices in closed form."""
+    a, b, c, d = matrix[:, 0, 0], matrix[:, 0, 1], matrix[:, 1, 0], matrix[:, 1, 1]
+    determinant = a * d - b * c
+    return np.stack([np.stack([d, -b], -1), np.stack([-c, a], -1)], -2) / determinant[:, None, None]
+
+
+# --------------------------------------------------------------------------- the SLAM
+
+
+class LandmarkSlam:
+    """Keyframe landmark SLAM over a :class:`~sonar_ring.mapping.LandmarkMap` front end (module docstring).
+
+    Parameters
+    ----------
+    settings : SlamSettings
+    front_end : dict, optional
+        Keyword arguments of the front end's :class:`~sonar_ring.mapping.LandmarkMap`.
+    """
+
+    def __init__(self, settings: SlamSettings = SlamSettings(), front_end: dict | None = None):
+        self.settings = settings
+        self._front_end = dict(front_end or {})
+        self.segments = 0
+        self._start_segment()
+
+    def _start_segment(self) -> None:
+        parameters = gtsam.ISAM2Params()
+        parameters.setRelinearizeThreshold(0.001)
+        parameters.relinearizeSkip = 1
+        self._smoother = gtsam.IncrementalFixedLagSmoother(self.settings.smoother_lag, parameters)
+        self.front = LandmarkMap(**self._front_end)
+        self._confirmed: dict[int, _Confirmed] = {}
+        self._support: dict[int, _Support] = {}
+        self._window = _Window()
+        self._keyframe = -1  # index of the latest keyframe
+        self._keyframe_odometry = None  # its odometry pose
+        self._keyframe_pose = None  # its estimate in map
+        self._keyframe_covariance = np.zeros((3, 3))
+        self._keyframe_time = 0.0
+        self._pings_since_keyframe = 0
+        self._next_landmark = 0
+        self._last_odometry = None
+        self._last_time = None
+        self._last_seen_time = None
+        self._ping = 0
+        self.segments += 1
+
+    # ------------------------------------------------------------------ per ping
+
+    def add_ping(self, landmarks: Landmarks, odometry, time: float, sensor_offset=(0.0, 0.0, 0.0)) -> SlamReport:
+        """Add one ping's landmarks (sensor frame) taken with the robot at ``odometry`` (``odom``) at ``time`` s.
+
+        Returns what it did (:class:`SlamReport`).  Never raises on bad data:
+        the front end counts unusable landmarks; a non-finite pose skips the ping.
+        """
+        odometry = np.asarray(odometry, dtype=float)
+        offset = np.asarray(sensor_offset, dtype=float)
+        fault = self._check_odometry(odometry, time)
+        if fault:
+            self._start_segment()
+        if self._keyframe < 0:
+            self._first_keyframe(odometry, time)
+        elif self._is_keyframe(odometry):
+            self._add_keyframe(odometry, time)
+        keyframe = self._pings_since_keyframe == 0
+        self._pings_since_keyframe += 1
+        self._ping += 1
+        self._last_odometry, self._last_time = odometry, time
+        step = relative_pose(self._keyframe_odometry, odometry)
+        pose = compose(self._keyframe_pose, step)
+        report = SlamReport(pose=pose, keyframe=keyframe, fault=fault)
+        if not len(landmarks):
+            return report
+        sensor = compose(pose, offset)
+        placed = self.front.update(self._widened(transform_landmarks(landmarks, sensor), pose, step, offset), sensor)
+        self._follow_renames(placed.renamed)
+        stored = placed.uid >= 0
+        rows, uids = placed.rows[stored], placed.uid[stored]
+        confirmed = np.array([uid in self._confirmed for uid in uids.tolist()], dtype=bool)
+        report.associated = int(np.count_nonzero(confirmed))
+        report.tentative = int(uids.size - report.associated)
+        if report.associated:
+            self._last_seen_time = time
+        self._remember(landmarks.select(rows), uids, step, offset, sensor)
+        return report
+
+    def _check_odometry(self, odometry: np.ndarray, time: float) -> str:
+        """``odometry jump`` when the increment since the last ping is faster than the robot can move."""
+        if self._last_odometry is None:
+            return ""
+        forward, sideways, turn = relative_pose(self._last_odometry, odometry)
+        interval = max(time - self._last_time, 1e-3)
+        s = self.settings
+        if math.hypot(forward, sideways) > s.max_speed * interval + 0.02 or abs(turn) > s.max_turn_rate * interval \
+                + 0.02:
+            return "odometry jump"
+        return ""
+
+    def _widened(self, landmarks: Landmarks, pose, step, offset) -> Landmarks:
+        """The landmarks (map frame) with the pose's uncertainty added to their covariances.
+
+        A landmark at ``p`` moves by ``dt`` and ``dphi x (p - t)`` when the pose
+        moves: ``J = [I, (p - t) turned by 90 deg]`` with the keyframe's covariance
+        and the odometry's since (:meth:`_odometry_covariance` of ``step``).
+        """
+        covariance = self._keyframe_covariance_in_map() + self._odometry_covariance(step, pose[2])
+        lever = landmarks.position - pose[:2]
+        jacobian = np.zeros((len(landmarks), 2, 3))
+        jacobian[:, 0, 0] = jacobian[:, 1, 1] = 1.0
+        jacobian[:, 0, 2], jacobian[:, 1, 2] = -lever[:, 1], lever[:, 0]
+        extra = jacobian @ covariance @ jacobian.transpose(0, 2, 1)
+        return Landmarks(landmarks.landmark_class, landmarks.position, landmarks.normal,
+                         landmarks.covariance + extra, landmarks.confidence, landmarks.segment,
+                         landmarks.observations, landmarks.group, landmarks.echo, landmarks.valid, landmarks.reason)
+
+    def _keyframe_covariance_in_map(self) -> np.ndarray:
+        """The keyframe's marginal covariance (body-frame tangent) as ``(x, y, yaw)`` in ``map``, (3, 3)."""
+        c, s = math.cos(self._keyframe_pose[2]), math.sin(self._keyframe_pose[2])
+        rotate = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        return rotate @ self._keyframe_covariance @ rotate.T
+
+    def _odometry_covariance(self, step, yaw: float) -> np.ndarray:
+        """Covariance of the odometry ``step`` (forward, sideways, turn) as ``(x, y, yaw)`` in ``map``, (3, 3)."""
+        forward, sideways, turn = step
+        distance = math.hypot(forward, sideways)
+        s = self.settings
+        rolled = distance + 0.5 * s.track_width * abs(turn)
+        along = s.odometry_distance_noise ** 2 * rolled + (s.odometry_scale * distance) ** 2 + 1e-8
+        heading = s.odometry_heading_noise ** 2 * rolled + (s.odometry_heading_bias * distance) ** 2 + 1e-8
+        across = along + heading * distance ** 2 / 3.0
+        c, s_ = math.cos(yaw), math.sin(yaw)
+        rotate = np.array([[c, -s_], [s_, c]])
+        covariance = np.zeros((3, 3))
+        covariance[:2, :2] = rotate @ np.diag([along, across]) @ rotate.T
+        covariance[2, 2] = heading
+        return covariance
+
+    def _remember(self, landmarks: Landmarks, uids, step, offset, sensor) -> None:
+        """Keep each sighting as a measurement of its entry in the keyframe's robot frame; count its support.
+
+        A point's measurement is its position; a wall's, the foot of the perpendicular from the keyframe's
+        origin onto the wall's line, from the sighting's foot point ``G`` (on the line, perpendicular to the
+        line of sight from the sensor ``S``): the line ``n . x = n . G`` with ``n = (G - S) / |G - S|``.
+        """
+        for uid in np.unique(uids).tolist():
+            support = self._support.setdefault(uid, _Support())
+            support.pings += 1
+            if support.first is None:
+                support.first = sensor[:2].copy()
+            support.spread = max(support.spread, float(np.hypot(*(sensor[:2] - support.first))))
+        # sensor frame -> robot frame at the ping -> robot frame at the keyframe
+        in_keyframe = transform_landmarks(transform_landmarks(landmarks, offset), step)
+        entries = self.front.entries()
+        wall = np.isin(uids, entries.uid[entries.is_wall])
+        position = in_keyframe.position.copy()
+        covariance = in_keyframe.covariance + self.settings.sighting_sigma ** 2 * np.eye(2)
+        if wall.any():
+            foot, jacobian = _foot_points(position[wall], compose(step, offset)[:2])
+            position[wall] = foot
+            covariance[wall] = jacobian @ covariance[wall] @ jacobian.transpose(0, 2, 1)
+        # An UNKNOWN sighting of a point is placed with the corner model: for an edge its bearing is off by
+        # up to a degree, the same way from the same side, so it keeps only its range (module docstring).
+        ranged = ~wall & (landmarks.landmark_class == UNKNOWN)
+        if ranged.any():
+            covariance[ranged] = _without_bearing(position[ranged] - compose(step, offset)[:2], covariance[ranged],
+                                                  self.settings.undecided_bearing_sigma)
+        self._window.pings.append((uids.copy(), wall, position, _inverse(covariance)))
+
+    def _follow_renames(self, renamed: dict) -> None:
+        """Entries that live on under another uid keep their record (a wall absorbing a confirmed one inherits it).
+
+        A point that became a wall leaves its variable behind: the wall is confirmed as a wall of its own.
+        """
+        walls = set(self.front.entries().uid[self.front.entries().is_wall].tolist()) if renamed else set()
+        for old, new in renamed.items():
+            record = self._confirmed.pop(old, None)
+            if record is not None and new not in self._confirmed and (record.kind == WALL) == (new in walls):
+                self._confirmed[new] = record
+            if old in self._support:
+                merged = self._support.pop(old)
+                kept = self._support.setdefault(new, merged)
+                if kept is not merged:
+                    kept.pings += merged.pings
+                    kept.spread = max(kept.spread, merged.spread)
+            self._window.rename(old, new)
+
+    def persistent(self, uid: int) -> bool:
+        """Whether entry ``uid`` has been seen in enough pings from poses far enough apart to be a reflector."""
+        support = self._support.get(uid)
+        s = self.settings
+        return support is not None and support.pings >= s.min_support_pings and support.spread >= s.min_support_travel
+
+    # ------------------------------------------------------------------ keyframes
+
+    def _is_keyframe(self, odometry: np.ndarray) -> bool:
+        forward, sideways, turn = relative_pose(self._keyframe_odometry, odometry)
+        s = self.settings
+        return (math.hypot(forward, sideways) >= s.keyframe_distance or abs(turn) >= s.keyframe_turn
+                or self._pings_since_keyframe >= s.keyframe_pings)
+
+    def _first_keyframe(self, odometry: np.ndarray, time: float) -> None:
+        """The segment's first keyframe: ``map`` equals ``odom`` there (a tight prior); its clock for :meth:`lost`."""
+        self._last_seen_time = time
+        key = gtsam.symbol(POSE, 0)
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        pose = gtsam.Pose2(*odometry)
+        graph.add(gtsam.PriorFactorPose2(key, pose, gtsam.noiseModel.Diagonal.Sigmas(np.array([1e-4, 1e-4, 1e-5]))))
+        values.insert(key, pose)
+        self._smoother.update(graph, values, {key: time})
+        self._keyframe, self._keyframe_odometry, self._keyframe_time = 0, odometry.copy(), time
+        self._keyframe_pose = odometry.copy()
+        self._keyframe_covariance = np.diag([1e-8, 1e-8, 1e-10])
+        self._pings_since_keyframe = 0
+
+    def _add_keyframe(self, odometry: np.ndarray, time: float) -> None:
+        """Odometry to a new keyframe at this ping, the window's measurements, promotions; update the estimate."""
+        previous, key = gtsam.symbol(POSE, self._keyframe), gtsam.symbol(POSE, self._keyframe + 1)
+        step = relative_pose(self._keyframe_odometry, odometry)
+        graph, values, timestamps = gtsam.NonlinearFactorGraph(), gtsam.Values(), {key: time, previous: time}
+        odometry_noise = self._odometry_covariance(step, 0.0)  # in the previous keyframe's frame
+        graph.add(gtsam.BetweenFactorPose2(previous, key, gtsam.Pose2(*step),
+                                           gtsam.noiseModel.Gaussian.Covariance(odometry_noise)))
+        values.insert(key, gtsam.Pose2(*compose(self._keyframe_pose, step)))
+        self._add_measurements(previous, graph, values, timestamps, time)
+        self._smoother.update(graph, values, timestamps)
+        self._keyframe += 1
+        estimate = self._smoother.calculateEstimate()
+        pose = estimate.atPose2(key)
+        self._keyframe_pose = np.array([pose.x(), pose.y(), pose.theta()])
+        self._keyframe_covariance = self._smoother.marginalCovariance(key)
+        self._keyframe_odometry, self._keyframe_time = odometry.copy(), time
+        self._pings_since_keyframe = 0
+        self._window.pings.clear()
+        self._write_back(estimate)
+
+    def _add_measurements(self, pose_key: int, graph, values, timestamps, time: float) -> None:
+        """One fused factor per entry seen since the keyframe ``pose_key``: confirmed and newly confirmed entries.
+
+        An UNKNOWN point's factor has its bearing made uninformative, and none once the sensor moved more
+        than ``undecided_baseline`` across its line of sight (module docstring).
+        """
+        if not self._window.pings:
+            return
+        entries = self.front.entries()
+        by_uid = {uid: index for index, uid in enumerate(entries.uid.tolist())}
+        uids, is_wall, measurement, covariance = self._window.fused()
+        s = self.settings
+        for uid, wall, position, spread in zip(uids.tolist(), is_wall.tolist(), measurement, covariance,
+                                               strict=True):
+            index = by_uid.get(uid)
+            if index is None or bool(entries.is_wall[index]) != wall:
+                continue
+            undecided = entries.landmark_class[index] == UNKNOWN
+            if undecided and entries.baseline[index] > s.undecided_baseline:
+                continue
+            kind = WALL if wall else POINT
+            if uid not in self._confirmed:
+                if not self.persistent(uid):
+                    continue
+                self._confirm(uid, kind, entries, index, values)
+            record = self._confirmed[uid]
+            if time - record.stamp > 0.8 * s.smoother_lag:
+                self._renew(record, graph, values)
+            record.stamp = time
+            timestamps[record.key] = time
+            if kind == POINT:
+                graph.add(_bearing_range_factor(pose_key, record.key, position, spread))
+            else:
+                graph.add(wall_factor(pose_key, record.key, position, gtsam.noiseModel.Gaussian.Covariance(spread)))
+
+    def _confirm(self, uid: int, kind: str, entries, index: int, values) -> None:
+        """Add entry ``uid`` to the graph, its initial value the front end's estimate."""
+        key = gtsam.symbol(POINT if kind == POINT else WALL, self._next_landmark)
+        self._next_landmark += 1
+        if kind == POINT:
+            values.insert(key, gtsam.Point2(*entries.position[index]))
+        else:
+            normal = entries.normal[index]
+            # n . x = d with n the unit normal away from the side the wall was seen from: d > 0 past the origin
+            values.insert(key, np.array([math.atan2(normal[1], normal[0]), float(normal @ entries.position[index])]))
+        self._confirmed[uid] = _Confirmed(key, kind, self._keyframe_time)
+
+    def _renew(self, record: _Confirmed, graph, values) -> None:
+        """A landmark about to leave the smoother's window (unseen for most of the lag) under a new key.
+
+        Its estimate and marginal covariance become a prior on the new key, so
+        what the map knew of it carries over when it is seen again.
+        """
+        kind = POINT if record.kind == POINT else WALL
+        key = gtsam.symbol(kind, self._next_landmark)
+        self._next_landmark += 1
+        noise = gtsam.noiseModel.Gaussian.Covariance(self._smoother.marginalCovariance(record.key))
+        if record.kind == POINT:
+            estimate = self._smoother.calculateEstimatePoint2(record.key)
+            graph.add(gtsam.PriorFactorPoint2(key, estimate, noise))
+        else:
+            estimate = self._smoother.calculateEstimateVector(record.key)
+            graph.add(gtsam.PriorFactorVector(key, estimate, noise))
+        values.insert(key, estimate)
+        record.key = key
+
+    def _write_back(self, estimate: gtsam.Values) -> None:
+        """The graph's landmark estimates into the front end, so association uses them."""
+        points = [(uid, record.key) for uid, record in self._confirmed.items() if record.kind == POINT]
+        walls = [(uid, record.key) for uid, record in self._confirmed.items() if record.kind == WALL]
+        if points:
+            self.front.set_points([uid for uid, _ in points], [estimate.atPoint2(key) for _, key in points])
+        if walls:
+            lines = np.array([estimate.atVector(key) for _, key in walls])
+            self.front.set_walls([uid for uid, _ in walls], lines[:, 0], lines[:, 1])
+
+    # ------------------------------------------------------------------ output
+
+    @property
+    def confirmed(self) -> np.ndarray:
+        """Uids of the entries in the graph."""
+        return np.array(sorted(self._confirmed), dtype=np.int64)
+
+    def snapshot(self, min_observations: int = 1) -> Landmarks:
+        """The map in ``map``: the confirmed entries (walls first, then points), as :meth:`LandmarkMap.snapshot`.
+
+        Walls end at the confirmed corners and edges on their lines near their ends (:meth:`published`).
+        """
+        return self.published().snapshot(min_observations=min_observations, only=self.confirmed)
+
+    def points(self, min_observations: int = 1) -> np.ndarray:
+        """Costmap points of the confirmed entries in ``map``, (P, 2), m (walls ended as in :meth:`snapshot`)."""
+        return self.published().points(min_observations=min_observations, only=self.confirmed)
+
+    def published(self) -> LandmarkMap:
+        """The front end with the confirmed walls ended at the confirmed points on their lines near their ends.
+
+        (:meth:`~sonar_ring.mapping.LandmarkMap.walls_ended_at`, within
+        ``wall_end_tolerance`` of the line and ``wall_end_reach`` of an end.)
+        """
+        entries = self.front.entries()
+        confirmed = np.isin(entries.uid, self.confirmed)
+        walls, points = confirmed & entries.is_wall, confirmed & ~entries.is_wall
+        return self.front.walls_ended_at(entries.uid[walls], entries.position[points], self.settings.wall_end_reach,
+                                         self.settings.wall_end_tolerance)
+
+    def pose(self) -> tuple[np.ndarray, np.ndarray]:
+        """The robot's latest pose in ``map`` ``(x, y, yaw)`` and its covariance (3, 3), in ``map``."""
+        if self._last_odometry is None:
+            return np.zeros(3), np.zeros((3, 3))
+        step = relative_pose(self._keyframe_odometry, self._last_odometry)
+        pose = compose(self._keyframe_pose, step)
+        return pose, self._keyframe_covariance_in_map() + self._odometry_covariance(step, pose[2])
+
+    def map_to_odom(self) -> np.ndarray:
+        """The transform ``map -> odom`` ``(x, y, yaw)``: where ``odom`` lies in ``map`` now."""
+        if self._last_odometry is None:
+            return np.zeros(3)
+        pose, _ = self.pose()
+        return compose(pose, inverse(self._last_odometry))
+
+    def lost(self, time: float) -> bool:
+        """Whether no confirmed landmark was seen for ``lost_after`` s up to ``time`` (since the segment began)."""
+        return self._last_seen_time is not None and time - self._last_seen_time > self.settings.lost_after
+
+
+def _without_bearing(sight: np.ndarray, covariance: np.ndarray, sigma: float) -> np.ndarray:
+    """Covariances (n, 2, 2) of points seen along ``sight`` (n, 2), at least ``sigma`` (m) across the line of sight."""
+    radial = sight / np.hypot(sight[:, 0], sight[:, 1])[:, None]
+    across = np.stack([-radial[:, 1], radial[:, 0]], axis=-1)
+    extra = np.maximum(sigma ** 2 - np.einsum("ni,nij,nj->n", across, covariance, across), 0.0)
+    return covariance + extra[:, None, None] * across[:, :, None] * across[:, None, :]
+
+
+def _bearing_range_factor(pose_key: int, point_key: int, position: np.ndarray, covariance: np.ndarray):
+    """A point at ``position`` (robot frame) with ``covariance`` as a bearing-range measurement."""
+    distance = math.hypot(position[0], position[1])
+    radial = position / distance
+    tangential = np.array([-radial[1], radial[0]])
+    jacobian = np.vstack([tangential / distance, radial])  # d(bearing, range)/d(position)
+    noise = gtsam.noiseModel.Gaussian.Covariance(jacobian @ covariance @ jacobian.T)
+    return gtsam.BearingRangeFactor2D(pose_key, point_key, gtsam.Rot2(math.atan2(position[1], position[0])),
+                                      distance, noise)

@@ -1,0 +1,165 @@
+"""The SLAM core on small hand-built cases: the wall factor's Jacobians, a pose offset recovered from two walls
+and a corner, a loop closed without duplicates, faults detected, and the mapper's core around it."""
+
+import math
+from collections import Counter
+from dataclasses import replace
+
+import gtsam
+import numpy as np
+import pytest
+from numpy.testing import assert_allclose
+
+from sonar_ring import pipeline
+from sonar_ring.echoes import screen_ping
+from sonar_ring.geometry import load_layout
+from sonar_ring.landmarks import CORNER, PLANE, Landmarks
+from sonar_ring.map_builder import MapBuilder, MapperSettings
+from sonar_ring.poses import compose, relative_pose
+from sonar_ring.realism import IDEAL, World
+from sonar_ring.score import score_map, trajectory_error
+from sonar_ring.simulate import DIRECT, Noise, load_scene
+from sonar_ring.slam import LandmarkSlam, SlamSettings, wall_error
+
+RING = load_layout("browne_ring")
+SETTINGS = pipeline.Settings(sigma_speed=pipeline.ROBOT_SIGMA_SPEED)
+CORNER_ROOM = load_scene({
+    "name": "corner_room",
+    "reflectors": [
+        {"type": "wall", "name": "south", "from": [0.0, 0.0], "to": [4.0, 0.0]},
+        {"type": "wall", "name": "west", "from": [0.0, 3.0], "to": [0.0, 0.0]},
+        {"type": "corner", "name": "sw", "walls": ["south", "west"]},
+    ],
+})
+
+
+class Tally:
+    def __init__(self):
+        self.problems, self.notes = Counter(), Counter()
+
+    def problem(self, reason, detail="", count=1):
+        self.problems[reason] += count
+
+    def note(self, reason, count=1):
+        self.notes[reason] += count
+
+
+def labelled_pings(scene, poses, seed=0):
+    world = World(scene, RING, IDEAL, noise=Noise(tof=1e-6, amplitude=0.02), seed=seed)
+    pings = [world.ping(pose, k / RING.ping_rate) for k, pose in enumerate(poses)]
+    echoes = [screen_ping(p.echoes, RING).echoes for p in pings]
+    return [pipeline.label_pings(RING, [e], SETTINGS, SETTINGS)[0][1] if e is not None else Landmarks.empty()
+            for e in echoes], pings
+
+
+def test_wall_error_jacobians_match_finite_differences():
+    pose = gtsam.Pose2(0.3, -0.2, 0.4)
+    line = np.array([1.1, 2.5])  # theta, d
+    measured = np.array([0.5, 1.0])
+    jacobians = [np.zeros((2, 3)), np.zeros((2, 2))]
+    base = wall_error(pose, line, measured, jacobians)
+    step = 1e-7
+    numeric_pose = np.column_stack([(wall_error(pose.retract(step * np.eye(3)[k]), line, measured) - base) / step
+                                    for k in range(3)])
+    numeric_line = np.column_stack([(wall_error(pose, line + step * np.eye(2)[k], measured) - base) / step
+                                    for k in range(2)])
+    assert_allclose(jacobians[0], numeric_pose, atol=1e-6)
+    assert_allclose(jacobians[1], numeric_line, atol=1e-6)
+    # the foot point of the line n . x = d seen from the pose, in its frame
+    normal = np.array([math.cos(1.1), math.sin(1.1)])
+    foot = (2.5 - normal @ [0.3, -0.2]) * normal
+    c, s = math.cos(0.4), math.sin(0.4)
+    assert_allclose(base + measured, np.array([[c, s], [-s, c]]) @ foot, atol=1e-12)
+
+
+def test_a_pose_offset_is_recovered_from_two_walls_and_a_corner():
+    # The robot drives inside the corner; the odometry is exact for a stretch (the map forms), then reports
+    # every pose 4 cm and 1.5 deg off: the walls and the corner pull the estimate back to the truth.
+    truth = np.array([[1.0 + 0.01 * k, 1.0 + 0.004 * k, math.radians(-100 + 0.3 * k)] for k in range(150)])
+    landmarks, _ = labelled_pings(CORNER_ROOM, truth)
+    slam = LandmarkSlam()
+    offset = np.array([0.04, -0.02, math.radians(1.5)])
+    estimates = []
+    for k, (found, pose) in enumerate(zip(landmarks, truth, strict=True)):
+        odometry = pose if k < 100 else compose(pose, offset * min(1.0, (k - 100) / 10))
+        estimates.append(slam.add_ping(found, odometry, k / RING.ping_rate).pose)
+    classes = slam.snapshot().landmark_class
+    assert np.count_nonzero(classes == PLANE) == 2 and np.count_nonzero(classes == CORNER) == 1
+    final = relative_pose(truth[-1], estimates[-1])
+    assert math.hypot(final[0], final[1]) < 0.006 and abs(final[2]) < math.radians(0.3), final
+    assert math.hypot(*offset[:2]) > 0.04  # what the odometry alone is off by
+
+
+def test_a_loop_closes_without_duplicates():
+    room = load_scene("room")
+    realism = replace(IDEAL, odometry_scale_error=0.01, odometry_heading_bias=0.005, odometry_heading_noise=0.01,
+                      odometry_distance_noise=0.01)
+    world = World(room, RING, realism, noise=Noise(tof=1e-6, amplitude=0.02), seed=3)
+    poses = room.trajectory.poses(RING.ping_rate)[1]
+    slam = LandmarkSlam()
+    estimates, odometry, truth, heard = [], [], [], set()
+    for k in range(2 * len(poses)):  # two laps: the second re-observes the first's landmarks
+        pose = poses[k % len(poses)]
+        ping = world.ping(pose, k / RING.ping_rate)
+        odometry.append(world.odometry_pose(pose))
+        truth.append(pose)
+        heard.update(ping.truth_reflector[(ping.truth_origin == DIRECT) & np.isfinite(ping.tof).all(axis=1)].tolist())
+        echoes = screen_ping(ping.echoes, RING).echoes
+        found = pipeline.label_pings(RING, [echoes], SETTINGS, SETTINGS)[0][1]
+        estimates.append(slam.add_ping(found, odometry[-1], k / RING.ping_rate).pose)
+    score = score_map(slam.snapshot(min_observations=2), room, sorted(heard))
+    assert score.total("duplicates") == 0 and score.ghosts == 0, score.summary()
+    assert score.per_class["plane"].mapped == score.per_class["plane"].heard, score.summary()
+    rms, final = trajectory_error(estimates, truth)
+    odometry_rms, odometry_final = trajectory_error(odometry, truth)
+    assert rms < 0.02 and final < 0.02 and odometry_final > 5 * final, (rms, final, odometry_rms, odometry_final)
+
+
+def test_an_odometry_jump_starts_a_new_segment_and_a_stretch_without_landmarks_is_reported():
+    truth = np.array([[1.0 + 0.01 * k, 1.0, math.radians(-135)] for k in range(80)])
+    landmarks, _ = labelled_pings(CORNER_ROOM, truth)
+    health = Tally()
+    builder = MapBuilder(MapperSettings(), health)
+    for k, (found, pose) in enumerate(zip(landmarks, truth, strict=True)):
+        odometry = pose if k < 60 else compose(pose, (0.5, 0.0, math.radians(20)))  # slipped wheels
+        stamp = int(1e9 + k * 1e9 / RING.ping_rate)
+        builder.add_odometry(stamp, odometry)
+        assert builder.add_ping(stamp, found)
+    assert health.problems["odometry_jump"] == 1 and builder.slam.segments == 2
+    assert len(builder.snapshot()) < 3  # the new segment does not hold the old map's landmarks
+    # now nothing to see for a while: the SLAM says so once
+    later = int(1e9 + 80 * 1e9 / RING.ping_rate)
+    for k in range(1, 300):
+        stamp = later + int(k * 1e9 / RING.ping_rate)
+        builder.add_odometry(stamp, compose(truth[-1], (0.005 * k, 0.0, 0.0)))
+        builder.add_ping(stamp, Landmarks.empty())
+    assert health.problems["no_landmarks"] == 1
+
+
+def test_the_builder_waits_for_odometry_and_counts_what_it_cannot_place():
+    health = Tally()
+    builder = MapBuilder(MapperSettings(slam=False), health)
+    empty = Landmarks.empty()
+    builder.add_odometry(100, (0.0, 0.0, 0.0))
+    assert not builder.add_ping(50, empty) and health.problems["pose_too_old"] == 1
+    assert not builder.add_ping(200, empty) and builder.pending == 1  # waits for a later odometry
+    assert builder.add_odometry(300, (0.3, 0.0, 0.0)) == 1 and builder.pending == 0
+    assert_allclose(builder.robot_pose, (0.15, 0.0, 0.0))  # interpolated at its stamp
+    for k in range(40):
+        builder.add_ping(400 + k, empty)
+    assert health.problems["no_odometry"] == 40 - 32
+    builder.give_up_waiting()
+    assert health.problems["no_odometry"] == 40 and builder.frame == "odom"
+
+
+def test_error_handling():
+    slam = LandmarkSlam()
+    report = slam.add_ping(Landmarks.empty(), (0.0, 0.0, 0.0), 0.0)
+    assert report.keyframe and not report.fault
+    with pytest.raises(TypeError):
+        SlamSettings(keyframe_distance=0.1, unknown=1)
+    health = Tally()
+    builder = MapBuilder(MapperSettings(), health)
+    builder.add_odometry(10, (math.nan, 0.0, 0.0))
+    builder.add_ping(10, Landmarks.empty())
+    assert health.problems["not_finite_pose"] == 1
