@@ -75,8 +75,9 @@ def test_restarted_localiser_rejoins_and_a_late_subscriber_gets_the_map(ros):
 
     processes = {name: start(name) for name in ("driver", "localiser", "classifier", "mapper")}
     observer = rclpy.create_node("fault_observer", namespace=namespace)
-    landmarks = []
+    landmarks, published_maps = [], []
     observer.create_subscription(LandmarkArray, "landmarks", landmarks.append, qos_profile_sensor_data)
+    observer.create_subscription(LandmarkArray, "map/landmarks", published_maps.append, MAP_QOS)
     executor = SingleThreadedExecutor()
     executor.add_node(observer)
     try:
@@ -89,6 +90,9 @@ def test_restarted_localiser_rejoins_and_a_late_subscriber_gets_the_map(ros):
         assert not landmarks, "without a localiser the classifier has nothing to label"
         processes["localiser"] = start("localiser")
         assert spin_until(executor, lambda: len(landmarks) >= 10, timeout=40), "the new localiser rejoined"
+        # SLAM maps a landmark once it is decided and seen from several poses: wait for a map with one.
+        assert spin_until(executor, lambda: published_maps and landmarks_from_msg(published_maps[-1]).position.size,
+                          timeout=60)
 
         processes["driver"].send_signal(signal.SIGINT)  # no more pings: the map stops changing,
         assert processes["driver"].wait(timeout=20) == 0

@@ -17,6 +17,7 @@ from nav_msgs.msg import Odometry
 from numpy.testing import assert_array_equal
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.rosbag2 import Reader
+from rosbags.typesys import Stores, get_typestore
 from sonar_ring.msg import Echoes, LandmarkArray
 from visualization_msgs.msg import MarkerArray
 
@@ -30,7 +31,8 @@ pytestmark = pytest.mark.ros
 
 ROOT = Path(__file__).resolve().parents[1]
 PINGS = 40
-OUTPUTS = ["/landmarks/raw", "/landmarks", "/markers", "/map/landmarks", "/map/markers", "/map/points"]
+OUTPUTS = ["/landmarks/raw", "/landmarks", "/markers", "/map/landmarks", "/map/markers", "/map/points", "/slam/pose",
+           "/tf", "/tf_static"]
 
 
 def read_bag(path):
@@ -54,6 +56,20 @@ def by_stamp(messages, kind):
     if kind is MarkerArray:
         return {stamp_ns(m.markers[0].header): m for m in decoded}
     return {stamp_ns(m.header): m for m in decoded}
+
+
+def transforms_in(path) -> dict:
+    """``(parent, child) -> [stamp ns, ...]`` of every transform on /tf and /tf_static, decoded by rosbags."""
+    store = get_typestore(Stores.ROS2_KILTED)
+    frames = {}
+    with Reader(path) as reader:
+        connections = [c for c in reader.connections if c.topic in ("/tf", "/tf_static")]
+        for connection, _, data in reader.messages(connections=connections):
+            assert connection.msgtype == "tf2_msgs/msg/TFMessage"
+            for transform in store.deserialize_cdr(data, connection.msgtype).transforms:
+                stamp = transform.header.stamp.sec * 10**9 + transform.header.stamp.nanosec
+                frames.setdefault((transform.header.frame_id, transform.child_frame_id), []).append(stamp)
+    return frames
 
 
 def assert_same_landmarks(got, expected):
@@ -123,7 +139,12 @@ def test_process_of_a_simulated_bag_finds_the_true_reflectors(sim_bag, tmp_path,
         errors.append(np.linalg.norm(found.position[real] - true.position[found.echo[real]], axis=1))
     assert np.median(np.concatenate(errors)) < 0.05
     final_map = deserialize_message(messages["/map/landmarks"][-1][1], LandmarkArray)
-    assert final_map.header.frame_id == "odom" and len(landmarks_from_msg(final_map)) >= 5
+    assert final_map.header.frame_id == "map" and len(landmarks_from_msg(final_map)) >= 3
+    # tf, read by the bag library itself: what a viewer needs to place the map and the sensor-frame markers
+    frames = transforms_in(out)
+    assert {("map", "odom"), ("odom", "base_link"), ("base_link", "sonar_ring"),
+            ("sonar_ring", "sonar_ring/group_00"), ("sonar_ring", "sonar_ring/group_47")} <= set(frames)
+    assert len(frames[("odom", "base_link")]) == PINGS and len(frames[("map", "odom")]) >= PINGS - 2
 
 
 def test_sqlite3_and_mcap_inputs_and_any_jobs_give_the_same_landmarks(sim_bag, tmp_path):

@@ -34,9 +34,9 @@ from rclpy.qos import qos_profile_sensor_data
 from ros_harness import executable, spin_until
 from sonar_ring.msg import LandmarkArray
 
+from sonar_ring import map_builder
 from sonar_ring.geometry import load_layout
 from sonar_ring.ros import classifier as classifier_module
-from sonar_ring.ros import mapper as mapper_module
 from sonar_ring.ros.classifier import Classifier
 from sonar_ring.ros.inputs import stamp_ns
 from sonar_ring.ros.localiser import Localiser
@@ -101,7 +101,7 @@ def test_ten_times_the_ping_rate_for_a_minute(ros):
         while time.monotonic() - started < SECONDS:
             spin_until(executor, lambda: False, timeout=1.0)
             samples.append((time.monotonic() - started, rss_mib(), rss_mib(driver.pid)))
-            pending.append((len(classifier._pending), len(mapper._pending)))
+            pending.append((len(classifier._pending), mapper.pending_pings))
         spin_until(executor, lambda: False, timeout=1.5)  # the driver's last diagnostics
     finally:
         driver.send_signal(signal.SIGINT)
@@ -129,7 +129,7 @@ def test_ten_times_the_ping_rate_for_a_minute(ros):
     print(f"\nsoak report: {report}")
 
     assert max(p for p, _ in pending) <= classifier_module.PENDING_LIMIT
-    assert max(p for _, p in pending) <= mapper_module.PENDING_LIMIT
+    assert max(p for _, p in pending) <= map_builder.PENDING_LIMIT
     taken_or_counted = localiser.health.received_count + localiser.health.problems["dropped_input (echoes)"]
     published = report["driver_published"]
     assert published > 0.8 * RATE * SECONDS, "the driver must keep the rate"

@@ -14,6 +14,7 @@ gets the map) and the per-ping topics best effort.
 
 from __future__ import annotations
 
+import math
 import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -21,6 +22,7 @@ from functools import cache
 from pathlib import Path
 
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from rosbags.interfaces import Qos, QosDurability, QosHistory, QosLiveliness, QosReliability, QosTime
@@ -32,12 +34,15 @@ from visualization_msgs.msg import MarkerArray
 from sonar_ring.geometry import CONFIG_DIR, Layout
 from sonar_ring.msg import Echoes, LandmarkArray
 from sonar_ring.ros.node import LATCHED
-from sonar_ring.ros.ranges import range_topic
+from sonar_ring.ros.ranges import group_frame, range_topic
 
 MSG_DIR = CONFIG_DIR.parent / "msg"
 """This package's interface definitions (``share/sonar_ring/msg`` when installed, ``msg/`` in a checkout)."""
 
 RELIABLE = QoSProfile(depth=10)
+TF = QoSProfile(depth=100)
+"""``/tf``'s QoS as tf2's broadcaster publishes it (reliable, volatile, depth 100)."""
+TF_TYPE = "tf2_msgs/msg/TFMessage"
 STORAGES = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}
 """``--storage`` choices."""
 
@@ -48,10 +53,14 @@ class BagError(ValueError):
 
 @dataclass(frozen=True)
 class Topic:
-    """One topic of the graph: relative name, rclpy message class and the QoS it is published with."""
+    """One topic of the graph: relative name, rclpy message class (or ROS type name) and its QoS.
+
+    A type name (``tf2_msgs/msg/TFMessage``) stands for a type rclpy may not
+    have here; its messages are written with the bag library's own types.
+    """
 
     name: str
-    message: type
+    message: type | str
     qos: QoSProfile
 
     @property
@@ -71,7 +80,10 @@ GRAPH_TOPICS = (
     Topic("map/landmarks", LandmarkArray, LATCHED),
     Topic("map/markers", MarkerArray, LATCHED),
     Topic("map/points", PointCloud2, LATCHED),
+    Topic("slam/pose", PoseWithCovarianceStamped, RELIABLE),
     Topic("/diagnostics", DiagnosticArray, RELIABLE),
+    Topic("/tf", TF_TYPE, TF),
+    Topic("/tf_static", TF_TYPE, LATCHED),
 )
 """The topics the driver (simulator source), localiser, classifier and mapper publish, whatever the layout."""
 
@@ -84,21 +96,45 @@ def range_topics(layout: Layout) -> list[Topic]:
 
 
 def graph_topics(layout: Layout) -> list[Topic]:
-    """Every topic the graph publishes with ``layout``.
+    """Every topic the graph publishes with ``layout``: :data:`GRAPH_TOPICS` and the ranges."""
+    return [*GRAPH_TOPICS, *range_topics(layout)]
 
-    :data:`GRAPH_TOPICS`, the ranges and, where tf2_msgs is installed, the
-    group frames on ``/tf_static``.
+
+def tf_message(transforms) -> bytes:
+    """A ``tf2_msgs/TFMessage``, serialized by the bag library (tf2_msgs need not be installed).
+
+    ``transforms`` holds ``(stamp, parent, child, (x, y, z, yaw))`` tuples:
+    stamp in ns, the child frame's pose in the parent's, m and rad.
     """
-    topics = [*GRAPH_TOPICS, *range_topics(layout)]
-    try:
-        from tf2_msgs.msg import TFMessage
-    except ImportError:  # not on PyPI; the driver then publishes no group frames either
-        return topics
-    return [*topics, Topic("/tf_static", TFMessage, LATCHED)]
+    store = typestore()
+    types = store.types
+    items = []
+    for stamp, parent, child, (x, y, z, yaw) in transforms:
+        sec, nanosec = divmod(int(stamp), 10**9)
+        header = types["std_msgs/msg/Header"](stamp=types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec),
+                                               frame_id=parent)
+        transform = types["geometry_msgs/msg/Transform"](
+            translation=types["geometry_msgs/msg/Vector3"](x=float(x), y=float(y), z=float(z)),
+            rotation=types["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2)))
+        items.append(types["geometry_msgs/msg/TransformStamped"](header=header, child_frame_id=child,
+                                                                  transform=transform))
+    return bytes(store.serialize_cdr(types[TF_TYPE](transforms=items), TF_TYPE))
 
 
-def message_type_name(message: type) -> str:
-    """ROS type name of an rclpy message class, e.g. ``nav_msgs/msg/Odometry``."""
+def static_transforms(stamp: int, base_frame: str, sensor_frame: str, sensor_offset, layout: Layout) -> list[tuple]:
+    """The ``/tf_static`` of a graph, as :func:`tf_message` takes it: the sensor on the robot, its groups on it."""
+    x, y, yaw = sensor_offset
+    transforms = [(stamp, base_frame, sensor_frame, (x, y, 0.0, yaw))]
+    transforms += [(stamp, sensor_frame, group_frame(sensor_frame, group), (*centre, group_yaw))
+                   for group, (centre, group_yaw) in enumerate(zip(layout.group_centre(), layout.group_yaw(),
+                                                                  strict=True))]
+    return transforms
+
+
+def message_type_name(message: type | str) -> str:
+    """ROS type name of an rclpy message class, e.g. ``nav_msgs/msg/Odometry`` (a type name stays as it is)."""
+    if isinstance(message, str):
+        return message
     return f"{message.__module__.split('.')[0]}/msg/{message.__name__}"
 
 

@@ -34,23 +34,27 @@ from pathlib import Path
 
 import numpy as np
 import rclpy
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from rclpy.experimental import EventsExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, qos_profile_sensor_data
+from rclpy.serialization import deserialize_message
 
+from sonar_ring import poses
 from sonar_ring.cli import realism_field
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import CLASS_NAMES, UNKNOWN
 from sonar_ring.msg import LandmarkArray
 from sonar_ring.progress import Progress
 from sonar_ring.realism import PROFILES
-from sonar_ring.ros.bag import BagWriter, absolute, graph_topics
-from sonar_ring.ros.convert import landmarks_from_msg
-from sonar_ring.ros.driver import REALISM_PREFIX
+from sonar_ring.ros.bag import TOPIC, BagWriter, absolute, graph_topics, static_transforms, tf_message
+from sonar_ring.ros.convert import echoes_from_cdr, landmarks_from_msg
+from sonar_ring.ros.driver import BASE_FRAME, REALISM_PREFIX
 from sonar_ring.ros.executor import DirectExecutor
 from sonar_ring.ros.graph import NODES, compose
-from sonar_ring.ros.mapper import yaw_of
+from sonar_ring.ros.inputs import stamp_ns
+from sonar_ring.ros.mapper import odometry_pose
 from sonar_ring.ros.node import SonarNode
 from sonar_ring.ros.offline import describe
 from sonar_ring.ros.run import CONFIG_ERRORS
@@ -83,23 +87,88 @@ def record(bag_path: Path, layout: str, stop) -> None:
         with BagWriter(bag_path) as writer:
             node = rclpy.create_node(RECORDER)
             last = [time.monotonic()]
+            sensor = load_layout(layout)
+            made = None if _tf_message_class() is not None else _TransformsFromTopics(writer, sensor)
 
             def keep(connection, raw: bytes) -> None:
-                writer.write(connection, node.get_clock().now().nanoseconds, raw)
+                now = node.get_clock().now().nanoseconds
+                writer.write(connection, now, raw)
                 last[0] = time.monotonic()
+                if made is not None:
+                    made.take(connection.topic, now, raw)
 
-            for topic in graph_topics(load_layout(layout)):
+            for topic in subscribed_topics(sensor):
+                message = topic.message if not isinstance(topic.message, str) else _tf_message_class()
                 qos = QoSProfile(depth=max(topic.qos.depth, RECORDING_DEPTH), reliability=topic.qos.reliability,
                                  durability=topic.qos.durability)
                 connection = writer.connection(absolute(topic.name), topic.message, topic.qos)
-                node.create_subscription(topic.message, topic.name, lambda raw, c=connection: keep(c, raw), qos,
-                                         raw=True)
+                node.create_subscription(message, topic.name, lambda raw, c=connection: keep(c, raw), qos, raw=True)
             executor = EventsExecutor()
             executor.add_node(node)
             while not (stop.is_set() and time.monotonic() - last[0] > QUIET_SECONDS):
                 executor.spin_once(timeout_sec=0.05)
     finally:
         rclpy.try_shutdown()
+
+
+def subscribed_topics(layout) -> list:
+    """The graph's topics the recorder subscribes: all, but tf without tf2_msgs (:class:`_TransformsFromTopics`)."""
+    return [topic for topic in graph_topics(layout)
+            if not isinstance(topic.message, str) or _tf_message_class() is not None]
+
+
+def _tf_message_class():
+    """``tf2_msgs.msg.TFMessage``, or None where tf2_msgs is not installed (PyPI's ROS 2 wheels)."""
+    try:
+        from tf2_msgs.msg import TFMessage
+    except ImportError:
+        return None
+    return TFMessage
+
+
+class _TransformsFromTopics:
+    """What the graph would publish on ``/tf`` and ``/tf_static``, made from its topics where tf2_msgs is missing.
+
+    ``/tf_static`` at the first echoes: the sensor on the robot (the mapper's
+    ``sensor_offset``, zero in the demo) and its receiver groups;
+    ``/tf``: ``odom -> base_link`` per odometry message and ``map -> odom`` per
+    ``slam/pose`` (the robot's pose in ``map`` after its odometry pose at the
+    same stamp), written with the bag library's own types.
+    """
+
+    def __init__(self, writer: BagWriter, layout) -> None:
+        self._writer = writer
+        self._layout = layout
+        self._tf = writer.connection("/tf", TOPIC["/tf"].message, TOPIC["/tf"].qos)
+        self._static = None
+        self._odometry = poses.PoseHistory(limit=None)
+
+    def take(self, topic: str, time_ns: int, raw: bytes) -> None:
+        """A message the recorder wrote: ``raw`` on ``topic`` (absolute) at bag time ``time_ns``."""
+        if topic == "/echoes" and self._static is None:
+            self._static = self._writer.connection("/tf_static", TOPIC["/tf_static"].message,
+                                                   TOPIC["/tf_static"].qos)
+            frame = echoes_from_cdr(raw)[0].frame_id
+            self._writer.write(self._static, time_ns, tf_message(static_transforms(
+                time_ns, BASE_FRAME, frame, (0.0, 0.0, 0.0), self._layout)))
+        elif topic == "/odom":
+            message = deserialize_message(raw, Odometry)
+            stamp, pose = stamp_ns(message.header), odometry_pose(message)
+            self._odometry.add(stamp, pose)
+            self._writer.write(self._tf, time_ns, tf_message([(stamp, message.header.frame_id,
+                                                                message.child_frame_id, (pose[0], pose[1], 0.0,
+                                                                                         pose[2]))]))
+        elif topic == "/slam/pose":
+            message = deserialize_message(raw, PoseWithCovarianceStamped)
+            stamp = stamp_ns(message.header)
+            odometry = self._odometry.at(stamp)
+            if odometry is None:
+                return
+            pose = message.pose.pose
+            in_map = (pose.position.x, pose.position.y, poses.yaw_of(pose.orientation))
+            x, y, yaw = poses.compose(in_map, poses.inverse(odometry))
+            self._writer.write(self._tf, time_ns, tf_message([(stamp, message.header.frame_id, "odom",
+                                                                (x, y, 0.0, yaw))]))
 
 
 def record_until_stdin_closes(bag_path: str, layout: str) -> None:
@@ -158,18 +227,19 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
         driver, localiser, classifier, mapper = nodes
         total = pings or driver.pings_per_lap * laps
         listener = SonarNode("demo_listener")  # no QoS event handlers: the executor keeps its direct path
-        found, truth, odometry, true_pose = {}, {}, {}, {}
-        listener.create_subscription(LandmarkArray, "landmarks", lambda m: found.__setitem__(_stamp_key(m), m),
-                                     qos_profile_sensor_data)
-        listener.create_subscription(LandmarkArray, "truth", lambda m: truth.__setitem__(_stamp_key(m), m), 100)
-        listener.create_subscription(Odometry, "odom", lambda m: odometry.__setitem__(_stamp_key(m), _pose(m)), 100)
-        listener.create_subscription(Odometry, "truth/pose", lambda m: true_pose.__setitem__(_stamp_key(m), _pose(m)),
-                                     100)
+        found, truth, odometry, true_pose, estimate = {}, {}, {}, {}, {}
+        subscribe = listener.create_subscription
+        subscribe(LandmarkArray, "landmarks", lambda m: found.__setitem__(_stamp_key(m), m), qos_profile_sensor_data)
+        subscribe(LandmarkArray, "truth", lambda m: truth.__setitem__(_stamp_key(m), m), 100)
+        subscribe(Odometry, "odom", lambda m: odometry.__setitem__(_stamp_key(m), odometry_pose(m)), 100)
+        subscribe(Odometry, "truth/pose", lambda m: true_pose.__setitem__(_stamp_key(m), odometry_pose(m)), 100)
+        subscribe(PoseWithCovarianceStamped, "slam/pose", lambda m: estimate.__setitem__(_stamp_key(m), (
+            m.pose.pose.position.x, m.pose.pose.position.y, poses.yaw_of(m.pose.pose.orientation))), 100)
         executor = DirectExecutor()
         for node in [localiser, classifier, mapper, listener]:
             executor.add_node(node)
         _wait_for_recorder(listener, recorder, executor,
-                           [absolute(topic.name) for topic in graph_topics(driver.layout)])
+                           [absolute(topic.name) for topic in subscribed_topics(driver.layout)])
         executor.add_node(driver)
         started = time.monotonic()
         bar = Progress("pings", total)
@@ -193,18 +263,23 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
             raise RuntimeError(f"the recorder failed (exit code {recorder.returncode}); {bag_path} is incomplete")
         figures = _score(found, truth)
         latency = {node.get_name(): float(np.median(node.health.latencies())) * 1e3 for node in nodes}
-        snapshot = mapper.map.snapshot(min_observations=mapper.params["min_observations"])
+        snapshot = mapper.builder.snapshot()
         stamps = sorted(set(odometry) & set(true_pose))
         paths = {"true path": np.array([true_pose[k] for k in stamps]).reshape(-1, 3),
                  "odometry": np.array([odometry[k] for k in stamps]).reshape(-1, 3)}
+        errors = {"odometry": trajectory_error(paths["odometry"], paths["true path"])} if stamps else {}
+        estimated = sorted(set(estimate) & set(true_pose))
+        if estimated:
+            paths["SLAM"] = np.array([estimate[k] for k in estimated])
+            errors["SLAM"] = trajectory_error(paths["SLAM"], np.array([true_pose[k] for k in estimated]))
         heard = heard_reflectors(driver.scene, *_truth_in_world(truth, true_pose))
         return {
             **figures, "pings": total, "seconds": elapsed, "latency_ms": latency, "world": world,
             "effects": driver.realism.effects(),
             "map": {CLASS_NAMES[c]: int(np.count_nonzero(snapshot.landmark_class == c)) for c in range(4)},
-            # odom starts at the true first pose: the map frame is the scene's
-            "map_score": score_map(snapshot, driver.scene, heard),
-            "odometry_error": trajectory_error(paths["odometry"], paths["true path"]) if stamps else None,
+            # odom starts at the true first pose, and map at odom's first pose: the map frame is the scene's
+            "map_score": score_map(snapshot, driver.scene, heard), "map_frame": mapper.builder.frame,
+            "pose_errors": errors,
             "snapshot": snapshot, "scene": driver.scene, "paths": paths, "bag": bag_path,
         }
     finally:
@@ -212,11 +287,6 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
         if recorder.poll() is None:
             recorder.terminate()
             recorder.wait()
-
-
-def _pose(msg: Odometry) -> tuple[float, float, float]:
-    pose = msg.pose.pose
-    return pose.position.x, pose.position.y, yaw_of(pose.orientation)
 
 
 def _score(found: dict, truth: dict) -> dict:
@@ -285,9 +355,9 @@ def summary_text(figures: dict) -> str:
                       f"up to {1e2 * score.wall_overshoot.max():.1f} cm past their ends")
     if errors:
         lines.append("  map error (mapped entries): " + ", ".join(errors))
-    if figures["odometry_error"] is not None:
-        lines.append("  odometry error: RMS {:.1f} cm, final {:.1f} cm".format(
-            *(1e2 * e for e in figures["odometry_error"])))
+    if figures["pose_errors"]:
+        lines.append("  pose error: " + "; ".join(f"{name} RMS {1e2 * rms:.1f} cm, final {1e2 * final:.1f} cm"
+                                                 for name, (rms, final) in figures["pose_errors"].items()))
     return "\n".join(lines)
 
 
@@ -298,7 +368,7 @@ def write_outputs(figures: dict, out: Path) -> str:
     found = ", ".join(f"{n} {name}" for name, n in figures["map"].items() if n)
     plot.save_map_png(out / "map.png", figures["scene"], figures["paths"], figures["snapshot"],
                       f"{figures['scene'].name}, {figures['world']} world: map after {figures['pings']} pings "
-                      f"({found or 'empty'}), in odom")
+                      f"({found or 'empty'}), in {figures['map_frame']}")
     text = "\n".join([
         summary_text(figures),
         f"wrote {describe(figures['bag'])}, {out / 'map.png'}, {out / 'summary.txt'}",

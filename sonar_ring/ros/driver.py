@@ -49,6 +49,8 @@ DEFAULT_SPEED_OF_SOUND = float(speed_of_sound(20.0))
 """m/s in dry air at 20 degC, for sources that report none."""
 REALISM_PREFIX = "realism."
 """The simulator's effect parameters: ``realism.<field>`` of :class:`sonar_ring.realism.Realism`."""
+BASE_FRAME = "base_link"
+"""The simulated robot's frame: the odometry's child (REP 105); the sensor sits at its origin."""
 WORLD_FRAME = "world"
 """Frame of the simulator's true poses (``truth/pose``): the scene's."""
 HARDWARE_QUEUE = 64
@@ -300,8 +302,8 @@ def truth_message(ping, header: Header) -> LandmarkArrayMsg:
 
 
 def odometry_message(pose: np.ndarray, header: Header, frame_id: str = "odom") -> Odometry:
-    """The simulated robot at ``pose`` (x, y, yaw in ``frame_id``; m, rad), child frame ``header.frame_id``."""
-    message = Odometry(child_frame_id=header.frame_id)
+    """The simulated robot (:data:`BASE_FRAME`) at ``pose`` (x, y, yaw in ``frame_id``; m, rad), stamped ``header``."""
+    message = Odometry(child_frame_id=BASE_FRAME)
     message.header.stamp = header.stamp
     message.header.frame_id = frame_id
     message.pose.pose.position.x, message.pose.pose.position.y = float(pose[0]), float(pose[1])

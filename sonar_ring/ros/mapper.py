@@ -1,25 +1,32 @@
-"""mapper: labelled landmarks of every ping accumulated into a map in ``odom``.
+"""mapper: labelled landmarks of every ping and the odometry into a map, with SLAM in ``map`` by default.
 
 Subscribes ``landmarks`` (sonar_ring/LandmarkArray, sensor frame) and ``odom``
-(nav_msgs/Odometry: pose of the robot in ``odom``; the sensor sits at
-``sensor_offset`` in the robot frame).  A ping is placed with the robot pose at
+(nav_msgs/Odometry: the robot, ``base_frame``, in ``odom``; the sensor sits at
+``sensor_offset`` in the robot frame).  A ping is placed at the robot's pose at
 its stamp, interpolated between the odometry messages around it; without
-odometry (``use_odometry: false``) the robot stays at ``fixed_pose``.
+odometry (``use_odometry: false``) the robot stays at ``fixed_pose``.  The
+work is the core's :class:`~sonar_ring.map_builder.MapBuilder`:
+
+* ``slam: true`` (default): the robot's pose in ``map_frame`` is estimated from
+  the odometry and the landmarks (:mod:`sonar_ring.slam`); the map is in
+  ``map_frame``; per ping the pose goes out on ``slam/pose``
+  (geometry_msgs/PoseWithCovarianceStamped) and the ``map_frame -> odom_frame``
+  transform on ``/tf`` (where tf2_msgs is installed);
+* ``slam: false``: the odometry is taken as exact, the map is in ``odom_frame``.
 
 Publishes, reliable and transient local so a late subscriber gets the latest
-map, at ``map_rate``: ``map/landmarks`` (sonar_ring/LandmarkArray in
-``odom_frame``), ``map/markers`` (MarkerArray with covariance ellipses) and
-``map/points`` (sensor_msgs/PointCloud2 of landmark points for costmaps); and
-``/diagnostics``.
+map, at ``map_rate``: ``map/landmarks`` (sonar_ring/LandmarkArray),
+``map/markers`` (MarkerArray with covariance ellipses) and ``map/points``
+(sensor_msgs/PointCloud2 of landmark points for costmaps); and ``/diagnostics``.
 """
 
 from __future__ import annotations
 
-import bisect
+import math
 import time
-from collections import deque
 
 import numpy as np
+from geometry_msgs.msg import PoseWithCovarianceStamped, TransformStamped
 from nav_msgs.msg import Odometry
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.serialization import serialize_message
@@ -29,8 +36,10 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
 from sonar_ring.landmarks import Landmarks
-from sonar_ring.mapping import LandmarkMap, Sightings, load_kernels, transform_landmarks
+from sonar_ring.map_builder import MapBuilder, MapperSettings
+from sonar_ring.mapping import load_kernels
 from sonar_ring.msg import LandmarkArray
+from sonar_ring.poses import yaw_of
 from sonar_ring.ros.convert import AnyHeader, MessageError, landmarks_from_msg, serialize_landmarks
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, stamp_ns
@@ -38,11 +47,7 @@ from sonar_ring.ros.markers import covariance_ellipses, landmark_markers, serial
 from sonar_ring.ros.node import LATCHED, SonarNode
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.run import spin
-
-POSE_HISTORY = 500
-"""Odometry messages kept for interpolation (10 s at 50 Hz)."""
-PENDING_LIMIT = 32
-"""Pings waiting for a later odometry message; the oldest is dropped (and counted) beyond this."""
+from sonar_ring.slam import SlamSettings
 
 
 def _three_numbers(value) -> str | None:
@@ -51,15 +56,51 @@ def _three_numbers(value) -> str | None:
     return None
 
 
+SLAM_PREFIX = "slam."
+"""The SLAM's parameters: ``slam.<field>`` of :class:`~sonar_ring.slam.SlamSettings` (read-only)."""
+
+SLAM_PARAMS = [
+    Param(SLAM_PREFIX + "keyframe_distance", SlamSettings.keyframe_distance, "travel between keyframes, m",
+          low=0.01, high=10.0, read_only=True),
+    Param(SLAM_PREFIX + "keyframe_turn", SlamSettings.keyframe_turn, "turn between keyframes, rad", low=0.01,
+          high=3.0, read_only=True),
+    Param(SLAM_PREFIX + "odometry_distance_noise", SlamSettings.odometry_distance_noise,
+          "odometry noise along the travel, m per sqrt(m) (when the odometry's covariance is not set)", low=1e-4,
+          high=1.0, read_only=True),
+    Param(SLAM_PREFIX + "odometry_heading_noise", SlamSettings.odometry_heading_noise,
+          "odometry heading noise, rad per sqrt(m) (when the odometry's covariance is not set)", low=1e-4, high=1.0,
+          read_only=True),
+    Param(SLAM_PREFIX + "odometry_scale", SlamSettings.odometry_scale, "odometry distance scale error, fraction",
+          low=0.0, high=0.5, read_only=True),
+    Param(SLAM_PREFIX + "min_support_pings", SlamSettings.min_support_pings,
+          "pings a landmark must be seen in before it is mapped", low=1, high=1000, read_only=True),
+    Param(SLAM_PREFIX + "min_support_travel", SlamSettings.min_support_travel,
+          "spread of the sensor positions it must be seen from, m", low=0.0, high=10.0, read_only=True),
+    Param(SLAM_PREFIX + "max_speed", SlamSettings.max_speed, "faster odometry is a fault (a jump), m/s", low=0.1,
+          high=100.0, read_only=True),
+    Param(SLAM_PREFIX + "max_turn_rate", SlamSettings.max_turn_rate, "faster odometry turns are a fault, rad/s",
+          low=0.1, high=100.0, read_only=True),
+    Param(SLAM_PREFIX + "lost_after", SlamSettings.lost_after, "seconds without a known landmark before a warning",
+          low=0.1, high=3600.0, read_only=True),
+    Param(SLAM_PREFIX + "smoother_lag", SlamSettings.smoother_lag,
+          "seconds of keyframes the smoother keeps (older ones are marginalised: memory stays flat)", low=1.0,
+          high=3600.0, read_only=True),
+]
+
 PARAMS = [
-    Param("odom_frame", "odom", "frame of the map (the odometry's frame)"),
+    Param("slam", True, "estimate the robot's pose from odometry and landmarks and map in map_frame; false: map in "
+          "odom_frame at the odometry's pose", read_only=True),
+    Param("map_frame", "map", "frame of the map and of slam/pose with SLAM (REP 105)", read_only=True),
+    Param("odom_frame", "odom", "the odometry's frame (the map's without SLAM)"),
+    Param("base_frame", "base_link", "the robot's frame (the odometry's child frame)", read_only=True),
     Param("use_odometry", True, "place pings with nav_msgs/Odometry on `odom`; false: at fixed_pose", read_only=True),
     Param("fixed_pose", [0.0, 0.0, 0.0], "robot pose [x, y, yaw] (m, m, rad) when use_odometry is false",
-          check=_three_numbers),
-    Param("sensor_offset", [0.0, 0.0, 0.0], "sensor pose [x, y, yaw] in the odometry's child frame",
-          check=_three_numbers),
+          check=_three_numbers, read_only=True),
+    Param("sensor_offset", [0.0, 0.0, 0.0], "sensor pose [x, y, yaw] in the robot frame", check=_three_numbers,
+          read_only=True),
     Param("map_rate", 2.0, "map publications per second", low=0.1, high=50.0),
-    Param("min_observations", 2, "sightings a landmark needs before it is published", low=1, high=1000),
+    Param("min_observations", 2, "sightings a landmark needs before it is published", low=1, high=1000,
+          read_only=True),
     Param("max_points", 2000, "map capacity for corners, edges and unresolved points", low=1, high=100000,
           read_only=True),
     Param("max_walls", 500, "map capacity for walls", low=1, high=100000, read_only=True),
@@ -67,100 +108,35 @@ PARAMS = [
           read_only=True),
     EXPECTED_FRAME,
     FUTURE_TOLERANCE,
+    *SLAM_PARAMS,
 ]
 
 
-def yaw_of(orientation) -> float:
-    """Yaw of a quaternion (rotation about z), rad."""
-    return float(np.arctan2(2.0 * (orientation.w * orientation.z + orientation.x * orientation.y),
-                            1.0 - 2.0 * (orientation.y ** 2 + orientation.z ** 2)))
+def mapper_settings(values: dict) -> MapperSettings:
+    """The core's settings from the mapper's parameter values (:data:`PARAMS`)."""
+    slam = SlamSettings(**{p.name.removeprefix(SLAM_PREFIX): values[p.name] for p in SLAM_PARAMS})
+    return MapperSettings(slam=values["slam"], use_odometry=values["use_odometry"],
+                          fixed_pose=tuple(values["fixed_pose"]), sensor_offset=tuple(values["sensor_offset"]),
+                          map_frame=values["map_frame"], odom_frame=values["odom_frame"],
+                          max_points=values["max_points"], max_walls=values["max_walls"], gate=values["gate"],
+                          min_observations=values["min_observations"], slam_settings=slam)
 
 
-def compose(pose: np.ndarray, offset: np.ndarray) -> np.ndarray:
-    """Pose ``offset`` given in the frame of ``pose``, expressed in pose's parent frame."""
-    c, s = np.cos(pose[2]), np.sin(pose[2])
-    return np.array([pose[0] + c * offset[0] - s * offset[1], pose[1] + s * offset[0] + c * offset[1],
-                     pose[2] + offset[2]])
+def odometry_pose(msg: Odometry) -> tuple[float, float, float]:
+    """The robot's ``(x, y, yaw)`` of an Odometry message, m and rad."""
+    pose = msg.pose.pose
+    return pose.position.x, pose.position.y, yaw_of(pose.orientation)
 
 
-def pose_at(stamps, poses, stamp: int) -> np.ndarray | None:
-    """Robot pose at ``stamp`` (ns), interpolated in an odometry history; None while no later odometry exists.
-
-    ``stamps`` are the odometry stamps (ns, increasing, indexable), ``poses``
-    the matching ``(x, y, yaw)`` arrays (m, m, rad).  A stamp before the first
-    odometry gets the first pose.
-    """
-    index = bisect.bisect_left(stamps, stamp)
-    if index == len(stamps):
-        return None
-    if stamps[index] == stamp or index == 0:
-        return poses[index]
-    before, after = poses[index - 1], poses[index]
-    weight = (stamp - stamps[index - 1]) / (stamps[index] - stamps[index - 1])
-    turn = np.arctan2(np.sin(after[2] - before[2]), np.cos(after[2] - before[2]))
-    return np.array([*(before[:2] + weight * (after[:2] - before[:2])), before[2] + weight * turn])
-
-
-def new_map(params: dict) -> LandmarkMap:
-    """An empty map with the capacities and gate of the mapper parameters ``params``."""
-    return LandmarkMap(max_points=params["max_points"], max_walls=params["max_walls"], gate=params["gate"])
-
-
-SIGHTING_PROBLEMS = ("not_finite", "degenerate")
-"""Sightings the map refused as bad data (:class:`~sonar_ring.mapping.MapCounts` fields)."""
-SIGHTING_NOTES = ("ambiguous", "dropped", "evicted")
-"""Sightings the map left out by design."""
-
-
-def integrate(landmark_map: LandmarkMap, landmarks, robot_pose: np.ndarray, sensor_offset) -> dict:
-    """Add one ping's landmarks (sensor frame) to the map, the robot at ``robot_pose`` (x, y, yaw in ``odom``).
-
-    ``sensor_offset`` is the sensor pose ``(x, y, yaw)`` in the robot frame.
-    Returns the sightings refused or left out in this update, by
-    :data:`SIGHTING_PROBLEMS` and :data:`SIGHTING_NOTES` reason.
-    """
-    return add_sightings(landmark_map, sightings_at(landmark_map, landmarks, robot_pose, sensor_offset))
-
-
-def sightings_at(landmark_map: LandmarkMap, landmarks, robot_pose: np.ndarray, sensor_offset) -> Sightings | None:
-    """The first half of :func:`integrate`: the ping's landmarks in ``odom``, screened with the map's settings.
-
-    Needs nothing of the map's entries, so ``sonar-ring process`` runs it in its workers.
-    """
-    sensor_pose = compose(robot_pose, np.asarray(sensor_offset, dtype=float))
-    return landmark_map.screen(transform_landmarks(landmarks, sensor_pose), sensor_pose)
-
-
-def add_sightings(landmark_map: LandmarkMap, sightings: Sightings | None) -> dict:
-    """The second half of :func:`integrate`, in ping order; what was left out, by reason."""
-    before = landmark_map.counts
-    landmark_map.add(sightings)
-    after = landmark_map.counts
-    return {reason: getattr(after, reason) - getattr(before, reason) for reason in SIGHTING_PROBLEMS + SIGHTING_NOTES}
-
-
-def count_sightings(health, lost: dict) -> None:
-    """Count what :func:`integrate` left out: refused sightings as problems, those left out by design as notes.
-
-    ``health`` is a :class:`~sonar_ring.ros.diagnostics.NodeHealth` or anything with its
-    ``problem`` and ``note`` methods (``sonar-ring process`` counts the same way).
-    """
-    for reason in SIGHTING_PROBLEMS:
-        health.problem(f"sightings {reason}", count=lost[reason])
-    for reason in SIGHTING_NOTES:
-        health.note(f"sightings {reason}", lost[reason])
-
-
-def map_messages(landmark_map: LandmarkMap, header: Header, min_observations: int) -> tuple[bytes, bytes, bytes]:
+def map_messages(builder: MapBuilder, header: Header) -> tuple[bytes, bytes, bytes]:
     """The map as published, serialized: ``map/landmarks``, ``map/markers`` and ``map/points``, in that order.
 
-    Landmarks seen at least ``min_observations`` times; ``header`` names the
-    map frame and the stamp.
+    ``header`` names the map's frame and the stamp.
     """
-    snapshot = landmark_map.snapshot(min_observations=min_observations)
+    snapshot = builder.snapshot()
     markers = [*landmark_markers(snapshot, "map", lifetime=0.0), covariance_ellipses(snapshot, "map")]
     return (serialize_landmarks(snapshot, header), serialize_markers(markers, header),
-            serialize_message(point_cloud(landmark_map.points(min_observations=min_observations), header)))
+            serialize_message(point_cloud(builder.points(), header)))
 
 
 def point_cloud(points: np.ndarray, header: Header) -> PointCloud2:
@@ -173,64 +149,82 @@ def point_cloud(points: np.ndarray, header: Header) -> PointCloud2:
                        point_step=12, row_step=12 * points.shape[0], data=xyz.tobytes(), is_dense=True)
 
 
+def pose_message(builder: MapBuilder, header: Header) -> PoseWithCovarianceStamped:
+    """The robot's estimated pose in the map and its covariance (``x, y, yaw`` into the 6x6), stamped ``header``."""
+    pose, covariance = builder.slam.pose()
+    message = PoseWithCovarianceStamped(header=header)
+    message.pose.pose.position.x, message.pose.pose.position.y = float(pose[0]), float(pose[1])
+    message.pose.pose.orientation.z, message.pose.pose.orientation.w = math.sin(pose[2] / 2), math.cos(pose[2] / 2)
+    full = np.zeros((6, 6))
+    index = [0, 1, 5]  # x, y, yaw among x, y, z, roll, pitch, yaw
+    full[np.ix_(index, index)] = covariance
+    message.pose.covariance = full.reshape(-1).tolist()
+    return message
+
+
+def transform_message(pose, header: Header, child_frame: str) -> TransformStamped:
+    """``header.frame_id -> child_frame`` at ``pose`` ``(x, y, yaw)``, stamped ``header``."""
+    transform = TransformStamped(header=header, child_frame_id=child_frame)
+    transform.transform.translation.x, transform.transform.translation.y = float(pose[0]), float(pose[1])
+    transform.transform.rotation.z, transform.transform.rotation.w = math.sin(pose[2] / 2), math.cos(pose[2] / 2)
+    return transform
+
+
 class Mapper(SonarNode):
-    """Landmarks and odometry in, the map out at ``map_rate``."""
+    """Landmarks and odometry in, the map out at ``map_rate`` (and, with SLAM, the pose per ping)."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__("mapper", **kwargs)
         self.params = declare(self, PARAMS)
-        self.map = new_map(self.params)
-        load_kernels()  # now, or the first ping would wait ~0.5 s for them
         self.health = NodeHealth(self, hardware_id="map")
-        self._stamps: list[int] = []
-        self._poses: deque = deque(maxlen=POSE_HISTORY)
-        self._pending: deque = deque()
-        self._changed = False
+        self.builder = MapBuilder(mapper_settings(self.params), self.health)
+        load_kernels()  # now, or the first ping would wait ~0.5 s for them
         self._map_landmarks = self.create_publisher(LandmarkArray, "map/landmarks", LATCHED)
         self._map_markers = self.create_publisher(MarkerArray, "map/markers", LATCHED)
         self._map_points = self.create_publisher(PointCloud2, "map/points", LATCHED)
+        self._tf = self._tf_message = None
+        if self.params["slam"]:
+            self._pose_publisher = self.create_publisher(PoseWithCovarianceStamped, "slam/pose", 10)
+            self._transform_publisher()
         self._landmarks_gate = InputGate(self, self.health, "landmarks", self.params)
         self._odometry_gate = InputGate(self, self.health, "odom", self.params, frame_param="odom_frame",
-                                        on_clock_jump=self._forget_poses)
+                                        on_clock_jump=self.builder.forget_odometry)
         self.ping_inputs = (self.create_subscription(LandmarkArray, "landmarks", self._on_landmarks,
                                                      qos_profile_sensor_data),)
         if self.params["use_odometry"]:
             self.create_subscription(Odometry, "odom", self._on_odometry, 50)
         self._timer = self.create_timer(1.0 / self.params["map_rate"], self.publish_map)
 
+    def _transform_publisher(self) -> None:
+        """A ``/tf`` publisher, or none (said once) where tf2_msgs is not installed."""
+        try:
+            from tf2_msgs.msg import TFMessage
+        except ImportError:
+            self.get_logger().info("tf2_msgs is not installed: map -> odom is not published on /tf; slam/pose has "
+                                   "the robot's pose in map")
+            return
+        self._tf_message = TFMessage
+        self._tf = self.create_publisher(TFMessage, "/tf", 100)
+
     @property
     def pending_pings(self) -> int:
         """Pings received and waiting for odometry at or after their stamp."""
-        return len(self._pending)
+        return self.builder.pending
 
-    # ------------------------------------------------------------------ poses
+    @property
+    def map(self):
+        """The map of landmarks (SLAM's front end, or the odom-frame map)."""
+        return self.builder.landmark_map
 
-    def _forget_poses(self) -> None:
-        """Time went backwards (bag replayed again): the odometry history no longer applies."""
-        self._stamps.clear()
-        self._poses.clear()
-        self._pending.clear()
+    # ------------------------------------------------------------------ input
 
     def _on_odometry(self, msg: Odometry, info: MessageInfo) -> None:
         if not self._odometry_gate.admit(msg.header, info):
             return
-        stamp = stamp_ns(msg.header)
-        pose = msg.pose.pose
-        if len(self._stamps) == POSE_HISTORY:
-            self._stamps.pop(0)
-        self._stamps.append(stamp)
-        self._poses.append(np.array([pose.position.x, pose.position.y, yaw_of(pose.orientation)]))
-        while self._pending and self._pose_at(self._pending[0][0]) is not None:
-            stamp, landmarks = self._pending.popleft()
-            self._integrate(landmarks, self._pose_at(stamp))
-
-    def _pose_at(self, stamp: int) -> np.ndarray | None:
-        """Robot pose at ``stamp`` (ns), interpolated; None while no later odometry exists."""
-        if not self.params["use_odometry"]:
-            return np.asarray(self.params["fixed_pose"], dtype=float)
-        return pose_at(self._stamps, self._poses, stamp)
-
-    # ------------------------------------------------------------------ landmarks
+        started = time.perf_counter()
+        placed = self.builder.add_odometry(stamp_ns(msg.header), odometry_pose(msg))
+        if placed:
+            self._mapped(started, placed)
 
     def _on_landmarks(self, msg: LandmarkArray, info: MessageInfo) -> None:
         self.health.received()
@@ -250,35 +244,43 @@ class Mapper(SonarNode):
             self._place(stamp_ns(header), landmarks)
 
     def _place(self, stamp: int, landmarks: Landmarks) -> None:
-        """Integrate a ping's landmarks at the robot pose of ``stamp`` (ns), or keep them until odometry comes."""
-        if self.params["use_odometry"] and self._stamps and stamp < self._stamps[0]:
-            self.health.problem("pose_too_old", "ping older than the odometry history")
-            return
-        pose = self._pose_at(stamp)
-        if pose is None:
-            self._pending.append((stamp, landmarks))
-            if len(self._pending) > PENDING_LIMIT:
-                self._pending.popleft()
-                self.health.problem("no_odometry", "no odometry at or after the ping's stamp")
-            return
-        self._integrate(landmarks, pose)
-
-    def _integrate(self, landmarks: Landmarks, robot_pose: np.ndarray) -> None:
         started = time.perf_counter()
-        count_sightings(self.health, integrate(self.map, landmarks, robot_pose, self.params["sensor_offset"]))
-        self._changed = True
-        self.health.processed(time.perf_counter() - started, published=0)
+        if self.builder.add_ping(stamp, landmarks):
+            self._mapped(started, 1)
+
+    def _mapped(self, started: float, pings: int) -> None:
+        """Pings went into the map: the pose (SLAM) at the latest, and their compute time."""
+        if self.params["slam"]:
+            header = self._header(self.builder.latest_stamp, self.params["map_frame"])
+            self._pose_publisher.publish(pose_message(self.builder, header))
+            self.health.published_count += 1
+            if self._tf is not None:
+                transform = transform_message(self.builder.map_to_odom(), header, self.params["odom_frame"])
+                self._tf.publish(self._tf_message(transforms=[transform]))
+                self.health.published_count += 1
+        seconds = (time.perf_counter() - started) / pings
+        for _ in range(pings):
+            self.health.processed(seconds, published=0)
+
+    @staticmethod
+    def _header(stamp: int, frame: str) -> Header:
+        header = Header(frame_id=frame)
+        header.stamp.sec, header.stamp.nanosec = divmod(stamp, 10**9)
+        return header
+
+    # ------------------------------------------------------------------ output
 
     def publish_map(self) -> None:
         """Publish the map if it changed since the last time."""
-        if not self._changed:
+        if not self.builder.changed:
             return
-        self._changed = False
-        header = Header(stamp=self.get_clock().now().to_msg(), frame_id=self.params["odom_frame"])
-        messages = map_messages(self.map, header, self.params["min_observations"])
+        self.builder.changed = False
+        header = Header(stamp=self.get_clock().now().to_msg(), frame_id=self.builder.frame)
+        messages = map_messages(self.builder, header)
         for publisher, message in zip((self._map_landmarks, self._map_markers, self._map_points), messages,
                                       strict=True):
             publisher.publish(message)
+        self.health.published_count += len(messages)
 
 
 def main(args=None) -> None:

@@ -6,10 +6,9 @@ recorded in a bag and writes what they publish to a new bag;
 Both call the functions the nodes call -- :func:`sonar_ring.ros.inputs.take_echoes` and
 :func:`~sonar_ring.ros.inputs.check_echoes`,
 :mod:`sonar_ring.pipeline`, :mod:`sonar_ring.ros.convert`,
-:mod:`sonar_ring.ros.markers`, the mapper's :func:`~sonar_ring.ros.mapper.integrate`
-(in its two halves, :func:`~sonar_ring.ros.mapper.sightings_at` and
-:func:`~sonar_ring.ros.mapper.add_sightings`) and
-:func:`~sonar_ring.ros.mapper.map_messages`, the driver's message builders
+:mod:`sonar_ring.ros.markers`, the mapper's core (:class:`~sonar_ring.map_builder.MapBuilder`,
+with SLAM by default) and its :func:`~sonar_ring.ros.mapper.map_messages` and
+:func:`~sonar_ring.ros.mapper.pose_message`, the driver's message builders
 -- on rclpy messages serialized by rclpy (markers by
 :func:`~sonar_ring.ros.markers.serialize_markers`, as the nodes publish them), so
 each output message is the one the live graph publishes for the same input;
@@ -19,11 +18,17 @@ Bag time replaces the node clocks: a ping's outputs are written at its echoes'
 bag time with its echoes' header, and the map at ``map_rate`` ticks of bag time
 (the first one ``1 / map_rate`` after the first ping), when it changed.
 
-The localiser's and classifier's work on a ping, and the mapper's screening of
-its landmarks, need nothing of other pings (:class:`PingStage`), so ``process``
-runs them on batches of pings at once (:func:`sonar_ring.pipeline.label_pings`)
-and hands the batches to worker processes; the input check, the map's
-association and fusion and the file I/O stay in order in the main process.
+The localiser's and classifier's work on a ping needs nothing of other pings
+(:class:`PingStage`), so ``process`` runs it on batches of pings at once
+(:func:`sonar_ring.pipeline.label_pings`) and hands the batches to worker
+processes; the input check, the mapper and the file I/O stay in order in the
+main process.
+
+``process`` also writes what tf would carry, with the bag library's own types
+(so without tf2_msgs): ``/tf_static`` once (the robot's ``base_frame`` to the
+sensor frame at ``sensor_offset``, and the receiver groups' frames) and ``/tf``
+(``odom -> base_frame`` per odometry message; ``map -> odom`` per ping with
+SLAM), so a viewer can place the map and the sensor-frame markers together.
 """
 
 from __future__ import annotations
@@ -35,7 +40,7 @@ import os
 import time
 from collections import Counter, deque
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -48,11 +53,20 @@ from sonar_ring.echoes import EchoArrays
 from sonar_ring.echoes import load_kernels as load_screening_kernels
 from sonar_ring.geometry import Layout, LayoutError, config_path, load_layout
 from sonar_ring.landmarks import CLASS_NAMES, Landmarks
-from sonar_ring.mapping import LandmarkMap, Sightings
+from sonar_ring.map_builder import MapBuilder
 from sonar_ring.progress import Progress
 from sonar_ring.realism import World, scene_realism
 from sonar_ring.ros import classifier, localiser, mapper
-from sonar_ring.ros.bag import TOPIC, BagError, BagReader, BagWriter, absolute, range_topics
+from sonar_ring.ros.bag import (
+    TOPIC,
+    BagError,
+    BagReader,
+    BagWriter,
+    absolute,
+    range_topics,
+    static_transforms,
+    tf_message,
+)
 from sonar_ring.ros.convert import MessageError, echoes_from_cdr, echoes_to_msg, serialize_landmarks
 from sonar_ring.ros.driver import (
     DEFAULT_SPEED_OF_SOUND,
@@ -181,47 +195,40 @@ class PingOutput:
         empty when the ping was refused.
     per_class : ndarray of int or None
         The labelled landmarks per class code; None when the ping was refused.
-    sightings : Sightings or None
-        Those landmarks screened for the mapper at the ping's pose
-        (:func:`~sonar_ring.ros.mapper.sightings_at`); None without a pose.
+    labelled : Landmarks or None
+        The labelled landmarks, for the mapper; None when the ping was refused.
     """
 
     problems: dict
     notes: dict
     messages: tuple = ()
     per_class: np.ndarray | None = None
-    sightings: Sightings | None = None
+    labelled: Landmarks | None = None
 
 
 @dataclass(frozen=True)
 class PingStage:
-    """The localiser's and the classifier's work on one ping, and the mapper's screening: none needs other pings.
+    """The localiser's and the classifier's work on one ping: it needs no other ping.
 
     So it can run in worker processes (:func:`ordered_map`); a ping's output
-    does not depend on where it ran.  ``screening`` is a map with the mapper's
-    settings; only its settings are used.
+    does not depend on where it ran.
     """
 
     layout: Layout
     localiser_settings: pipeline.Settings
     classifier_settings: pipeline.Settings
     marker_lifetime: float
-    screening: LandmarkMap
-    sensor_offset: tuple
 
     @classmethod
     def from_values(cls, layout: Layout, values: dict) -> PingStage:
-        """The stage of the localiser, classifier and mapper parameter values ``values`` (by node name)."""
+        """The stage of the localiser and classifier parameter values ``values`` (by node name)."""
         return cls(layout, localiser.settings_from(values["localiser"]), localiser.settings_from(values["classifier"]),
-                   values["classifier"]["marker_lifetime"], mapper.new_map(values["mapper"]),
-                   tuple(values["mapper"]["sensor_offset"]))
+                   values["classifier"]["marker_lifetime"])
 
-    def run(self, pings: list[tuple[Header, EchoArrays]], poses: list) -> list[PingOutput]:
+    def run(self, pings: list[tuple[Header, EchoArrays]]) -> list[PingOutput]:
         """Check, localise, classify and draw decoded Echoes messages, as the two nodes do, one output per message.
 
-        ``pings`` holds each message's header and arrays (:func:`~sonar_ring.ros.convert.echoes_from_cdr`),
-        ``poses`` each message's robot pose (x, y, yaw) in ``odom``, or None
-        where the mapper has none; with one the output carries its sightings.
+        ``pings`` holds each message's header and arrays (:func:`~sonar_ring.ros.convert.echoes_from_cdr`).
 
         The checked pings go through :func:`sonar_ring.pipeline.label_pings`
         together, which gives each ping what the nodes give it alone.
@@ -243,10 +250,8 @@ class PingStage:
             data = (serialize_landmarks(hypotheses, header),
                     serialize_landmarks(labelled, header),
                     serialize_markers(landmark_markers(labelled, "landmarks", self.marker_lifetime), header))
-            sightings = None if poses[index] is None else mapper.sightings_at(self.screening, labelled, poses[index],
-                                                                              self.sensor_offset)
             per_class = np.bincount(labelled.landmark_class, minlength=len(CLASS_NAMES))
-            outputs.append(PingOutput(dict(tally.problems), dict(tally.notes), data, per_class, sightings))
+            outputs.append(PingOutput(dict(tally.problems), dict(tally.notes), data, per_class, labelled))
         return outputs
 
 
@@ -263,11 +268,10 @@ def _start_worker(stage: PingStage) -> None:
     pipeline.load_kernels()
     if stage.layout.kind == "ring":
         classify.load_kernels()
-    stage.screening.screen(Landmarks.empty(), (0.0, 0.0, 0.0))  # loads the screening kernel
 
 
-def _work(batch: list[bytes], poses: list) -> list[PingOutput]:
-    return _worker_stage.run([echoes_from_cdr(data) for data in batch], poses)
+def _work(batch: list[bytes]) -> list[PingOutput]:
+    return _worker_stage.run([echoes_from_cdr(data) for data in batch])
 
 
 @contextlib.contextmanager
@@ -289,10 +293,10 @@ def stage_workers(stage: PingStage, jobs: int):
 
 def ordered_map(stage: PingStage, items, workers: ProcessPoolExecutor | None, jobs: int, meanwhile=None,
                 batch: int = 64):
-    """``(item, output)`` for ``(ping, data, pose, item)`` in ``items``, in order: the stage's output.
+    """``(item, output)`` for ``(ping, data, item)`` in ``items``, in order: the stage's output.
 
     The output is that of ``ping`` (header and arrays decoded from the serialized
-    message ``data``) with the robot at ``pose`` (:meth:`PingStage.run`).
+    message ``data``, :meth:`PingStage.run`).
 
     The stage runs on ``batch`` messages at a time (:meth:`PingStage.run`).
     Without ``workers`` it runs here; with them (:func:`stage_workers`) the
@@ -307,14 +311,13 @@ def ordered_map(stage: PingStage, items, workers: ProcessPoolExecutor | None, jo
         if meanwhile:
             meanwhile()
         for chunk in chunks:
-            outputs = stage.run([ping for ping, *_ in chunk], [pose for *_, pose, _ in chunk])
+            outputs = stage.run([ping for ping, *_ in chunk])
             yield from zip([item for *_, item in chunk], outputs, strict=True)
         return
     pending = deque()
     for chunk in itertools.chain(chunks, [None]):
         if chunk is not None:
-            pending.append(([item for *_, item in chunk],
-                            workers.submit(_work, [data for _, data, *_ in chunk], [pose for *_, pose, _ in chunk])))
+            pending.append(([item for *_, item in chunk], workers.submit(_work, [data for _, data, _ in chunk])))
         while pending and (chunk is None or len(pending) >= 2 * jobs):
             if meanwhile:
                 meanwhile()
@@ -326,7 +329,9 @@ def ordered_map(stage: PingStage, items, workers: ProcessPoolExecutor | None, jo
 class OfflineGraph:
     """The input check and the mapper of one echoes topic, and the writing of its outputs, in bag-time order.
 
-    The per-ping work between them is a :class:`PingStage`.
+    The per-ping work between them is a :class:`PingStage`; the mapper is the
+    node's core (:class:`~sonar_ring.map_builder.MapBuilder`) with the whole
+    odometry of the bag.
 
     Parameters
     ----------
@@ -342,23 +347,31 @@ class OfflineGraph:
         Where the outputs go.
     tally : Tally
         Where refused inputs are counted.
+    layout : Layout
+        The sensor (its group frames go on ``/tf_static``).
     """
 
-    OUTPUTS = ("landmarks/raw", "landmarks", "markers", "map/landmarks", "map/markers", "map/points")
+    OUTPUTS = ("landmarks/raw", "landmarks", "markers", "map/landmarks", "map/markers", "map/points", "slam/pose")
 
-    def __init__(self, values: dict, namespace: str, odometry, writer: BagWriter, tally: Tally) -> None:
+    def __init__(self, values: dict, namespace: str, odometry, writer: BagWriter, tally: Tally,
+                 layout: Layout) -> None:
         self._mapper = values["mapper"]
-        self.map = mapper.new_map(self._mapper)
-        self._odometry = odometry
+        settings = replace(mapper.mapper_settings(self._mapper), pose_history=None)
+        self.builder = MapBuilder(settings, tally)
+        self._odometry = odometry if odometry is not None else ([], np.empty((0, 3)))
+        for stamp, pose in zip(*self._odometry, strict=True):
+            self.builder.add_odometry(stamp, pose)
+        self._odometry_written = 0
         self._writer = writer
         self._tally = tally
         self._clock = BagClock()
         self._gate = InputGate(self._clock, tally, "echoes", values["localiser"])
         self._connections = {name: writer.connection(absolute(name, namespace), TOPIC[name].message, TOPIC[name].qos)
-                             for name in self.OUTPUTS}
+                             for name in self.OUTPUTS + ("/tf", "/tf_static")}
         self._map_period = int(round(1e9 / self._mapper["map_rate"]))
         self._next_map: int | None = None
-        self._map_changed = False
+        self._layout = layout
+        self._static_written = False
         self.per_class = np.zeros(len(CLASS_NAMES), dtype=np.int64)
 
     def admit(self, time_ns: int, data: bytes) -> tuple[Header, EchoArrays] | None:
@@ -369,12 +382,10 @@ class OfflineGraph:
         self._clock.nanoseconds = time_ns
         return take_echoes(data, None, self._gate, self._tally)
 
-    def take(self, time_ns: int, no_pose, output: PingOutput) -> None:
-        """Write a ping's outputs at ``time_ns`` and add its landmarks to the map (and the map ticks before it).
-
-        ``no_pose`` is None, or why the ping has no pose (:meth:`robot_pose`): then it is not mapped.
-        """
+    def take(self, time_ns: int, header: Header, output: PingOutput) -> None:
+        """Write a ping's outputs at ``time_ns``, map its landmarks (and write the map ticks before it)."""
         self._maps_until(time_ns)
+        self._transforms_until(time_ns, header.frame_id)
         self._tally.problems.update(output.problems)
         self._tally.notes.update(output.notes)
         if output.per_class is None:
@@ -382,30 +393,40 @@ class OfflineGraph:
         for name, data in zip(("landmarks/raw", "landmarks", "markers"), output.messages, strict=True):
             self._writer.write(self._connections[name], time_ns, data)
         self.per_class += output.per_class
-        if no_pose:
-            self._tally.problem(*no_pose)
-        else:
-            mapper.count_sightings(self._tally, mapper.add_sightings(self.map, output.sightings))
-            self._map_changed = True
+        if self.builder.add_ping(stamp_ns(header), output.labelled) and self.builder.slam is not None:
+            self._write_pose(time_ns)
+
+    def _write_pose(self, time_ns: int) -> None:
+        """``slam/pose`` and ``map -> odom`` on ``/tf`` at the latest ping mapped, as the live mapper publishes them."""
+        header = Header(frame_id=self._mapper["map_frame"])
+        header.stamp.sec, header.stamp.nanosec = divmod(self.builder.latest_stamp, 10**9)
+        self._writer.write(self._connections["slam/pose"], time_ns,
+                           serialize_message(mapper.pose_message(self.builder, header)))
+        x, y, yaw = self.builder.map_to_odom()
+        self._writer.write(self._connections["/tf"], time_ns, tf_message([
+            (self.builder.latest_stamp, self._mapper["map_frame"], self._mapper["odom_frame"], (x, y, 0.0, yaw))]))
+
+    def _transforms_until(self, time_ns: int, sensor_frame: str) -> None:
+        """``/tf_static`` before the first ping; ``odom -> base_frame`` of every odometry up to ``time_ns``."""
+        if not self._static_written:
+            self._static_written = True
+            self._writer.write(self._connections["/tf_static"], time_ns, tf_message(static_transforms(
+                time_ns, self._mapper["base_frame"], sensor_frame, self._mapper["sensor_offset"], self._layout)))
+        stamps, poses = self._odometry
+        while self._odometry_written < len(stamps) and stamps[self._odometry_written] <= time_ns:
+            stamp, pose = stamps[self._odometry_written], poses[self._odometry_written]
+            self._writer.write(self._connections["/tf"], stamp, tf_message([
+                (stamp, self._mapper["odom_frame"], self._mapper["base_frame"], (pose[0], pose[1], 0.0, pose[2]))]))
+            self._odometry_written += 1
 
     def finish(self) -> None:
-        """Write the map at the tick after the last ping, as the live mapper would, if it changed."""
-        if self._map_changed and self._next_map is not None:
-            self._write_map(self._next_map)
+        """Write the map at the tick after the last ping, as the live mapper would, if it changed.
 
-    def robot_pose(self, header):
-        """``(pose, None)``: the robot pose (x, y, yaw) in ``odom`` at a message's stamp; ``(None, (reason, detail))``.
-
-        The second when the odometry does not cover the stamp.
+        Pings after the last odometry are not mapped (``no_odometry``).
         """
-        stamp = stamp_ns(header)
-        if self._odometry is None:
-            return np.asarray(self._mapper["fixed_pose"], dtype=float), None
-        stamps, poses = self._odometry
-        if not stamps or stamp < stamps[0]:
-            return None, ("pose_too_old", "ping before the first odometry")
-        pose = mapper.pose_at(stamps, poses, stamp)
-        return (pose, None) if pose is not None else (None, ("no_odometry", "no odometry at or after the ping's stamp"))
+        self.builder.give_up_waiting()
+        if self.builder.changed and self._next_map is not None:
+            self._write_map(self._next_map)
 
     def _maps_until(self, time_ns: int) -> None:
         """Write the map at the ticks up to ``time_ns`` (the last one that saw a change)."""
@@ -414,22 +435,21 @@ class OfflineGraph:
             return
         if self._next_map > time_ns:
             return
-        if self._map_changed:
+        if self.builder.changed:
             self._write_map(self._next_map)
         self._next_map += ((time_ns - self._next_map) // self._map_period + 1) * self._map_period
 
     def _write_map(self, time_ns: int) -> None:
-        header = Header(frame_id=self._mapper["odom_frame"])
+        header = Header(frame_id=self.builder.frame)
         header.stamp.sec, header.stamp.nanosec = divmod(time_ns, 10**9)
-        messages = mapper.map_messages(self.map, header, self._mapper["min_observations"])
+        messages = mapper.map_messages(self.builder, header)
         for name, data in zip(("map/landmarks", "map/markers", "map/points"), messages, strict=True):
             self._writer.write(self._connections[name], time_ns, data)
-        self._map_changed = False
+        self.builder.changed = False
 
     def map_per_class(self) -> np.ndarray:
-        """Landmarks of the map as published (seen ``min_observations`` times), per class code."""
-        snapshot = self.map.snapshot(min_observations=self._mapper["min_observations"])
-        return np.bincount(snapshot.landmark_class, minlength=len(CLASS_NAMES))
+        """Landmarks of the map as published, per class code."""
+        return np.bincount(self.builder.snapshot().landmark_class, minlength=len(CLASS_NAMES))
 
 
 def _topics_by_name(bag: BagReader) -> dict:
@@ -472,8 +492,7 @@ def _read_odometry(bag: BagReader, connections, mapper_values: dict, tally: Tall
         clock.nanoseconds = time_ns
         if gate.admit(msg.header):
             stamps.append(stamp_ns(msg.header))
-            pose = msg.pose.pose
-            poses.append((pose.position.x, pose.position.y, mapper.yaw_of(pose.orientation)))
+            poses.append(mapper.odometry_pose(msg))
     return stamps, np.array(poses, dtype=float).reshape(-1, 3)
 
 
@@ -559,7 +578,7 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
                 if values["mapper"]["use_odometry"]:
                     odometry = _odometry_for(bag, topics, absolute(odom_topic or "odom", namespace),
                                              values["mapper"], tally, report, explicit=odom_topic is not None)
-                graphs[name] = OfflineGraph(values, namespace, odometry, writer, tally)
+                graphs[name] = OfflineGraph(values, namespace, odometry, writer, tally, sensor)
             bar = Progress("pings", sum(c.msgcount for c in echo_connections)) if progress else None
             times = []
 
@@ -569,15 +588,14 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
                     graph = graphs[connection.topic]
                     ping = graph.admit(time_ns, data)
                     if ping is not None:
-                        pose, no_pose = graph.robot_pose(ping[0])
-                        yield ping, data, pose, (graph, time_ns, no_pose)
+                        yield ping, data, (graph, time_ns, ping[0])
                     if bar:
                         bar.update(len(times))
 
             # The map's kernels load while the workers localise the first batches.
-            for (graph, time_ns, no_pose), output in ordered_map(stage, admitted(), workers, jobs,
-                                                                 meanwhile=mapping.load_kernels):
-                graph.take(time_ns, no_pose, output)
+            for (graph, time_ns, header), output in ordered_map(stage, admitted(), workers, jobs,
+                                                                meanwhile=mapping.load_kernels):
+                graph.take(time_ns, header, output)
             if bar:
                 bar.close()
             for graph in graphs.values():
