@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import struct
 import zlib
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -54,6 +54,9 @@ FLAG_AMPLITUDE = 0x01
 FLAG_PHASE = 0x02
 MAX_PAYLOAD = 65535
 NO_ECHO = 0xFFFFFFFF
+SEQUENCE_MODULUS = 2**32
+LATE_WINDOW = 16
+"""Frames behind the newest that :class:`FrameSequence` takes for late (reordered) rather than a restart."""
 
 _HEADER = struct.Struct("<2sBBHB")
 _PING = struct.Struct("<IQHBBI")
@@ -218,3 +221,45 @@ class FrameDecoder:
         if count > 0:
             del self._buffer[:count]
             self.errors[reason] += count if reason in ("garbage", "truncated") else 1
+
+
+class FrameSequence:
+    """Where each frame stands in the device's sequence, from its sequence number and device time.
+
+    The device numbers its pings one up each (u32, from ``2**32 - 1`` on to 0)
+    and stamps them with its clock, which does not go back while it runs.
+    :meth:`place` sorts every frame into one of:
+
+    * ``next`` -- ahead of the newest frame; the numbers skipped are frames lost;
+    * ``duplicate`` -- the same number and time as one of the last frames;
+    * ``late`` -- behind the newest by fewer than ``window`` numbers, its time
+      within theirs: a frame overtaken on the way (UDP), too late to publish;
+    * ``device restarted`` -- its time went back: the numbers start afresh, none counted lost;
+    * ``sequence restarted`` -- the time went on but the number went back or
+      stood still: the numbers start afresh, none counted lost.
+
+    ``next`` and both restarts are frames to publish.
+    """
+
+    def __init__(self, window: int = LATE_WINDOW) -> None:
+        self._window = window
+        self._recent: deque[tuple[int, int]] = deque(maxlen=window)
+
+    def place(self, sequence: int, device_time_us: int) -> tuple[str, int]:
+        """The frame's place (one of the class docstring's) and the frames lost just before it."""
+        if not self._recent:
+            self._recent.append((sequence, device_time_us))
+            return "next", 0
+        if (sequence, device_time_us) in self._recent:
+            return "duplicate", 0
+        newest_sequence, newest_time = self._recent[-1]
+        behind = (newest_sequence - sequence) % SEQUENCE_MODULUS
+        if 0 < behind < self._window and self._recent[0][1] <= device_time_us <= newest_time:
+            return "late", 0
+        ahead = (sequence - newest_sequence) % SEQUENCE_MODULUS
+        if device_time_us >= newest_time and 0 < ahead < SEQUENCE_MODULUS // 2:
+            self._recent.append((sequence, device_time_us))
+            return "next", ahead - 1
+        self._recent.clear()
+        self._recent.append((sequence, device_time_us))
+        return ("device restarted" if device_time_us < newest_time else "sequence restarted"), 0

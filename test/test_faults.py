@@ -115,7 +115,7 @@ def test_driver_drops_and_counts_frames_beyond_its_queue(ros):
                                          Parameter("device", value=f"udp://127.0.0.1:{port}")])
     decoded = FrameDecoder().feed(b"".join(frame(sequence) for sequence in range(100)))
     for one in decoded:  # what the reader thread hands over while the executor is busy elsewhere
-        driver._on_frame(one)
+        driver._on_frame(one, time.time_ns())
     driver._drain_frames()
     assert driver.pings_published == HARDWARE_QUEUE
     assert driver.health.problems["dropped_queue_full"] == 100 - HARDWARE_QUEUE

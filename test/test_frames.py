@@ -5,7 +5,7 @@ import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 from sonar_ring.echoes import EchoArrays
-from sonar_ring.frames import FrameDecoder, FrameError, encode_echoes
+from sonar_ring.frames import FrameDecoder, FrameError, FrameSequence, encode_echoes
 
 
 def ring_ping(seed=0, n=144, k=2, amplitude=True, phase=False):
@@ -95,3 +95,24 @@ def test_error_handling():
     with pytest.raises(FrameError, match=r"TOF must be in \[0, 4.29\) s"):
         encode_echoes(negative)
 
+
+
+def test_sequence_places_frames_and_counts_the_ones_missing():
+    sequence = FrameSequence()
+    wrap = 2**32
+    places = [sequence.place(number % wrap, 1000 * i) for i, number in
+              enumerate([wrap - 3, wrap - 2, wrap + 1, wrap + 2, wrap + 6])]
+    assert places == [("next", 0), ("next", 0), ("next", 2), ("next", 0), ("next", 3)]  # across the wrap
+    assert sequence.place(6, 4000) == ("duplicate", 0)
+    assert sequence.place(4, 3500) == ("late", 0)  # one of the three missing, overtaken by 6
+    assert sequence.place(7, 5000) == ("next", 0)
+    assert sequence.place(900, 20) == ("device restarted", 0)  # its clock went back
+    assert sequence.place(901, 40) == ("next", 0)
+    assert sequence.place(3, 60) == ("sequence restarted", 0)  # the clock went on, the number back
+    assert sequence.place(4, 80) == ("next", 0)
+
+
+def test_sequence_without_device_time_goes_by_the_numbers():
+    sequence = FrameSequence()
+    assert [sequence.place(number, 0) for number in (100, 101, 103, 103, 102, 104, 0)] == [
+        ("next", 0), ("next", 0), ("next", 1), ("duplicate", 0), ("late", 0), ("next", 0), ("sequence restarted", 0)]

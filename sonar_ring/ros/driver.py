@@ -23,10 +23,12 @@ import numpy as np
 from nav_msgs.msg import Odometry
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.subscription import MessageInfo
+from rclpy.time import Time
 from std_msgs.msg import Header
 
 from sonar_ring.echoes import FASTEST_SPEED_OF_SOUND, SLOWEST_SPEED_OF_SOUND, EchoArrays
 from sonar_ring.echoes import load_kernels as load_screening_kernels
+from sonar_ring.frames import EchoFrame
 from sonar_ring.geometry import load_layout, speed_of_sound
 from sonar_ring.landmarks import make_landmarks
 from sonar_ring.msg import Echoes
@@ -60,8 +62,8 @@ PARAMS = [
           "from it on /tf_static", read_only=True),
     Param("device", "udp://0.0.0.0:5600", "hardware: serial:///dev/ttyUSB0?baud=921600, udp://HOST:PORT or "
           "tcp://HOST:PORT", read_only=True),
-    Param("silence_timeout", 2.0, "hardware: seconds without bytes before reconnecting", low=0.1, high=60.0,
-          read_only=True),
+    Param("silence_timeout", 2.0, "hardware: seconds without bytes before the device is reported silent (and a TCP "
+          "device is probed for life)", low=0.1, high=60.0, read_only=True),
     Param("scene", "room", "simulator: a name in config/scenes or a YAML path", read_only=True),
     Param("ping_rate", 0.0, "simulator: pings per second (0: the layout's rate)", low=0.0, high=2000.0),
     Param("sigma_tof", 1e-6, "simulator: time-of-flight noise, s", low=0.0, high=1e-3),
@@ -159,16 +161,16 @@ class Driver(SonarNode):
         self._frames: deque = deque()
         self._frames_lock = threading.Lock()
         self._frames_dropped = 0
-        self._last_frame: tuple[int, int] | None = None
         self._reader_reported: Counter[str] = Counter()
         self._next_reader_report = 0.0
         self.reader = HardwareReader(self.params["device"], self._on_frame,
-                                     silence_timeout=self.params["silence_timeout"])
+                                     silence_timeout=self.params["silence_timeout"],
+                                     clock=lambda: self.get_clock().now().nanoseconds)
         self.reader.start()
         self._timer = self.create_timer(0.002, self._drain_frames)
 
-    def _on_frame(self, frame) -> None:
-        """Reader thread: queue the frame with its arrival time; drop the oldest when full.
+    def _on_frame(self, frame: EchoFrame, arrival_ns: int) -> None:
+        """Reader thread: queue the frame with its arrival time (ns, node clock); drop the oldest when full.
 
         Only the executor thread touches :attr:`health`; drops are counted here
         and handed over in :meth:`_drain_frames`.
@@ -177,22 +179,17 @@ class Driver(SonarNode):
             if len(self._frames) >= HARDWARE_QUEUE:
                 self._frames.popleft()
                 self._frames_dropped += 1
-            self._frames.append((self.get_clock().now(), frame))
+            self._frames.append((arrival_ns, frame))
 
     def _drain_frames(self) -> None:
         with self._frames_lock:
             frames, self._frames = list(self._frames), deque()
             dropped, self._frames_dropped = self._frames_dropped, 0
         self.health.problem("dropped_queue_full", f"more than {HARDWARE_QUEUE} frames waiting", dropped)
-        for stamp, frame in frames:
+        for arrival_ns, frame in frames:
             started = time.perf_counter()
             self.health.received()
-            identity = (frame.sequence, frame.device_time_us)
-            if identity == self._last_frame:
-                self.health.problem("duplicate_frame", f"frame {frame.sequence} again")
-                continue
-            self._last_frame = identity
-            header = Header(stamp=stamp.to_msg(), frame_id=self.params["frame_id"])
+            header = Header(stamp=Time(nanoseconds=arrival_ns).to_msg(), frame_id=self.params["frame_id"])
             downstream = self._publish(frame.echoes, header)
             self.health.processed(time.perf_counter() - started - downstream)
         # The reader's counters take its lock, which it holds while decoding: read them with the frames,
