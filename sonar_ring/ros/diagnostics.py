@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter, deque
+from collections.abc import Callable
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -33,6 +34,8 @@ class NodeHealth:
         Expected losses by reason since start.
     received_count, published_count : int
         Inputs taken and outputs published since start.
+    extra_values : callable or None
+        Returns more ``{key: value}`` pairs of the node's own for each report (the driver's device clock).
     """
 
     def __init__(self, node: Node, hardware_id: str = "", period: float = 1.0) -> None:
@@ -48,6 +51,7 @@ class NodeHealth:
         self.notes: Counter[str] = Counter()
         self.received_count = 0
         self.published_count = 0
+        self.extra_values: Callable[[], dict[str, str]] | None = None
 
     def received(self) -> None:
         """Count one input message."""
@@ -101,6 +105,8 @@ class NodeHealth:
             "latency median (ms)": f"{np.median(latency):.3f}" if latency.size else "n/a",
             "latency p99 (ms)": f"{np.percentile(latency, 99):.3f}" if latency.size else "n/a",
         }
+        if self.extra_values is not None:
+            values.update(self.extra_values())
         values.update({f"problems: {reason}": str(n) for reason, n in sorted(self.problems.items())})
         values.update({f"counted: {reason}": str(n) for reason, n in sorted(self.notes.items())})
         level = DiagnosticStatus.WARN if new_problems else DiagnosticStatus.OK
