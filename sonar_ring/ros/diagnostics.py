@@ -1,10 +1,12 @@
 """Per-node health on ``/diagnostics``: input rate, latency, and problems by reason.
 
 A node calls :meth:`NodeHealth.received` for every input message,
-:meth:`NodeHealth.processed` with the time it took, :meth:`NodeHealth.problem`
-for every bad input or dropped item (counted by reason, a warning logged at
-most every 5 s per reason, and the status WARN), and :meth:`NodeHealth.note` for expected losses
-(an echo one receiver of a pair missed) that are counted but are no fault.
+:meth:`NodeHealth.processed` with the time it took and the messages it
+published, :meth:`NodeHealth.sent` for messages published apart from an input
+(the mapper's map), :meth:`NodeHealth.problem` for every bad input or dropped
+item (counted by reason, a warning logged at most every 5 s per reason, and the
+status WARN), and :meth:`NodeHealth.note` for expected losses (an echo one
+receiver of a pair missed) that are counted but are no fault.
 Once a second the counts go out as a ``diagnostic_msgs/DiagnosticArray``.
 """
 
@@ -61,7 +63,11 @@ class NodeHealth:
     def processed(self, seconds: float, published: int = 1) -> None:
         """Record the compute time of one input and how many messages it produced."""
         self._latency.append(seconds)
-        self.published_count += published
+        self.sent(published)
+
+    def sent(self, count: int) -> None:
+        """Count ``count`` messages published (:meth:`processed` counts those of an input; this, others: a map)."""
+        self.published_count += count
 
     def problem(self, reason: str, detail: str = "", count: int = 1) -> None:
         """Count ``count`` problems of kind ``reason``; warn at most every ``WARN_THROTTLE_S`` per reason.

@@ -200,8 +200,10 @@ class Driver(SonarNode):
             self._last_arrival_ns = arrival_ns
             header = Header(stamp=Time(nanoseconds=self._stamp(frame, arrival_ns)).to_msg(),
                             frame_id=self.params["frame_id"])
+            published_before = self.pings_published
             downstream = self._publish(frame.echoes, header)
-            self.health.processed(time.perf_counter() - started - downstream)
+            self.health.processed(time.perf_counter() - started - downstream,
+                                  published=self.pings_published - published_before)  # 0: the ping was refused
         # The reader's counters take its lock, which it holds while decoding: read them with the frames,
         # or once a second when none come (a lost device), not at every 2 ms tick.
         if frames or time.monotonic() >= self._next_reader_report:

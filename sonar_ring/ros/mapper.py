@@ -279,6 +279,7 @@ class Mapper(SonarNode):
         for publisher, message in zip((self._map_landmarks, self._map_markers, self._map_points), messages,
                                       strict=True):
             publisher.publish(message)
+        self.health.sent(len(messages))
 
 
 def main(args=None) -> None:
