@@ -18,7 +18,7 @@ delays of the few fastest frames, not from the mean or the spread of the
 delays, so stalls and jitter leave the stamps alone.  With delays spread evenly
 over ``R``, ``n`` frames put the line within about ``R / n`` of the truth.
 
-The hull covers a sliding window (between ``window / 2`` and ``window``
+The hull covers a sliding window (between 3/4 of ``window`` and ``window``
 seconds of frames) so that the estimate follows a drift that changes with
 temperature.  The estimate starts over when the device restarts (its time goes
 back) or the clocks jump apart (a frame arrives more than ``resync`` seconds
@@ -41,6 +41,10 @@ MAX_DRIFT = 1e-3
 
 Bounds the drift fitted to the first few frames, whose line the delays of
 only two points decide."""
+HULLS = 4
+"""Hulls over staggered stretches of the window, one begun every ``window / HULLS``: the oldest gives the estimate.
+
+When it goes, the next one has ``(HULLS - 1) / HULLS`` of the window: the estimate never drops to few frames."""
 DELAY_WINDOW = 1000
 """Frames whose arrival delays :meth:`DeviceClock.delays` keeps."""
 
@@ -96,7 +100,7 @@ class DeviceClock:
     Parameters
     ----------
     window : float
-        Seconds of device time the estimate looks back over, at most (at least half of it once that much has passed).
+        Seconds of device time the estimate looks back over, at most (at least 3/4 of it once that much has passed).
     resync : float
         Seconds by which arrivals may disagree with the estimate before it starts over (see the module docstring).
 
@@ -163,8 +167,8 @@ class DeviceClock:
     def _add(self, x: float, y: float) -> None:
         for hull in self._hulls:
             hull.add(x, y)
-        if self._hulls[-1].span() >= self._window / 2:
-            self._hulls = [self._hulls[-1], _LowerHull()]
+        if self._hulls[-1].span() >= self._window / HULLS:
+            self._hulls = [*self._hulls[1 - HULLS:], _LowerHull()]
         self._line = self._hulls[0].line(MAX_DRIFT)
 
     def _persistently_late(self, x: float, delay: float) -> bool:
