@@ -159,9 +159,9 @@ def test_udp_senders_pausing_2_5_s_and_25_s_lose_no_frame_after_they_resume(read
                     udp.sendto(data, ("127.0.0.1", port))
 
                 time.sleep(idle)
-                send_frames(send, range(50))
+                send_frames(send, range(50), spacing=0.005)
                 time.sleep(gap)
-                send_frames(send, range(50, 350))
+                send_frames(send, range(50, 350), spacing=0.005)
 
         thread = threading.Thread(target=sender)
         thread.start()
