@@ -119,15 +119,20 @@ class DeviceClock:
         self.restarts = 0
         self._origin: tuple[int, int] | None = None
         self._last_device_us: int | None = None
+        self._forget()
+
+    def _forget(self) -> None:
+        """No points, no line."""
+        self._hulls = [_LowerHull()]
+        self._line = (0.0, 0.0)
+        self._late_since: float | None = None
 
     def _start(self, device_time_us: int, arrival_ns: int) -> None:
         """Forget every point: the estimate starts from this frame, the origin of its coordinates."""
         if self._origin is not None:
             self.restarts += 1
         self._origin = (device_time_us, arrival_ns)
-        self._hulls = [_LowerHull()]
-        self._line = (0.0, 0.0)
-        self._late_since: float | None = None
+        self._forget()
 
     def stamp(self, device_time_us: int, arrival_ns: int) -> int:
         """The host time, ns on the arrival clock, at which the device clock read ``device_time_us``.
@@ -183,7 +188,7 @@ class DeviceClock:
     @property
     def drift(self) -> float:
         """How much faster the device clock runs than the host's, s/s (50e-6: 50 ppm fast); 0 before two frames."""
-        slope = self._line[1] if self._origin is not None else 0.0
+        slope = self._line[1]
         return -slope / (1.0 + slope)
 
     @property
