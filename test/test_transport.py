@@ -224,33 +224,40 @@ def test_a_restarting_tcp_device_is_read_again_within_the_least_back_off(reader_
 
 
 class Transport:
-    """A device on one transport, for the loss-counting test: its reader's address and how to send it bytes."""
+    """A device on one transport, for the loss-counting test: its reader's address, and its bytes out."""
 
     def __init__(self, kind, tmp_path):
         self.kind = kind
         if kind == "udp":
-            port = free_port(socket.SOCK_DGRAM)
-            self.address = f"udp://127.0.0.1:{port}"
-            self._udp = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-            self.send = lambda data: self._udp.sendto(data, ("127.0.0.1", port))
-            self.close = self._udp.close
+            self._port = free_port(socket.SOCK_DGRAM)
+            self.address = f"udp://127.0.0.1:{self._port}"
+            self._socket = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         elif kind == "tcp":
             self._server = socket.create_server(("127.0.0.1", 0))
             self._server.settimeout(10)
             self.address = f"tcp://127.0.0.1:{self._server.getsockname()[1]}"
-            self._connection = None
-            self.send = lambda data: self._connected().sendall(data)
-            self.close = lambda: (self._connection and self._connection.close(), self._server.close())
+            self._socket = None  # the reader's connection, accepted at the first send
         else:
             self._pty = PlugablePty(tmp_path / "ttyRING")
             self.address = f"serial://{tmp_path / 'ttyRING'}?baud=921600"
-            self.send = self._pty.write
-            self.close = self._pty.unplug
 
-    def _connected(self):
-        if self._connection is None:
-            self._connection, _ = self._server.accept()
-        return self._connection
+    def send(self, data):
+        if self.kind == "udp":
+            self._socket.sendto(data, ("127.0.0.1", self._port))
+        elif self.kind == "tcp":
+            if self._socket is None:
+                self._socket, _ = self._server.accept()
+            self._socket.sendall(data)
+        else:
+            self._pty.write(data)
+
+    def close(self):
+        if self.kind == "serial":
+            self._pty.unplug()
+            return
+        self._socket.close()
+        if self.kind == "tcp":
+            self._server.close()
 
 
 @pytest.mark.parametrize("kind", ["udp", "tcp", "serial"])
