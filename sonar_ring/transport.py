@@ -1,11 +1,19 @@
 """Byte transports to the ring electronics: serial, UDP and TCP, with reconnection.
 
 :class:`HardwareReader` runs one background thread that opens the device, reads
-bytes, decodes frames (:mod:`sonar_ring.frames`) and hands each frame to a
-callback.  When the device goes away (cable unplugged, TCP reset, UDP silence
-longer than ``silence_timeout``) it closes, waits with exponential back-off
-(``min_backoff`` doubling up to ``max_backoff``) and opens again, without the
-caller noticing more than the counts of :meth:`HardwareReader.counts`.
+bytes, decodes frames (:mod:`sonar_ring.frames`), places them in the device's
+sequence (:class:`sonar_ring.frames.FrameSequence`: frames lost, duplicates,
+late frames, restarts) and hands each new frame, with the host time its bytes
+were read, to a callback.
+
+Nothing that can still deliver a frame is closed: a UDP socket listens for the
+life of the reader, and silence (no bytes for ``silence_timeout``) is counted,
+not acted on.  A serial port or TCP connection that fails (cable unplugged,
+connection reset or closed by the device, a TCP peer that stopped answering
+keep-alive probes) is closed and opened again after a back-off that starts at
+``min_backoff`` and doubles, up to ``max_backoff``, while opening fails; every
+read that brings bytes sets it back to ``min_backoff``.  The caller sees no
+more of this than the counts of :meth:`HardwareReader.counts`.
 
 Device addresses:
 
@@ -18,13 +26,18 @@ from __future__ import annotations
 
 import socket
 import threading
+import time
 from collections import Counter
 from collections.abc import Callable
 from urllib.parse import parse_qs, urlparse
 
-from sonar_ring.frames import EchoFrame, FrameDecoder
+from sonar_ring.frames import EchoFrame, FrameDecoder, FrameSequence
 
 READ_SIZE = 65536
+KEEPALIVE_INTERVAL = 1
+"""Seconds between TCP keep-alive probes once the device has been silent for ``silence_timeout``."""
+KEEPALIVE_PROBES = 3
+"""Unanswered keep-alive probes after which the TCP connection counts as lost."""
 
 
 class DeviceError(ValueError):
@@ -64,13 +77,22 @@ class _Udp:
 
 
 class _Tcp:
-    def __init__(self, host: str, port: int, timeout: float):
+    def __init__(self, host: str, port: int, timeout: float, keepalive_idle: float):
         self._socket = socket.create_connection((host, port), timeout=timeout)
+        # A device that lost power sends no reset: keep-alive probes find it gone, and a silent but
+        # living device keeps its connection (closing it would lose the frames it sends next).
+        self._socket.setsockopt(socket.SOL_SOCKET, socket.SO_KEEPALIVE, 1)
+        for option, value in (("TCP_KEEPIDLE", max(1, round(keepalive_idle))), ("TCP_KEEPINTVL", KEEPALIVE_INTERVAL),
+                              ("TCP_KEEPCNT", KEEPALIVE_PROBES)):
+            if hasattr(socket, option):  # Linux; elsewhere the system's keep-alive timing applies
+                self._socket.setsockopt(socket.IPPROTO_TCP, getattr(socket, option), value)
 
     def read(self) -> bytes:
         try:
             data = self._socket.recv(READ_SIZE)
-        except TimeoutError:
+        except TimeoutError as error:
+            if error.errno is not None:  # ETIMEDOUT: the keep-alive probes went unanswered, not the read timeout
+                raise
             return b""
         if not data:
             raise ConnectionResetError("device closed the connection")
@@ -105,13 +127,16 @@ def parse_device(address: str) -> tuple[str, dict]:
 
 
 class HardwareReader:
-    """Background reader of one device; frames go to ``on_frame`` (from its thread).
+    """Background reader of one device; new frames go to ``on_frame(frame, arrival_ns)`` (from its thread).
 
-    The counters are written by the reader thread; read them with :meth:`counts`.
+    ``arrival_ns`` is ``clock()`` when the read that completed the frame
+    returned, before decoding (ns; the driver passes its node clock).  The
+    counters are written by the reader thread; read them with :meth:`counts`.
     """
 
-    def __init__(self, address: str, on_frame: Callable[[EchoFrame], None], *, silence_timeout: float = 2.0,
-                 min_backoff: float = 0.1, max_backoff: float = 5.0, read_timeout: float = 0.1) -> None:
+    def __init__(self, address: str, on_frame: Callable[[EchoFrame, int], None], *, silence_timeout: float = 2.0,
+                 min_backoff: float = 0.1, max_backoff: float = 5.0, read_timeout: float = 0.1,
+                 clock: Callable[[], int] = time.time_ns) -> None:
         self.kind, self._args = parse_device(address)
         self.address = address
         self._on_frame = on_frame
@@ -119,27 +144,33 @@ class HardwareReader:
         self._min_backoff = min_backoff
         self._max_backoff = max_backoff
         self._read_timeout = read_timeout
+        self._clock = clock
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name=f"sonar_ring reader {address}", daemon=True)
         self.decoder = FrameDecoder()
+        self._sequence = FrameSequence()
         self._events: Counter[str] = Counter()
         self._counts_lock = threading.Lock()
         self.connected = threading.Event()
 
     def counts(self) -> Counter:
-        """Connection events and dropped bytes since start, a copy safe to read from any thread.
+        """Connection events, frames lost and dropped bytes since start, a copy safe to read from any thread.
 
         ``connected``; ``device lost: <error>`` (cable unplugged, connection
-        reset), ``device silent`` (no bytes for ``silence_timeout``), ``device
-        open failed: <error>``; and the decoder's drops as ``frame_<reason>``
-        (:class:`sonar_ring.frames.FrameDecoder`).
+        reset or closed), ``device silent`` (once per spell of
+        ``silence_timeout`` or more without bytes), ``device open failed:
+        <error>``; from the frames' sequence numbers and device times
+        (:class:`sonar_ring.frames.FrameSequence`) ``frames_lost`` (numbers
+        skipped), ``duplicate_frame``, ``late_frame`` (both dropped),
+        ``device restarted`` and ``sequence restarted``; and the decoder's
+        drops as ``frame_<reason>`` (:class:`sonar_ring.frames.FrameDecoder`).
         """
         with self._counts_lock:
             return self._events + Counter({f"frame_{reason}": n for reason, n in self.decoder.errors.items()})
 
-    def _count(self, event: str) -> None:
+    def _count(self, event: str, count: int = 1) -> None:
         with self._counts_lock:
-            self._events[event] += 1
+            self._events[event] += count
 
     def start(self) -> None:
         """Start reading in the background."""
@@ -151,8 +182,11 @@ class HardwareReader:
         self._thread.join(timeout)
 
     def _open(self):
-        opener = {"serial": _Serial, "udp": _Udp, "tcp": _Tcp}[self.kind]
-        return opener(**self._args, timeout=self._read_timeout)
+        if self.kind == "serial":
+            return _Serial(**self._args, timeout=self._read_timeout)
+        if self.kind == "udp":
+            return _Udp(**self._args, timeout=self._read_timeout)
+        return _Tcp(**self._args, timeout=self._read_timeout, keepalive_idle=self._silence_timeout)
 
     def _run(self) -> None:
         backoff = self._min_backoff
@@ -161,37 +195,54 @@ class HardwareReader:
                 device = self._open()
             except (OSError, ValueError) as error:
                 self._count(f"device open failed: {type(error).__name__}")
-                self._stop.wait(backoff)
-                backoff = min(2 * backoff, self._max_backoff)
-                continue
-            self._count("connected")
-            self.connected.set()
-            try:
-                self._read_until_lost(device)
-                backoff = self._min_backoff
-            except OSError as error:
-                if not isinstance(error, TimeoutError):
-                    self._count(f"device lost: {type(error).__name__}")
-            finally:
-                self.connected.clear()
-                device.close()
-            if not self._stop.is_set():
-                self._stop.wait(backoff)
-                backoff = min(2 * backoff, self._max_backoff)
+            else:
+                self._count("connected")
+                self.connected.set()
+                try:
+                    if self._read_until_lost(device):
+                        backoff = self._min_backoff
+                finally:
+                    self.connected.clear()
+                    device.close()
+            if self._stop.wait(backoff):
+                return
+            backoff = min(2 * backoff, self._max_backoff)
 
-    def _read_until_lost(self, device) -> None:
-        silent = 0.0
+    def _read_until_lost(self, device) -> bool:
+        """Read until the device fails or the reader stops; whether any read brought bytes."""
         datagrams = getattr(device, "datagrams", False)
+        last_bytes = time.monotonic()
+        silent = False
+        read_any = False
         while not self._stop.is_set():
-            data = device.read()
+            try:
+                data = device.read()
+            except OSError as error:
+                self._count(f"device lost: {type(error).__name__}")
+                return read_any
             if not data:
-                silent += self._read_timeout
-                if silent >= self._silence_timeout:
+                if not silent and time.monotonic() - last_bytes >= self._silence_timeout:
+                    silent = True
                     self._count("device silent")
-                    raise TimeoutError(f"no bytes for {self._silence_timeout} s")
                 continue
-            silent = 0.0
+            arrival_ns = self._clock()
+            last_bytes = time.monotonic()
+            silent = False
+            read_any = True
             with self._counts_lock:
                 frames = self.decoder.feed_datagram(data) if datagrams else self.decoder.feed(data)
             for frame in frames:
-                self._on_frame(frame)
+                self._deliver(frame, arrival_ns)
+        return read_any
+
+    def _deliver(self, frame: EchoFrame, arrival_ns: int) -> None:
+        """Count the frame's place in the sequence; hand it on unless it is a duplicate or late."""
+        place, lost = self._sequence.place(frame.sequence, frame.device_time_us)
+        if lost:
+            self._count("frames_lost", lost)
+        if place in ("duplicate", "late"):
+            self._count(f"{place}_frame")
+            return
+        if place != "next":
+            self._count(place)
+        self._on_frame(frame, arrival_ns)

@@ -1,11 +1,59 @@
-"""The hardware frame: round trip, resynchronisation and corrupt input."""
+"""The hardware frame: the README's example, round trip, resynchronisation, corrupt input, the sequence."""
+
+import re
+import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
 from sonar_ring.echoes import EchoArrays
-from sonar_ring.frames import FrameDecoder, FrameError, encode_echoes
+from sonar_ring.frames import FrameDecoder, FrameError, FrameSequence, encode_echoes
+
+README = Path(__file__).resolve().parents[1] / "README.md"
+EXAMPLE_FRAME = bytes.fromhex(
+    "a55a 01 01 3200 cb"  # header: magic, version, type, payload length 50, check
+    "e8030000 d202964900000000 0200 02 01 a03c0500"  # sequence, device time, N, K, flags, speed of sound
+    "0300 00 58f95800 a4105a00 409c 6496"  # row 0: group, transmitter, TOF x 2, amplitude x 2
+    "1100 00 34b9b700 ffffffff 3930 0000"  # row 1: the second receiver missed
+    "1c59827c")  # CRC-32
+"""The README's example frame: two echo rows of the Browne ring with amplitudes."""
+EXAMPLE_PING = EchoArrays(layout="", speed_of_sound=343.2, group=np.array([3, 17], np.uint16),
+                          transmitter=np.zeros(2, np.uint8),
+                          tof=np.array([[5_831_000e-9, 5_902_500e-9], [12_040_500e-9, np.nan]]),
+                          amplitude=np.array([[40000, 38500], [12345, np.nan]], np.float32) / np.float32(65535),
+                          phase_delay=np.empty((2, 0)))
+EXAMPLE_SEQUENCE, EXAMPLE_DEVICE_TIME_US = 1000, 1_234_567_890
+
+
+def readme_example():
+    """The README's example frame: its bytes, and the text beside them."""
+    section = README.read_text().split("### Hardware frame")[1].split("\n## ")[0]
+    block = section.split("```text\n")[1].split("```")[0]
+    lines = [re.match(r"((?:[0-9a-f]{2} )*[0-9a-f]{2}) {2,}(.*)", line) for line in block.splitlines()]
+    assert all(lines), "every line: bytes in hex, two spaces, what they mean"
+    return bytes.fromhex(" ".join(line[1] for line in lines)), " ".join(line[2] for line in lines)
+
+
+def test_the_readme_example_frame_decodes_to_the_values_it_states():
+    data, text = readme_example()
+    assert data == EXAMPLE_FRAME == encode_echoes(EXAMPLE_PING, EXAMPLE_SEQUENCE, EXAMPLE_DEVICE_TIME_US)
+    decoder = FrameDecoder()
+    (frame,) = decoder.feed(data)
+    assert not decoder.errors
+    assert (frame.sequence, frame.device_time_us, frame.speed_of_sound) == (1000, 1_234_567_890, 343.2)
+    assert_same(frame.echoes, EXAMPLE_PING)
+    echoes = frame.echoes
+    stated = {int(number.replace(",", "")) for number in re.findall(r"\d[\d,]*", text)}
+    payload_length = len(data) - 11
+    decoded = {frame.sequence, frame.device_time_us, echoes.n_echoes, echoes.tof.shape[1],
+               round(frame.speed_of_sound * 1000), payload_length, 255 - (2 + payload_length) % 256,
+               *echoes.group.tolist(), *echoes.transmitter.tolist(),
+               *np.round(echoes.tof[np.isfinite(echoes.tof)] * 1e9).astype(int).tolist(),
+               *np.round(echoes.amplitude[np.isfinite(echoes.amplitude)] * 65535).astype(int).tolist()}
+    assert decoded <= stated, f"the README does not state {decoded - stated}"
+    assert f"0x{zlib.crc32(data[:-4]):08x}" in text and "missed" in text
 
 
 def ring_ping(seed=0, n=144, k=2, amplitude=True, phase=False):
@@ -24,7 +72,10 @@ def assert_same(decoded, sent):
     assert_array_equal(decoded.transmitter, sent.transmitter)
     assert_allclose(decoded.tof, sent.tof, atol=0.5e-9, rtol=0)  # whole nanoseconds on the wire
     assert_array_equal(np.isnan(decoded.tof), np.isnan(sent.tof))
-    assert_allclose(decoded.amplitude, sent.amplitude, atol=1 / 65535)
+    if sent.amplitude.size:  # a receiver that missed has no amplitude
+        assert_allclose(decoded.amplitude, np.where(np.isnan(sent.tof), np.nan, sent.amplitude), atol=1 / 65535)
+    else:
+        assert decoded.amplitude.shape == sent.amplitude.shape
     assert_allclose(decoded.phase_delay, sent.phase_delay, atol=0.5e-9, rtol=0)
 
 
@@ -95,3 +146,24 @@ def test_error_handling():
     with pytest.raises(FrameError, match=r"TOF must be in \[0, 4.29\) s"):
         encode_echoes(negative)
 
+
+
+def test_sequence_places_frames_and_counts_the_ones_missing():
+    sequence = FrameSequence()
+    wrap = 2**32
+    places = [sequence.place(number % wrap, 1000 * i) for i, number in
+              enumerate([wrap - 3, wrap - 2, wrap + 1, wrap + 2, wrap + 6])]
+    assert places == [("next", 0), ("next", 0), ("next", 2), ("next", 0), ("next", 3)]  # across the wrap
+    assert sequence.place(6, 4000) == ("duplicate", 0)
+    assert sequence.place(4, 3500) == ("late", 0)  # one of the three missing, overtaken by 6
+    assert sequence.place(7, 5000) == ("next", 0)
+    assert sequence.place(900, 20) == ("device restarted", 0)  # its clock went back
+    assert sequence.place(901, 40) == ("next", 0)
+    assert sequence.place(3, 60) == ("sequence restarted", 0)  # the clock went on, the number back
+    assert sequence.place(4, 80) == ("next", 0)
+
+
+def test_sequence_without_device_time_goes_by_the_numbers():
+    sequence = FrameSequence()
+    assert [sequence.place(number, 0) for number in (100, 101, 103, 103, 102, 104, 0)] == [
+        ("next", 0), ("next", 0), ("next", 1), ("duplicate", 0), ("late", 0), ("next", 0), ("sequence restarted", 0)]

@@ -1,10 +1,12 @@
 """Per-node health on ``/diagnostics``: input rate, latency, and problems by reason.
 
 A node calls :meth:`NodeHealth.received` for every input message,
-:meth:`NodeHealth.processed` with the time it took, :meth:`NodeHealth.problem`
-for every bad input or dropped item (counted by reason, a warning logged at
-most every 5 s per reason, and the status WARN), and :meth:`NodeHealth.note` for expected losses
-(an echo one receiver of a pair missed) that are counted but are no fault.
+:meth:`NodeHealth.processed` with the time it took and the messages it
+published, :meth:`NodeHealth.sent` for messages published apart from an input
+(the mapper's map), :meth:`NodeHealth.problem` for every bad input or dropped
+item (counted by reason, a warning logged at most every 5 s per reason, and the
+status WARN), and :meth:`NodeHealth.note` for expected losses (an echo one
+receiver of a pair missed) that are counted but are no fault.
 Once a second the counts go out as a ``diagnostic_msgs/DiagnosticArray``.
 """
 
@@ -12,6 +14,7 @@ from __future__ import annotations
 
 import time
 from collections import Counter, deque
+from collections.abc import Callable
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -33,6 +36,8 @@ class NodeHealth:
         Expected losses by reason since start.
     received_count, published_count : int
         Inputs taken and outputs published since start.
+    extra_values : callable or None
+        Returns more ``{key: value}`` pairs of the node's own for each report (the driver's device clock).
     """
 
     def __init__(self, node: Node, hardware_id: str = "", period: float = 1.0) -> None:
@@ -48,6 +53,7 @@ class NodeHealth:
         self.notes: Counter[str] = Counter()
         self.received_count = 0
         self.published_count = 0
+        self.extra_values: Callable[[], dict[str, str]] | None = None
 
     def received(self) -> None:
         """Count one input message."""
@@ -57,7 +63,11 @@ class NodeHealth:
     def processed(self, seconds: float, published: int = 1) -> None:
         """Record the compute time of one input and how many messages it produced."""
         self._latency.append(seconds)
-        self.published_count += published
+        self.sent(published)
+
+    def sent(self, count: int) -> None:
+        """Count ``count`` messages published (:meth:`processed` counts those of an input; this, others: a map)."""
+        self.published_count += count
 
     def problem(self, reason: str, detail: str = "", count: int = 1) -> None:
         """Count ``count`` problems of kind ``reason``; warn at most every ``WARN_THROTTLE_S`` per reason.
@@ -101,6 +111,8 @@ class NodeHealth:
             "latency median (ms)": f"{np.median(latency):.3f}" if latency.size else "n/a",
             "latency p99 (ms)": f"{np.percentile(latency, 99):.3f}" if latency.size else "n/a",
         }
+        if self.extra_values is not None:
+            values.update(self.extra_values())
         values.update({f"problems: {reason}": str(n) for reason, n in sorted(self.problems.items())})
         values.update({f"counted: {reason}": str(n) for reason, n in sorted(self.notes.items())})
         level = DiagnosticStatus.WARN if new_problems else DiagnosticStatus.OK

@@ -26,10 +26,13 @@ import numpy as np
 from nav_msgs.msg import Odometry
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.subscription import MessageInfo
+from rclpy.time import Time
 from std_msgs.msg import Header
 
+from sonar_ring.device_clock import DeviceClock
 from sonar_ring.echoes import FASTEST_SPEED_OF_SOUND, SLOWEST_SPEED_OF_SOUND, EchoArrays
 from sonar_ring.echoes import load_kernels as load_screening_kernels
+from sonar_ring.frames import EchoFrame
 from sonar_ring.geometry import load_layout, speed_of_sound
 from sonar_ring.landmarks import make_landmarks
 from sonar_ring.msg import Echoes
@@ -45,6 +48,7 @@ from sonar_ring.ros.run import spin
 from sonar_ring.simulate import DIRECT, Noise, load_scene
 
 SOURCES = ("hardware", "topic", "simulator")
+STAMPS = ("device", "arrival")
 DEFAULT_SPEED_OF_SOUND = float(speed_of_sound(20.0))
 """m/s in dry air at 20 degC, for sources that report none."""
 REALISM_PREFIX = "realism."
@@ -70,8 +74,11 @@ PARAMS = [
           "from it on /tf_static", read_only=True),
     Param("device", "udp://0.0.0.0:5600", "hardware: serial:///dev/ttyUSB0?baud=921600, udp://HOST:PORT or "
           "tcp://HOST:PORT", read_only=True),
-    Param("silence_timeout", 2.0, "hardware: seconds without bytes before reconnecting", low=0.1, high=60.0,
-          read_only=True),
+    Param("silence_timeout", 2.0, "hardware: seconds without bytes before the device is reported silent (and a TCP "
+          "device is probed for life)", low=0.1, high=60.0, read_only=True),
+    Param("stamp", "device", "hardware: a ping's stamp: `device` (when its transmitter fired: the frame's device "
+          "time on the node clock, estimated online) or `arrival` (when its frame was read); a frame without "
+          "device time is stamped on arrival", choices=STAMPS, read_only=True),
     Param("scene", "room", "simulator: a name in config/scenes or a YAML path", read_only=True),
     Param("world", "realistic", "simulator: the world's effects, a profile (realism.* parameters and the scene's "
           "realism block replace single fields)", choices=tuple(PROFILES), read_only=True),
@@ -184,16 +191,19 @@ class Driver(SonarNode):
         self._frames: deque = deque()
         self._frames_lock = threading.Lock()
         self._frames_dropped = 0
-        self._last_frame: tuple[int, int] | None = None
         self._reader_reported: Counter[str] = Counter()
         self._next_reader_report = 0.0
+        self.device_clock = DeviceClock()
+        self._last_arrival_ns: int | None = None
+        self.health.extra_values = self._device_values
         self.reader = HardwareReader(self.params["device"], self._on_frame,
-                                     silence_timeout=self.params["silence_timeout"])
+                                     silence_timeout=self.params["silence_timeout"],
+                                     clock=lambda: self.get_clock().now().nanoseconds)
         self.reader.start()
         self._timer = self.create_timer(0.002, self._drain_frames)
 
-    def _on_frame(self, frame) -> None:
-        """Reader thread: queue the frame with its arrival time; drop the oldest when full.
+    def _on_frame(self, frame: EchoFrame, arrival_ns: int) -> None:
+        """Reader thread: queue the frame with its arrival time (ns, node clock); drop the oldest when full.
 
         Only the executor thread touches :attr:`health`; drops are counted here
         and handed over in :meth:`_drain_frames`.
@@ -202,28 +212,54 @@ class Driver(SonarNode):
             if len(self._frames) >= HARDWARE_QUEUE:
                 self._frames.popleft()
                 self._frames_dropped += 1
-            self._frames.append((self.get_clock().now(), frame))
+            self._frames.append((arrival_ns, frame))
 
     def _drain_frames(self) -> None:
         with self._frames_lock:
             frames, self._frames = list(self._frames), deque()
             dropped, self._frames_dropped = self._frames_dropped, 0
         self.health.problem("dropped_queue_full", f"more than {HARDWARE_QUEUE} frames waiting", dropped)
-        for stamp, frame in frames:
+        for arrival_ns, frame in frames:
             started = time.perf_counter()
             self.health.received()
-            identity = (frame.sequence, frame.device_time_us)
-            if identity == self._last_frame:
-                self.health.problem("duplicate_frame", f"frame {frame.sequence} again")
-                continue
-            self._last_frame = identity
-            header = Header(stamp=stamp.to_msg(), frame_id=self.params["frame_id"])
+            self._last_arrival_ns = arrival_ns
+            header = Header(stamp=Time(nanoseconds=self._stamp(frame, arrival_ns)).to_msg(),
+                            frame_id=self.params["frame_id"])
+            published_before = self.pings_published
             downstream = self._publish(frame.echoes, header)
-            self.health.processed(time.perf_counter() - started - downstream)
+            self.health.processed(time.perf_counter() - started - downstream,
+                                  published=self.pings_published - published_before)  # 0: the ping was refused
         # The reader's counters take its lock, which it holds while decoding: read them with the frames,
         # or once a second when none come (a lost device), not at every 2 ms tick.
         if frames or time.monotonic() >= self._next_reader_report:
             self._report_reader()
+
+    def _stamp(self, frame: EchoFrame, arrival_ns: int) -> int:
+        """The ping's stamp, ns on the node clock: its firing time from the device clock, or its arrival.
+
+        Every frame with a device time goes through :attr:`device_clock`, so
+        its estimate is on ``/diagnostics`` whichever stamp is published.
+        """
+        if frame.device_time_us == 0:
+            self.health.note("stamped on arrival (no device time)")
+            return arrival_ns
+        fired_ns = self.device_clock.stamp(frame.device_time_us, arrival_ns)
+        return fired_ns if self.params["stamp"] == "device" else arrival_ns
+
+    def _device_values(self) -> dict[str, str]:
+        """The hardware source's own ``/diagnostics`` values: the last frame's age and the device clock estimate."""
+        if self._last_arrival_ns is None:
+            return {"last frame age (s)": "n/a"}
+        delays = self.device_clock.delays() * 1e3
+        age = (self.get_clock().now().nanoseconds - self._last_arrival_ns) * 1e-9
+        values = {"last frame age (s)": f"{age:.3f}"}
+        if delays.size:
+            values.update({"device clock offset (s)": f"{self.device_clock.offset:.6f}",
+                           "device clock drift (ppm)": f"{self.device_clock.drift * 1e6:.2f}",
+                           "device clock restarts": str(self.device_clock.restarts),
+                           "arrival delay median (ms)": f"{np.median(delays):.3f}",
+                           "arrival delay p99 (ms)": f"{np.percentile(delays, 99):.3f}"})
+        return values
 
     def _report_reader(self) -> None:
         """The reader's connection events and the decoder's dropped bytes since the last call, on ``health``."""

@@ -253,11 +253,11 @@ class Mapper(SonarNode):
         if self.params["slam"]:
             header = self._header(self.builder.latest_stamp, self.params["map_frame"])
             self._pose_publisher.publish(pose_message(self.builder, header))
-            self.health.published_count += 1
+            self.health.sent(1)
             if self._tf is not None:
                 transform = transform_message(self.builder.map_to_odom(), header, self.params["odom_frame"])
                 self._tf.publish(self._tf_message(transforms=[transform]))
-                self.health.published_count += 1
+                self.health.sent(1)
         seconds = (time.perf_counter() - started) / pings
         for _ in range(pings):
             self.health.processed(seconds, published=0)
@@ -280,7 +280,7 @@ class Mapper(SonarNode):
         for publisher, message in zip((self._map_landmarks, self._map_markers, self._map_points), messages,
                                       strict=True):
             publisher.publish(message)
-        self.health.published_count += len(messages)
+        self.health.sent(len(messages))
 
 
 def main(args=None) -> None:
