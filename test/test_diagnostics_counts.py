@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import DurabilityPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
@@ -36,7 +37,8 @@ pytestmark = pytest.mark.ros
 
 OUTPUTS = {"driver": {"echoes": Echoes}, "localiser": {"landmarks/raw": LandmarkArray},
            "classifier": {"landmarks": LandmarkArray, "markers": MarkerArray},
-           "mapper": {"map/landmarks": LandmarkArray, "map/markers": MarkerArray, "map/points": PointCloud2}}
+           "mapper": {"map/landmarks": LandmarkArray, "map/markers": MarkerArray, "map/points": PointCloud2,
+                      "slam/pose": PoseWithCovarianceStamped}}
 """The topics each node's ``published`` counts."""
 INPUTS = {"localiser": "echoes", "classifier": "landmarks/raw", "mapper": "landmarks"}
 """The topic whose messages each node downstream of the driver counts as ``inputs`` (the classifier: pings paired)."""
@@ -62,7 +64,8 @@ def test_every_nodes_counts_on_diagnostics_are_what_was_received(ros):
     for topics in OUTPUTS.values():
         for topic, kind in topics.items():
             qos = ALL_MESSAGES if topic.startswith("map/") else QoSProfile(
-                depth=1000, reliability=qos_profile_sensor_data.reliability)
+                depth=1000, reliability=ReliabilityPolicy.RELIABLE if topic == "slam/pose"
+                else qos_profile_sensor_data.reliability)
             listener.create_subscription(kind, topic, lambda _, topic=topic: received.__setitem__(
                 topic, received[topic] + 1), qos)
     reported = {}
