@@ -109,10 +109,13 @@ class SlamSettings:
         Seconds of travel without a confirmed landmark after which the SLAM says so.
     smoother_lag : float
         Seconds of keyframes the smoother keeps; older ones are marginalised.
+    relinearize_threshold, relinearize_skip : float, int
+        iSAM2's: a variable is relinearised when its estimate moved this much (m, rad), checked every
+        ``relinearize_skip`` updates.
     """
 
-    keyframe_distance: float = 0.05
-    keyframe_turn: float = 0.05
+    keyframe_distance: float = 0.1
+    keyframe_turn: float = 0.1
     keyframe_pings: int = 30
     odometry_distance_noise: float = 0.02
     odometry_heading_noise: float = 0.02
@@ -126,6 +129,8 @@ class SlamSettings:
     undecided_bearing_sigma: float = 0.1
     wall_end_reach: float = 0.2
     wall_end_tolerance: float = 0.03
+    relinearize_threshold: float = 0.01
+    relinearize_skip: int = 10
     max_speed: float = 2.0
     max_turn_rate: float = 4.0
     lost_after: float = 5.0
@@ -285,8 +290,8 @@ class LandmarkSlam:
 
     def _start_segment(self) -> None:
         parameters = gtsam.ISAM2Params()
-        parameters.setRelinearizeThreshold(0.001)
-        parameters.relinearizeSkip = 1
+        parameters.setRelinearizeThreshold(self.settings.relinearize_threshold)
+        parameters.relinearizeSkip = self.settings.relinearize_skip
         self._smoother = gtsam.IncrementalFixedLagSmoother(self.settings.smoother_lag, parameters)
         self.front = LandmarkMap(**self._front_end)
         self._confirmed: dict[int, _Confirmed] = {}
