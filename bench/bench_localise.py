@@ -28,6 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from sonar_ring import localise as loc  # noqa: E402
+from sonar_ring import uncertainty  # noqa: E402
 from sonar_ring.benchmark.environment import machine  # noqa: E402
 from sonar_ring.benchmark.timing import interleaved_best  # noqa: E402
 from sonar_ring.geometry import load_layout  # noqa: E402
@@ -165,7 +166,7 @@ def monte_carlo(samples=100_000):
         true_bearing = np.arctan2(*(image - rx1)[::-1])
         noisy1 = d1 + C * SIGMA_TOF * rng.normal(size=samples)
         noisy2 = d2 + C * SIGMA_TOF * rng.normal(size=samples)
-        sigma_bearing, sigma_range = loc.cramer_rao_bound(0.04, SIGMA_TOF, C, true_bearing)
+        sigma_bearing, sigma_range = uncertainty.cramer_rao_bound(0.04, SIGMA_TOF, C, true_bearing)
         bearings = loc.bearing(noisy1, noisy2, 0.04).value
         ranges = norm(loc.corner(tx, rx1, rx2, noisy1, noisy2).position - tx)
         rows.append((degrees, np.std(bearings) / sigma_bearing, (np.mean(bearings) - true_bearing) / sigma_bearing,

@@ -37,7 +37,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sonar_ring import localise
+from sonar_ring import solvers
 from sonar_ring.compiled import kernel
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN
 from sonar_ring.localise import horizontal_path
@@ -981,7 +981,7 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
     height_offsets, outside = _row_height_offsets(plan.height_offset, group)
     if outside >= 0:
         raise ValueError(f"group indices must be in [0, {layout.n_groups}), got {group[outside]} in row {outside}")
-    horizontal = localise.horizontal_rows(paths.ravel(), height_offsets)[0].reshape(paths.shape)
+    horizontal = solvers.horizontal_rows(paths.ravel(), height_offsets)[0].reshape(paths.shape)
     slots, spacing = _ring_slots(plan.yaw.tobytes(), float(layout.beam_half_angle), plan.receivers.tobytes())
     return ConsistencyResult(*_ring_tests(ping.astype(np.int64), group, paths, horizontal, plan.receivers,
                                           plan.transmitters, plan.facing, slots, spacing, sigma_path, z,

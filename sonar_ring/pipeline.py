@@ -21,7 +21,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from sonar_ring import classify, doa, localise
+from sonar_ring import classify, doa, localise, solvers, uncertainty
 from sonar_ring.compiled import kernel
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import Layout
@@ -83,14 +83,14 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
     """
     if layout.kind == "triad":
         return _localise_triads(layout, echoes, settings)
-    localise.check_path_noise(settings.sigma_tof, echoes.speed_of_sound, settings.sigma_speed, "localise_ping")
+    uncertainty.check_path_noise(settings.sigma_tof, echoes.speed_of_sound, settings.sigma_speed, "localise_ping")
     count = echoes.n_echoes
     if echoes.group.shape != (count,) or echoes.transmitter.shape != (count,) or echoes.tof.shape != (count, 2):
         raise ValueError(f"localise_ping: need one group, one transmitter and two TOFs per echo row: group "
                          f"{echoes.group.shape}, transmitter {echoes.transmitter.shape}, tof {echoes.tof.shape}")
     models, model_class = _model_codes(tuple(settings.models))
     # Copies (astype): decoded from a message, the arrays are read-only views, another type to numba.
-    *fields, lost, covariance_paths = localise.localise_ping_rows(
+    *fields, lost, covariance_paths = solvers.localise_ping_rows(
         layout.transmitters, layout.receivers, layout.groups, echoes.transmitter.astype(np.int64),
         echoes.group.astype(np.int64), echoes.tof.astype(float, order="C"), float(echoes.speed_of_sound),
         settings.vertical_correction, float(settings.sigma_tof), float(settings.sigma_speed), models, model_class)
@@ -105,7 +105,7 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
             receivers = group_receivers[echoes.group[rows], :, :2]
             estimate = localise.PointEstimate(hypotheses.position[entries], np.ones(rows.size, dtype=bool),
                                               hypotheses.reason[entries], settings.models[index])
-            hypotheses.covariance[entries] = localise.position_covariance(
+            hypotheses.covariance[entries] = uncertainty.position_covariance(
                 estimate, layout.transmitters[echoes.transmitter[rows], :2], receivers[:, 0], receivers[:, 1],
                 covariance_paths[rows])
     return hypotheses
@@ -113,11 +113,11 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
 
 @functools.lru_cache(maxsize=8)
 def _model_codes(models: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """The solver index (:data:`sonar_ring.localise.SOLVERS`) and landmark class of each model, shapes (M,).
+    """The solver index (:data:`sonar_ring.solvers.SOLVERS`) and landmark class of each model, shapes (M,).
 
     Cached for every ping: not to be written to.
     """
-    return (np.array([localise.SOLVERS.index(model) for model in models], dtype=np.int64),
+    return (np.array([solvers.SOLVERS.index(model) for model in models], dtype=np.int64),
             np.array([MODEL_CLASS[model] for model in models], dtype=np.uint8))
 
 

@@ -475,7 +475,7 @@ def _method_notes(results: Results) -> list[str]:
         "`range-only` judges the conventional ranger on all echoes against the same truth.",
         f"- **Bearing sweep**: pair 0 of the ring, virtual images at bearings uniform in ±80° and distances "
         f"{NEAREST:g}–{FARTHEST:g} m from R1 ({sizes.sweep:,} of them), exact paths in extended precision; the "
-        "true bearing is Browne's φ1, at R1. CRLB: `localise.cramer_rao_bound` (far-field, √2·c·σ_t/(D cos φ)).",
+        "true bearing is Browne's φ1, at R1. CRLB: `uncertainty.cramer_rao_bound` (far-field, √2·c·σ_t/(D cos φ)).",
         "- **Browne's formulas** (`sonar_ring.reference.browne`) work in a pair frame with D and R scalars; their "
         "timing includes the rotation into the sensor frame. Eq 26 is used as his §6 describes: subtract "
         "`t − (R + 2d)` from each path (so it is the exact correction in another arrangement).",
