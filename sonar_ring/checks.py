@@ -10,6 +10,7 @@ named in the message.
 from __future__ import annotations
 
 import functools
+import math
 
 import numpy as np
 
@@ -66,3 +67,24 @@ def flat_copies(shape: tuple, *arrays) -> list[np.ndarray]:
     """
     return [np.array(np.broadcast_to(array, shape), dtype=np.float64).ravel() for array in arrays]
 
+
+def positive_finite(name: str, value) -> np.ndarray:
+    """``value`` as a float array; ``ValueError`` unless every entry is finite and > 0."""
+    array = np.asarray(value, dtype=float)
+    if not ((array > 0).all() and np.isfinite(array).all()):  # methods: numpy's wrappers cost more than the test
+        raise ValueError(f"{name} must be finite and > 0, got {value!r}")
+    return array
+
+
+def positive_number(name: str, value) -> float:
+    """``value`` as a float; ``ValueError`` unless it is one finite number > 0.
+
+    Numbers are checked without numpy, whose calls cost microseconds each.
+    """
+    number = value
+    if not isinstance(value, float | int):
+        numeric = isinstance(value, np.generic | np.ndarray) and value.ndim == 0 and value.dtype.kind in "biuf"
+        number = float(value) if numeric else math.nan
+    if not (math.isfinite(number) and number > 0):
+        raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
+    return float(number)

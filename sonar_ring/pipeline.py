@@ -21,7 +21,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from sonar_ring import classify, doa, localise, solvers, uncertainty
+from sonar_ring import amplitude_rules, confidence, doa, localise, ring_consistency, solvers, uncertainty
 from sonar_ring.compiled import kernel
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import Layout
@@ -61,7 +61,7 @@ class Settings:
     sigma_tof: float = 1e-6
     sigma_speed: float = 0.0
     sigma_amplitude: float = 0.02
-    consistency_z: float = classify.CONSISTENCY_Z
+    consistency_z: float = ring_consistency.CONSISTENCY_Z
     triad_eps: float = 0.0
     triad_max_angle: float = np.radians(50.0)
 
@@ -185,12 +185,12 @@ def load_kernels() -> None:
     """Load the compiled part of :func:`classify_ping` now instead of at the first ping.
 
     The classifier node and the workers of ``sonar-ring process`` call it at start,
-    with :func:`sonar_ring.classify.load_kernels` on a ring.
+    with :func:`sonar_ring.ring_consistency.load_kernels` on a ring.
     """
     _picks(np.zeros(1, dtype=np.uint8), np.zeros(1, dtype=np.int64), np.ones(1, dtype=bool),
            np.zeros(1, dtype=np.uint8), np.zeros(1))
     _add_edge_discrepancy(np.zeros((1, 2, 2)), np.zeros((1, 2)), np.zeros((1, 2)), np.zeros(1, dtype=np.int64))
-    classify.confidence_from_margin(np.zeros(1))  # the amplitude rules' confidences
+    confidence.load_kernels()
 
 
 @kernel
@@ -257,7 +257,7 @@ def _add_edge_discrepancy(covariance, position, hypothesis_position, edge_row):
 def _evidence(layout: Layout, echoes: EchoArrays, settings: Settings, ping: np.ndarray):
     """Class decision and confidence per echo row, shapes (N,); ``ping`` (N,) keeps pings apart."""
     if echoes.n_echoes and layout.kind == "ring":
-        result = classify.ring_consistency(layout, echoes.group, echoes.path_lengths(),
+        result = ring_consistency.ring_consistency(layout, echoes.group, echoes.path_lengths(),
                                            echoes.speed_of_sound * settings.sigma_tof, ping=ping,
                                            z=settings.consistency_z)
         return result.cls, np.where(result.cls == EDGE, result.confidence, 0.0)
@@ -267,7 +267,7 @@ def _evidence(layout: Layout, echoes: EchoArrays, settings: Settings, ping: np.n
         first, second = _matched_rows(layout, echoes, ping)
         # [[A_aa', A_ab'], [A_ba', A_bb']]: rows by transmitter, columns by receiver.
         amplitudes = np.stack([echoes.amplitude[first], echoes.amplitude[second]], axis=1)
-        result = classify.classify_amplitudes(amplitudes, settings.sigma_amplitude)
+        result = amplitude_rules.classify_amplitudes(amplitudes, settings.sigma_amplitude)
         for rows in (first, second):
             decided[rows] = result.cls
             confidence[rows] = result.confidence

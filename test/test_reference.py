@@ -5,7 +5,7 @@ import pytest
 from numpy.testing import assert_allclose
 
 from sonar_ring import localise as loc
-from sonar_ring.classify import fuse, fusion_weights
+from sonar_ring.amplitude_rules import fuse, fusion_weights
 from sonar_ring.geometry import load_layout
 from sonar_ring.reference import barshan_kuc, browne
 

@@ -43,7 +43,7 @@ from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import Header
 
-from sonar_ring import classify, localise, mapping, pipeline
+from sonar_ring import localise, mapping, pipeline, ring_consistency
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.echoes import load_kernels as load_screening_kernels
 from sonar_ring.geometry import Layout, LayoutError, config_path, load_layout
@@ -255,7 +255,7 @@ def _start_worker(stage: PingStage) -> None:
         localise.load_kernels()
     pipeline.load_kernels()
     if stage.layout.kind == "ring":
-        classify.load_kernels()
+        ring_consistency.load_kernels()
     stage.screening.screen(Landmarks.empty(), (0.0, 0.0, 0.0))  # loads the screening kernel
 
 
