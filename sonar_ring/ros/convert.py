@@ -23,7 +23,7 @@ from std_msgs.msg import Header
 
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.landmarks import Landmarks, make_landmarks
-from sonar_ring.msg import Echoes, Landmark, LandmarkArray
+from sonar_ring.msg import Echoes, LandmarkArray
 
 _TYPECODES = {np.float64: "d", np.float32: "f", np.uint8: "B", np.uint16: "H", np.uint32: "I"}
 
@@ -301,18 +301,3 @@ def landmarks_from_msg(msg: LandmarkArray) -> Landmarks:
         reason=from_sequence(msg.reason, np.uint8),
     )
 
-
-def landmark_messages(msg: LandmarkArray) -> list[Landmark]:
-    """One :class:`sonar_ring.msg.Landmark` per entry of a LandmarkArray, for code that wants objects."""
-    arrays = landmarks_from_msg(msg)
-    return [
-        Landmark(header=msg.header, landmark_class=int(arrays.landmark_class[i]),
-                 x=float(arrays.position[i, 0]), y=float(arrays.position[i, 1]),
-                 normal_x=float(arrays.normal[i, 0]), normal_y=float(arrays.normal[i, 1]),
-                 bearing=float(arrays.bearing[i]), range=float(arrays.range[i]),
-                 covariance=arrays.covariance[i].ravel().tolist(), confidence=float(arrays.confidence[i]),
-                 segment=arrays.segment[i].ravel().tolist(), observations=int(arrays.observations[i]),
-                 group=int(arrays.group[i]), echo=int(arrays.echo[i]), valid=bool(arrays.valid[i]),
-                 reason=int(arrays.reason[i]))
-        for i in range(len(arrays))
-    ]
