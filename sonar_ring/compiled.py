@@ -2,12 +2,12 @@
 
 A ping holds tens to hundreds of echoes, each with a handful of receivers, and the
 map holds 2 x 2 matrices per entry: there numpy spends its time starting each
-operation, not computing (about 1 us per call on arrays of 30 elements).  The few
+operation, not computing (README, "The numpy core", has the figures).  The few
 loops that dominate a ping are plain Python over arrays, marked :func:`kernel`
 and compiled from the first call of any kernel on:
 
-* numba is imported then, not when the core is imported (about 0.2 s and 100 MiB a
-  process that never calls a kernel need not pay);
+* numba is imported then, not when the core is imported (its start-up time and
+  memory are for processes that call a kernel);
 * every kernel becomes its numba dispatcher, under its own name in its module,
   so kernels call each other as compiled code and Python callers reach the
   machine code without a wrapper.  A kernel calls kernels of its own module

@@ -89,7 +89,8 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
         raise ValueError(f"localise_ping: need one group, one transmitter and two TOFs per echo row: group "
                          f"{echoes.group.shape}, transmitter {echoes.transmitter.shape}, tof {echoes.tof.shape}")
     models, model_class = _model_codes(tuple(settings.models))
-    # Copies (astype): decoded from a message, the arrays are read-only views, another type to numba.
+    # The types the kernel is compiled for (astype copies): a message's uint16 groups and uint8 transmitters
+    # become int64, and TOFs C-contiguous float64 whatever order or flags the caller's array has.
     *fields, lost, covariance_paths = solvers.localise_ping_rows(
         layout.transmitters, layout.receivers, layout.groups, echoes.transmitter.astype(np.int64),
         echoes.group.astype(np.int64), echoes.tof.astype(float, order="C"), float(echoes.speed_of_sound),
@@ -125,8 +126,9 @@ def _model_codes(models: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
 def triad_eps_for(b1: float, b2: float, max_angle: float, wavelength: float, speed_of_sound: float) -> float:
     """Kreczmer's eq 6 tolerance for a triad: the eps of :func:`sonar_ring.doa.robustness`.
 
-    Cached: the procedure takes about 0.1 s and the arguments change only with
-    the layout (the speed of sound is rounded to 1 m/s by the caller).
+    Cached: the procedure steps the timing error over every azimuth it accepts, too slow
+    for every ping, and its arguments change only with the layout (the speed of
+    sound is rounded to 1 m/s by the caller).
     """
     return doa.robustness(b1, b2, max_angle, wavelength, speed_of_sound).eps
 
