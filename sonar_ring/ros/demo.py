@@ -35,7 +35,7 @@ from rclpy.qos import QoSProfile, qos_profile_sensor_data
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import CLASS_NAMES, CORNER, EDGE, PLANE, UNKNOWN
 from sonar_ring.msg import LandmarkArray
-from sonar_ring.progress import Progress
+from sonar_ring.progress import progress_bar
 from sonar_ring.ros.bag import BagWriter, absolute, graph_topics
 from sonar_ring.ros.convert import landmarks_from_msg
 from sonar_ring.ros.executor import DirectExecutor
@@ -155,10 +155,10 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
                            [absolute(topic.name) for topic in graph_topics(driver.layout)])
         executor.add_node(driver)
         started = time.monotonic()
-        bar = Progress("pings", total)
+        bar = progress_bar(total)
         while driver.pings_published < total:
             executor.spin_once(timeout_sec=0.05)
-            bar.update(driver.pings_published)
+            bar.update(driver.pings_published - bar.n)
         bar.close()
         executor.remove_node(driver)
         deadline = time.monotonic() + DRAIN_SECONDS

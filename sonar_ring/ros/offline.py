@@ -49,7 +49,7 @@ from sonar_ring.echoes import load_kernels as load_screening_kernels
 from sonar_ring.geometry import Layout, LayoutError, config_path, load_layout
 from sonar_ring.landmarks import CLASS_NAMES, Landmarks
 from sonar_ring.mapping import LandmarkMap, Sightings
-from sonar_ring.progress import Progress
+from sonar_ring.progress import progress_bar
 from sonar_ring.ros import classifier, localiser, mapper
 from sonar_ring.ros.bag import TOPIC, BagError, BagReader, BagWriter, absolute, range_topics
 from sonar_ring.ros.convert import MessageError, echoes_from_cdr, echoes_to_msg, serialize_landmarks
@@ -515,7 +515,7 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
         classifier's work and the mapper's screening; 1 does everything here;
         default one per CPU this process may use.
     progress : bool
-        Draw a progress bar on stderr.
+        Draw a progress bar on stderr (in a terminal: :func:`~sonar_ring.progress.progress_bar`).
 
     Raises
     ------
@@ -553,7 +553,7 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
                     odometry = _odometry_for(bag, topics, absolute(odom_topic or "odom", namespace),
                                              values["mapper"], tally, report, explicit=odom_topic is not None)
                 graphs[name] = OfflineGraph(values, namespace, odometry, writer, tally)
-            bar = Progress("pings", sum(c.msgcount for c in echo_connections)) if progress else None
+            bar = progress_bar(sum(c.msgcount for c in echo_connections), enabled=progress)
             times = []
 
             def admitted():
@@ -564,15 +564,13 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
                     if ping is not None:
                         pose, no_pose = graph.robot_pose(ping[0])
                         yield ping, data, pose, (graph, time_ns, no_pose)
-                    if bar:
-                        bar.update(len(times))
+                    bar.update(1)
 
             # The map's kernels load while the workers localise the first batches.
             for (graph, time_ns, no_pose), output in ordered_map(stage, admitted(), workers, jobs,
                                                                  meanwhile=mapping.load_kernels):
                 graph.take(time_ns, no_pose, output)
-            if bar:
-                bar.close()
+            bar.close()
             for graph in graphs.values():
                 graph.finish()
                 report.per_class.update(dict(zip(CLASS_NAMES, graph.per_class.tolist(), strict=True)))
@@ -637,7 +635,7 @@ def record_sim(scene, out_path, *, layout="browne_ring", laps: int = 1, pings: i
     tally = Tally()
     report = RecordReport()
     total = laps * len(poses) if pings is None else min(pings, laps * len(poses))
-    bar = Progress("pings", total) if progress else None
+    bar = progress_bar(total, enabled=progress)
     with BagWriter(out_path, storage) as writer:
         topics = [TOPIC["echoes"], TOPIC["odom"], TOPIC["truth"], *(range_topics(sensor) if with_range else [])]
         connection = {topic.name: writer.connection(absolute(topic.name), topic.message, topic.qos)
@@ -657,10 +655,8 @@ def record_sim(scene, out_path, *, layout="browne_ring", laps: int = 1, pings: i
                     messages += zip(ranges, range_messages(sensor, kept, header), strict=True)
             for name, message in messages:
                 writer.write(connection[name], stamp, serialize_message(message))
-            if bar:
-                bar.update(k + 1)
-        if bar:
-            bar.close()
+            bar.update(1)
+        bar.close()
     report.pings = total
     report.data_seconds = (total - 1) / rate if total else 0.0
     report.problems = tally.problems
