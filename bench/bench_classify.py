@@ -2,7 +2,7 @@
 
 Regenerate ``bench/results/classify.md`` (a few minutes on one core):
 
-    cd /work/main && .venv/bin/python bench/bench_classify.py
+    source tools/env.sh && python bench/bench_classify.py   # from the repository root
 
 ``--trials N`` changes the Monte Carlo size (default 1000 per cell, the issue's figure);
 ``--output PATH`` writes elsewhere.  Every random number comes from generators seeded
@@ -13,17 +13,13 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from sonar_ring import amplitude_rules, simulate  # noqa: E402
-from sonar_ring.benchmark.classification import (  # noqa: E402
+from sonar_ring import amplitude_rules, simulate
+from sonar_ring.benchmark.classification import (
     INCLINATIONS_DEG,
     RANGES_MM,
     SIGMA_REL,
@@ -34,10 +30,12 @@ from sonar_ring.benchmark.classification import (  # noqa: E402
     poses_at,
     ring_decisions,
 )
-from sonar_ring.benchmark.environment import machine  # noqa: E402
-from sonar_ring.benchmark.scenes import ring_scene  # noqa: E402
-from sonar_ring.geometry import beam_half_angle, load_layout  # noqa: E402
-from sonar_ring.landmarks import CORNER, PLANE, UNKNOWN  # noqa: E402
+from sonar_ring.benchmark.environment import machine
+from sonar_ring.benchmark.scenes import ring_scene
+from sonar_ring.geometry import beam_half_angle, load_layout
+from sonar_ring.landmarks import CORNER, PLANE, UNKNOWN
+
+ROOT = Path(__file__).resolve().parents[1]
 
 RESULT = ROOT / "bench" / "results" / "classify.md"
 SEED = 1990
@@ -315,8 +313,8 @@ def main() -> None:
     args = parser.parse_args()
     rng = np.random.default_rng(SEED)
     start = time.perf_counter()
-    lines = ["# Classifier -- `sonar_ring.classify`", "",
-             "Regenerate: `cd /work/main && .venv/bin/python bench/bench_classify.py`"
+    lines = ["# Classifier -- `sonar_ring.amplitude_rules`, `sonar_ring.ring_consistency`", "",
+             "Regenerate: `python bench/bench_classify.py` (from the repository root, after `source tools/env.sh`)"
              + ("" if args.trials == 1000 else f" --trials {args.trials}"), "",
              f"Machine: {machine()}.  Random seed {SEED} (one generator, sections in order).", ""]
     lines += paper_section()
