@@ -309,12 +309,8 @@ def working_range(separation, theta0, sigma_rel, margin_rule="paper"):
     ----------
     separation : array_like
         Pair separation ``d``, m; non-finite or <= 0 gives NaN.
-    theta0 : float
-        Beam half-angle, rad, in (0, pi/2).
-    sigma_rel : float
-        Amplitude noise as a fraction of ``A_max``, in (0, 1/6).
-    margin_rule : str
-        ``"paper"`` (default) or ``"amplitude_model"``.
+    theta0, sigma_rel, margin_rule
+        As for :func:`separation_limits`.
 
     Returns
     -------
