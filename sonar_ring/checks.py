@@ -79,7 +79,7 @@ def positive_finite(name: str, value) -> np.ndarray:
 def positive_number(name: str, value) -> float:
     """``value`` as a float; ``ValueError`` unless it is one finite number > 0.
 
-    Numbers are checked without numpy, whose calls cost microseconds each.
+    Numbers are checked without numpy, whose calls cost more than the check.
     """
     number = value
     if not isinstance(value, float | int):

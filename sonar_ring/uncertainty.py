@@ -109,7 +109,7 @@ def check_path_noise(sigma_tof, speed_of_sound, sigma_speed, caller: str) -> Non
 def _lowest_finite(value) -> float:
     """The smallest of a number or array (inf when empty: nothing to refuse), NaN when any is not finite."""
     if isinstance(value, float | int):
-        # A ping's settings are numbers: numpy's reductions would cost tens of microseconds cold.
+        # A ping's settings are numbers: checked without numpy, whose reductions cost more than the check.
         return value if math.isfinite(value) else math.nan
     array = np.asarray(value, dtype=float)
     if not array.size:
