@@ -126,7 +126,7 @@ class PointEstimate:
         One of the reason codes of this module (``OK`` where valid).
     model : str
         ``"virtual_image"``, ``"corner"``, ``"edge"``, ``"plane"`` or ``"on_axis"``;
-        :func:`position_jacobian` uses it.
+        :func:`sonar_ring.uncertainty.position_jacobian` uses it.
     """
 
     position: np.ndarray
@@ -203,6 +203,8 @@ def _solved(caller, models, tx, rx1, rx2, d1, d2) -> dict:
     return estimates
 
 
+# --------------------------------------------------------------------------- the reflector models
+
 @quiet
 def virtual_image(tx, rx1, rx2, d1, d2) -> PointEstimate:
     """Virtual image ``T'`` of the transmitter in a plane or corner reflector.
@@ -275,8 +277,6 @@ def corner(tx, rx1, rx2, d1, d2) -> PointEstimate:
     return _solved("corner", ("corner",), tx, rx1, rx2, d1, d2)["corner"]
 
 
-# --------------------------------------------------------------------------- edge
-
 @quiet
 def edge(tx, rx1, rx2, d1, d2) -> PointEstimate:
     """Edge reflector (convex junction, pole): the point ``P`` with ``|P-T| + |P-R_n| = d_n``.
@@ -320,8 +320,6 @@ def edge(tx, rx1, rx2, d1, d2) -> PointEstimate:
     """
     return _solved("edge", ("edge",), tx, rx1, rx2, d1, d2)["edge"]
 
-
-# --------------------------------------------------------------------------- baselines and helpers
 
 @quiet
 def on_axis(tx, rx1, rx2, d1, d2) -> PointEstimate:
@@ -396,6 +394,8 @@ def load_kernels() -> None:
                                np.full((1, 2), 0.006), 343.0, True, 1e-6, 0.0, np.arange(len(SOLVERS)),
                                np.ones(len(SOLVERS), dtype=np.uint8))
 
+
+# --------------------------------------------------------------------------- the vertical correction and the bearing
 
 def horizontal_path(d, dz) -> ScalarEstimate:
     """Exact horizontal path length ``sqrt(d^2 - dz^2)`` for vertically extruded reflectors.

@@ -56,8 +56,8 @@ REASONS = {
 
 SOLVERS = ("virtual_image", "plane", "corner", "edge", "on_axis")
 """The models :func:`solve_rows` computes, in the order of its ``wanted`` flags and outputs."""
-VIRTUAL_IMAGE, PLANE, CORNER, EDGE, ON_AXIS = range(len(SOLVERS))
-"""Each model's index in :data:`SOLVERS`."""
+VIRTUAL_IMAGE_SOLVER, PLANE_SOLVER, CORNER_SOLVER, EDGE_SOLVER, ON_AXIS_SOLVER = range(len(SOLVERS))
+"""Each model's index in :data:`SOLVERS` (not the landmark classes of :mod:`sonar_ring.landmarks`)."""
 NEAR_TRANSMITTER = 0.1
 """An edge nearer the transmitter than this share of its shorter path gets its position polished (:func:`_edge`)."""
 ARC_MSE = 30.0
@@ -301,7 +301,7 @@ def solve_rows(count, tx, rx1, rx2, d1, d2, wanted):
     # Entry k reads row k & mask of each input: row k (mask -1, all bits), or its only row (mask 0).
     mask_tx, mask_rx1, mask_rx2 = _mask(tx), _mask(rx1), _mask(rx2)
     mask_d1, mask_d2 = _mask(d1), _mask(d2)
-    want_image = wanted[VIRTUAL_IMAGE] or wanted[PLANE] or wanted[CORNER]
+    want_image = wanted[VIRTUAL_IMAGE_SOLVER] or wanted[PLANE_SOLVER] or wanted[CORNER_SOLVER]
     for k in range(count):
         tx_x, tx_y = tx[k & mask_tx, 0], tx[k & mask_tx, 1]
         r1_x, r1_y = rx1[k & mask_rx1, 0], rx1[k & mask_rx1, 1]
@@ -312,22 +312,22 @@ def solve_rows(count, tx, rx1, rx2, d1, d2, wanted):
         if want_image:
             image_reason, image_x, image_y = _virtual_image(a, b, separation, u_x, u_y, n_x, n_y, c_x, c_y, common,
                                                             apart, too_short)
-            if wanted[VIRTUAL_IMAGE]:
-                reason[VIRTUAL_IMAGE, k], position[VIRTUAL_IMAGE, k, 0], position[VIRTUAL_IMAGE, k, 1] = (
-                    image_reason, image_x, image_y)
-            if wanted[PLANE]:
-                (reason[PLANE, k], position[PLANE, k, 0], position[PLANE, k, 1], normal[k, 0], normal[k, 1],
-                 reflection[k, 0, 0], reflection[k, 0, 1], reflection[k, 1, 0], reflection[k, 1, 1]) = _plane(
-                    tx_x, tx_y, r1_x, r1_y, r2_x, r2_y, image_reason, image_x, image_y)
-            if wanted[CORNER]:
-                reason[CORNER, k], position[CORNER, k, 0], position[CORNER, k, 1] = _corner(
+            if wanted[VIRTUAL_IMAGE_SOLVER]:
+                reason[VIRTUAL_IMAGE_SOLVER, k] = image_reason
+                position[VIRTUAL_IMAGE_SOLVER, k, 0], position[VIRTUAL_IMAGE_SOLVER, k, 1] = image_x, image_y
+            if wanted[PLANE_SOLVER]:
+                (reason[PLANE_SOLVER, k], position[PLANE_SOLVER, k, 0], position[PLANE_SOLVER, k, 1],
+                 normal[k, 0], normal[k, 1], reflection[k, 0, 0], reflection[k, 0, 1], reflection[k, 1, 0],
+                 reflection[k, 1, 1]) = _plane(tx_x, tx_y, r1_x, r1_y, r2_x, r2_y, image_reason, image_x, image_y)
+            if wanted[CORNER_SOLVER]:
+                reason[CORNER_SOLVER, k], position[CORNER_SOLVER, k, 0], position[CORNER_SOLVER, k, 1] = _corner(
                     tx_x, tx_y, n_x, n_y, c_x, c_y, image_reason, image_x, image_y)
-        if wanted[EDGE]:
-            reason[EDGE, k], position[EDGE, k, 0], position[EDGE, k, 1] = _edge(
+        if wanted[EDGE_SOLVER]:
+            reason[EDGE_SOLVER, k], position[EDGE_SOLVER, k, 0], position[EDGE_SOLVER, k, 1] = _edge(
                 tx_x, tx_y, r1_x, r1_y, r2_x, r2_y, a, b, separation, u_x, u_y, n_x, n_y, c_x, c_y, common, apart,
                 too_short)
-        if wanted[ON_AXIS]:
-            reason[ON_AXIS, k], position[ON_AXIS, k, 0], position[ON_AXIS, k, 1] = _on_axis(
+        if wanted[ON_AXIS_SOLVER]:
+            reason[ON_AXIS_SOLVER, k], position[ON_AXIS_SOLVER, k, 0], position[ON_AXIS_SOLVER, k, 1] = _on_axis(
                 tx_x, tx_y, a, b, n_x, n_y, c_x, c_y, common)
     return reason, position, normal, reflection
 
@@ -450,7 +450,7 @@ def localise_rows(tx, rx1, rx2, paths, dz, vertical, sigma_tof, speed, sigma_spe
             position[entry] = solved_position[model, row]
             covariance[entry] = solved_covariance[model, row]
             lost[entry] = not np.all(np.isfinite(covariance[entry]))
-            if model == PLANE:
+            if model == PLANE_SOLVER:
                 normal[entry, 0], normal[entry, 1] = -plane_normal[row, 0], -plane_normal[row, 1]
                 segment[entry] = reflection[row]
             else:
