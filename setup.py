@@ -26,7 +26,7 @@ setup(
     install_requires=["numpy>=1.24", "numba>=0.60", "pyyaml>=6"],
     extras_require={
         "plot": ["matplotlib>=3.7"],
-        "bag": ["rosbags>=0.10"],
+        "bag": ["rosbags>=0.10", "tqdm>=4.66"],
     },
     entry_points={"console_scripts": ["sonar-ring = sonar_ring.cli:run"]},
 )

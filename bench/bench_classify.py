@@ -2,7 +2,7 @@
 
 Regenerate ``bench/results/classify.md`` (a few minutes on one core):
 
-    cd /work/main && .venv/bin/python bench/bench_classify.py
+    source tools/env.sh && python bench/bench_classify.py   # from the repository root
 
 ``--trials N`` changes the Monte Carlo size (default 1000 per cell, the issue's figure);
 ``--output PATH`` writes elsewhere.  Every random number comes from generators seeded
@@ -13,17 +13,13 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from sonar_ring import classify, simulate  # noqa: E402
-from sonar_ring.benchmark.classification import (  # noqa: E402
+from sonar_ring import amplitude_rules, simulate
+from sonar_ring.benchmark.classification import (
     INCLINATIONS_DEG,
     RANGES_MM,
     SIGMA_REL,
@@ -34,10 +30,12 @@ from sonar_ring.benchmark.classification import (  # noqa: E402
     poses_at,
     ring_decisions,
 )
-from sonar_ring.benchmark.environment import machine  # noqa: E402
-from sonar_ring.benchmark.scenes import ring_scene  # noqa: E402
-from sonar_ring.classify import CORNER, PLANE, UNKNOWN  # noqa: E402
-from sonar_ring.geometry import beam_half_angle, load_layout  # noqa: E402
+from sonar_ring.benchmark.environment import machine
+from sonar_ring.benchmark.scenes import ring_scene
+from sonar_ring.geometry import beam_half_angle, load_layout
+from sonar_ring.landmarks import CORNER, PLANE, UNKNOWN
+
+ROOT = Path(__file__).resolve().parents[1]
 
 RESULT = ROOT / "bench" / "results" / "classify.md"
 SEED = 1990
@@ -66,8 +64,8 @@ def confusion_section(trials, rng) -> list[str]:
     start = time.perf_counter()
     counts, theta0 = confusion(trials, rng)
     elapsed = time.perf_counter() - start
-    r_min, r_max = classify.working_range(SEPARATION, theta0, SIGMA_REL)
-    _, r_max_model = classify.working_range(SEPARATION, theta0, SIGMA_REL, margin_rule="amplitude_model")
+    r_min, r_max = amplitude_rules.working_range(SEPARATION, theta0, SIGMA_REL)
+    _, r_max_model = amplitude_rules.working_range(SEPARATION, theta0, SIGMA_REL, margin_rule="amplitude_model")
     ranges = RANGES_MM * MM
     in_beam = np.abs(INCLINATIONS_DEG) <= 10.0
     in_range = (ranges >= r_min) & (ranges <= r_max)
@@ -140,12 +138,12 @@ def array_inclinations(cls, sigma_tof, inclination, trials, rng):
     r_ab = 0.5 * (ranges[:, :, 0, 1] + ranges[:, :, 1, 0])
     separation = layout.group_separation()
     if cls == PLANE:
-        estimates = classify.plane_inclination(r_aa, r_bb, separation)
+        estimates = amplitude_rules.plane_inclination(r_aa, r_bb, separation)
     else:
-        estimates = classify.corner_inclination(r_aa, r_ab, r_bb, separation)
+        estimates = amplitude_rules.corner_inclination(r_aa, r_ab, r_bb, separation)
     range_sigma = simulator.speed * sigma_tof / 2
     # Averaging A_ab' and A_ba' ranges halves the cross-range variance: corner factor 6, not 8.
-    variance = classify.inclination_variance(separation, range_sigma, inclination, cls)
+    variance = amplitude_rules.inclination_variance(separation, range_sigma, inclination, cls)
     if cls == CORNER:
         variance = variance * 6.0 / 8.0
     return estimates, variance
@@ -153,7 +151,7 @@ def array_inclinations(cls, sigma_tof, inclination, trials, rng):
 
 def array_section(trials, rng) -> list[str]:
     layout = load_layout("barshan_kuc_array")
-    chosen = int(classify.choose_pair(layout.group_separation(), ARRAY_RANGE, THETA0_PAPER, SIGMA_REL))
+    chosen = int(amplitude_rules.choose_pair(layout.group_separation(), ARRAY_RANGE, THETA0_PAPER, SIGMA_REL))
     # TOF noise that gives the eq-30 pair (40 mm) the paper's 1.85 deg on a plane: sigma_theta =
     # sqrt(2) sigma_R / d, sigma_R = c sigma_t / 2.
     speed = bench_scene()[0].speed_of_sound
@@ -176,8 +174,8 @@ def array_section(trials, rng) -> list[str]:
                 estimates, variance = array_inclinations(cls, sigma_tof, inclination, trials, rng)
                 usable = np.mean(np.isfinite(estimates), axis=0) > 0.5
                 variance = np.where(usable, variance, np.nan)
-                fused, _ = classify.fuse(estimates, np.broadcast_to(variance, estimates.shape))
-                weights = classify.fusion_weights(variance)
+                fused, _ = amplitude_rules.fuse(estimates, np.broadcast_to(variance, estimates.shape))
+                weights = amplitude_rules.fusion_weights(variance)
                 spread = [f"{math.degrees(np.nanstd(estimates[:, g])):.2f}" if usable[g] else "no echo"
                           for g in range(3)]
                 predicted = math.degrees(math.sqrt(1 / np.nansum(1 / variance)))
@@ -274,13 +272,15 @@ def paper_section() -> list[str]:
     theta0 = float(beam_half_angle(WAVELENGTH, APERTURE))
     rows = []
     for label, angle in (("theta0 = 10 deg (paper)", THETA0_PAPER), ("theta0 from eq 2", theta0)):
-        r_min, r_max = classify.working_range(SEPARATION, angle, SIGMA_REL)
-        _, r_model = classify.working_range(SEPARATION, angle, SIGMA_REL, margin_rule="amplitude_model")
-        d_min, d_max = classify.separation_limits(ARRAY_RANGE, angle, SIGMA_REL)
+        r_min, r_max = amplitude_rules.working_range(SEPARATION, angle, SIGMA_REL)
+        _, r_model = amplitude_rules.working_range(SEPARATION, angle, SIGMA_REL, margin_rule="amplitude_model")
+        d_min, d_max = amplitude_rules.separation_limits(ARRAY_RANGE, angle, SIGMA_REL)
         rows.append(f"| {label} | {math.degrees(angle):.3f} | {r_min / MM:.1f} | {r_max / MM:.0f} "
                     f"| {r_model / MM:.0f} | {d_min / MM:.1f} / {d_max / MM:.1f} |")
     separations = load_layout("barshan_kuc_array").group_separation()
-    weights = classify.fusion_weights(classify.inclination_variance(separations, 0.5 * MM, 0.0, PLANE))
+    weights = amplitude_rules.fusion_weights(amplitude_rules.inclination_variance(separations, 0.5 * MM, 0.0, PLANE))
+    limits = amplitude_rules.separation_limits(ARRAY_RANGE, THETA0_PAPER, SIGMA_REL)
+    chosen = int(amplitude_rules.choose_pair(separations, ARRAY_RANGE, THETA0_PAPER, SIGMA_REL))
     return [
         "## 1. The paper's numbers", "",
         "| case | theta0 [deg] | R_min [mm] (eq 28) | R_max [mm] (eq 29) | R_max [mm], amplitude model "
@@ -292,12 +292,11 @@ def paper_section() -> list[str]:
         "for the same 6-sigma margin; `margin_rule=\"amplitude_model\"` is that consistent version.", "",
         f"Eq 41 weights of the array's pairs (40, 120, 200 mm) for a plane, equal TOF noise: "
         f"{', '.join(f'{w:.4f}' for w in weights)} (proportional to d^2).  Eq 30 at 300 mm: "
-        f"(d_min + d_max)/2 = {np.mean(classify.separation_limits(ARRAY_RANGE, THETA0_PAPER, SIGMA_REL)) / MM:.1f}"
-        f" mm, pair {int(classify.choose_pair(separations, ARRAY_RANGE, THETA0_PAPER, SIGMA_REL))} (40 mm).", "",
+        f"(d_min + d_max)/2 = {np.mean(limits) / MM:.1f} mm, pair {chosen} (40 mm).", "",
         "Inclination: eq 21 is exact for a plane.  Eq 22 as printed returns about |theta|/2 "
         "(missing factor 2, and a missing minus sign in its second branch); `corner_inclination` applies both "
         "corrections and is within 0.4 deg of the exact (virtual-image) inclination at 300 mm and 0.1 deg at "
-        "1 m for |theta| <= 15 deg (`test/test_classify.py`).", ""]
+        "1 m for |theta| <= 15 deg (`test/test_amplitude_rules.py`).", ""]
 
 
 def timing_section(rng) -> list[str]:
@@ -314,8 +313,8 @@ def main() -> None:
     args = parser.parse_args()
     rng = np.random.default_rng(SEED)
     start = time.perf_counter()
-    lines = ["# Classifier -- `sonar_ring.classify`", "",
-             "Regenerate: `cd /work/main && .venv/bin/python bench/bench_classify.py`"
+    lines = ["# Classifier -- `sonar_ring.amplitude_rules`, `sonar_ring.ring_consistency`", "",
+             "Regenerate: `python bench/bench_classify.py` (from the repository root, after `source tools/env.sh`)"
              + ("" if args.trials == 1000 else f" --trials {args.trials}"), "",
              f"Machine: {machine()}.  Random seed {SEED} (one generator, sections in order).", ""]
     lines += paper_section()

@@ -2,7 +2,7 @@
 
 Regenerate ``bench/results/doa.md`` (about two minutes on one core):
 
-    cd /work/main && .venv/bin/python bench/bench_doa.py
+    source tools/env.sh && python bench/bench_doa.py   # from the repository root
 
 Constants are the paper's: 40 kHz, lambda = 8.7 mm (c = 348 m/s), timer tick 0.33 us.
 """
@@ -10,16 +10,12 @@ Constants are the paper's: 40 kHz, lambda = 8.7 mm (c = 348 m/s), timer tick 0.3
 from __future__ import annotations
 
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from sonar_ring import doa  # noqa: E402
-from sonar_ring.benchmark.azimuth import (  # noqa: E402
+from sonar_ring import doa
+from sonar_ring.benchmark.azimuth import (
     GROSS_ERROR,
     SPEED,
     TIMER,
@@ -28,7 +24,9 @@ from sonar_ring.benchmark.azimuth import (  # noqa: E402
     compare_estimators,
     shipped_triad,
 )
-from sonar_ring.benchmark.environment import machine  # noqa: E402
+from sonar_ring.benchmark.environment import machine
+
+ROOT = Path(__file__).resolve().parents[1]
 
 CROSSING_STD = 0.2e-6
 MM, US = 1e-3, 1e-6
@@ -213,7 +211,7 @@ def main() -> None:
     rng = np.random.default_rng(2017)
     shipped, paper = shipped_triad(), paper_experiment_triad()
     lines = ["# Phase-shift azimuth (Kreczmer 2017) -- `sonar_ring.doa`", "",
-             "Regenerate: `cd /work/main && .venv/bin/python bench/bench_doa.py`", "",
+             "Regenerate: `python bench/bench_doa.py` (from the repository root, after `source tools/env.sh`)", "",
              f"Machine: {machine()}.", "",
              f"Constants: lambda = {WAVELENGTH / MM} mm, c = {SPEED} m/s (40 kHz), timer {TIMER / US} us; "
              "random seed 2017.", ""]

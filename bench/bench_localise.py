@@ -1,8 +1,8 @@
 """Benchmark of the localisation core on Browne's full 1 mm test grid.
 
-Run from the repository root::
+Regenerate ``bench/results/localise.md`` (about a minute on one core)::
 
-    .venv/bin/python bench/bench_localise.py
+    source tools/env.sh && python bench/bench_localise.py   # from the repository root
 
 For one receiver pair of the shipped ``browne_ring`` layout (D = 40 mm, ring
 radius 0.31 m) and every point of Browne's grid (section 5: 1 mm steps, 0.01 to
@@ -18,20 +18,19 @@ section 5.  Results go to ``bench/results/localise.md``.
 
 from __future__ import annotations
 
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from sonar_ring import localise as loc
+from sonar_ring import uncertainty
+from sonar_ring.benchmark.environment import machine
+from sonar_ring.benchmark.timing import interleaved_best
+from sonar_ring.geometry import load_layout
+from sonar_ring.reference import browne
 
-from sonar_ring import localise as loc  # noqa: E402
-from sonar_ring.benchmark.environment import machine  # noqa: E402
-from sonar_ring.benchmark.timing import interleaved_best  # noqa: E402
-from sonar_ring.geometry import load_layout  # noqa: E402
-from sonar_ring.reference import browne  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 LD = np.longdouble
 AHEAD_MM = np.arange(10, 5701)  # 0.010 .. 5.700 m in front of the pair
@@ -165,7 +164,7 @@ def monte_carlo(samples=100_000):
         true_bearing = np.arctan2(*(image - rx1)[::-1])
         noisy1 = d1 + C * SIGMA_TOF * rng.normal(size=samples)
         noisy2 = d2 + C * SIGMA_TOF * rng.normal(size=samples)
-        sigma_bearing, sigma_range = loc.cramer_rao_bound(0.04, SIGMA_TOF, C, true_bearing)
+        sigma_bearing, sigma_range = uncertainty.cramer_rao_bound(0.04, SIGMA_TOF, C, true_bearing)
         bearings = loc.bearing(noisy1, noisy2, 0.04).value
         ranges = norm(loc.corner(tx, rx1, rx2, noisy1, noisy2).position - tx)
         rows.append((degrees, np.std(bearings) / sigma_bearing, (np.mean(bearings) - true_bearing) / sigma_bearing,
@@ -192,7 +191,7 @@ def main():
     lines = [
         "# Localisation benchmark: Browne's 1 mm grid",
         "",
-        "Regenerate with `.venv/bin/python bench/bench_localise.py` (from the repository root; "
+        "Regenerate: `python bench/bench_localise.py` (from the repository root, after `source tools/env.sh`; "
         f"took {total:.0f} s here).",
         "",
         f"Machine: {machine()}.",

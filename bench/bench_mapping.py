@@ -2,7 +2,7 @@
 
 Regenerate ``bench/results/mapping.md`` (about two minutes on one core):
 
-    cd /work/main && .venv/bin/python bench/bench_mapping.py
+    source tools/env.sh && python bench/bench_mapping.py   # from the repository root
 
 ``--runs N`` changes the Monte Carlo size (default 1000 runs per case); ``--output PATH``
 writes elsewhere.  Every random number comes from generators seeded below, so a rerun
@@ -12,20 +12,18 @@ on the same versions reproduces the file except for the timings.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from sonar_ring import pipeline, simulate
+from sonar_ring.benchmark.environment import machine
+from sonar_ring.geometry import load_layout
+from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, make_landmarks
+from sonar_ring.mapping import LandmarkMap, transform_landmarks
 
-from sonar_ring import pipeline, simulate  # noqa: E402
-from sonar_ring.benchmark.environment import machine  # noqa: E402
-from sonar_ring.geometry import load_layout  # noqa: E402
-from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, make_landmarks  # noqa: E402
-from sonar_ring.mapping import LandmarkMap, transform_landmarks  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 RESULT = ROOT / "bench" / "results" / "mapping.md"
 SEED = 2026
@@ -355,7 +353,7 @@ def main():
     host = machine()
     sections = [time_updates(args), consistency(args), convergence(), motion_test(args), room(args)]
     lines = ["# Mapper -- `sonar_ring.mapping`", "",
-             "Regenerate: `cd /work/main && .venv/bin/python bench/bench_mapping.py`", "",
+             "Regenerate: `python bench/bench_mapping.py` (from the repository root, after `source tools/env.sh`)", "",
              f"Machine: {host}.  Random seed {SEED}.  Run time {time.perf_counter() - started:.0f} s.", ""]
     for section in sections:
         lines += section + [""]

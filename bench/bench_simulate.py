@@ -2,7 +2,7 @@
 
 Regenerate ``bench/results/simulate.md`` (under a minute on one core):
 
-    cd /work/main && .venv/bin/python bench/bench_simulate.py
+    source tools/env.sh && python bench/bench_simulate.py   # from the repository root
 
 Each case simulates one lap of the room scene's trajectory (sampled at the
 layout's ping rate) with the paper-level noise of the ``sonar-ring simulate``
@@ -14,18 +14,16 @@ Timings depend on the machine and on its load, which the file records.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from sonar_ring.benchmark.environment import machine
+from sonar_ring.geometry import load_layout
+from sonar_ring.simulate import Noise, Simulator, load_scene
 
-from sonar_ring.benchmark.environment import machine  # noqa: E402
-from sonar_ring.geometry import load_layout  # noqa: E402
-from sonar_ring.simulate import Noise, Simulator, load_scene  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 RESULT = ROOT / "bench" / "results" / "simulate.md"
 NOISE = Noise(tof=1e-6, amplitude=0.02)
@@ -70,7 +68,7 @@ def main() -> None:
     lines = [
         "# Scene simulator throughput -- `sonar_ring.simulate`",
         "",
-        "Regenerate: `cd /work/main && .venv/bin/python bench/bench_simulate.py`",
+        "Regenerate: `python bench/bench_simulate.py` (from the repository root, after `source tools/env.sh`)",
         "",
         f"Machine: {host}; single process.",
         "",

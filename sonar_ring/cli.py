@@ -390,8 +390,8 @@ def run() -> None:
     """The ``sonar-ring`` command: :func:`main`, then exit without the interpreter's teardown.
 
     By then every output is written and closed; what the teardown would free is
-    mostly numba's compiled code, which takes about 0.3 s -- an eighth of a whole
-    ``sonar-ring process`` of the demo bag.
+    mostly numba's compiled code, whose freeing is a noticeable share of a short
+    ``sonar-ring process`` run and buys nothing.
     """
     code = main()
     sys.stdout.flush()

@@ -2,12 +2,12 @@
 
 A ping holds tens to hundreds of echoes, each with a handful of receivers, and the
 map holds 2 x 2 matrices per entry: there numpy spends its time starting each
-operation, not computing (about 1 us per call on arrays of 30 elements).  The few
+operation, not computing (README, "The numpy core", has the figures).  The few
 loops that dominate a ping are plain Python over arrays, marked :func:`kernel`
 and compiled from the first call of any kernel on:
 
-* numba is imported then, not when the core is imported (about 0.2 s and 100 MiB a
-  process that never calls a kernel need not pay);
+* numba is imported then, not when the core is imported (its start-up time and
+  memory are for processes that call a kernel);
 * every kernel becomes its numba dispatcher, under its own name in its module,
   so kernels call each other as compiled code and Python callers reach the
   machine code without a wrapper.  A kernel calls kernels of its own module
@@ -17,7 +17,10 @@ and compiled from the first call of any kernel on:
   is read-only; nowhere, and compiled in each process, where neither can be
   written), so later processes load it in milliseconds;
 * ``error_model="numpy"``: division follows IEEE (inf and NaN, as numpy) instead of
-  raising ``ZeroDivisionError``.
+  raising ``ZeroDivisionError``;
+* ``kernel(inline=True)`` inlines a kernel into its callers before they are
+  compiled: LLVM inlines small kernels by itself, not one the size of a whole
+  model's solution, whose call per entry would then slow the caller's loop.
 
 Each kernel is the only implementation of its computation; its Python source stays
 readable and is what the tests exercise, compiled.
@@ -30,15 +33,21 @@ import sys
 import threading
 
 _KERNELS: dict[str, list] = {}
-"""The kernel functions of each module, by module name, in definition order."""
+"""The kernel functions of each module, by module name, in definition order, each with its numba options."""
 _DISPATCHERS: dict[tuple, object] = {}
 """The numba dispatcher of each kernel compiled so far, by (module name, function name)."""
 _LOCK = threading.Lock()
 
 
-def kernel(function):
-    """Mark ``function`` (module level) for numba: compiled (nopython, cached, IEEE division) at first use."""
-    _KERNELS.setdefault(function.__module__, []).append(function)
+def kernel(function=None, *, inline: bool = False):
+    """Mark ``function`` (module level) for numba: compiled (nopython, cached, IEEE division) at first use.
+
+    ``@kernel`` or ``@kernel(inline=True)``: the latter is compiled into each
+    kernel that calls it instead of being called.
+    """
+    if function is None:
+        return functools.partial(kernel, inline=inline)
+    _KERNELS.setdefault(function.__module__, []).append((function, {"inline": "always"} if inline else {}))
 
     @functools.wraps(function)
     def first_call(*args, **kwargs):
@@ -58,10 +67,10 @@ def _compile() -> dict:
 
     with _LOCK:
         for module_name, functions in list(_KERNELS.items()):
-            for function in functions:
+            for function, own_options in functions:
                 if (module_name, function.__name__) in _DISPATCHERS:
                     continue
-                options = {"error_model": "numpy", "nogil": True}
+                options = {"error_model": "numpy", "nogil": True, **own_options}
                 try:
                     dispatcher = numba.njit(cache=True, **options)(function)
                 except RuntimeError:  # no writable cache location: compile in each process instead

@@ -60,8 +60,8 @@ class EchoArrays:
 def load_kernels() -> None:
     """Load the compiled row checks of :func:`screen_ping` now instead of at the first ping.
 
-    Every node that screens pings calls it at start (the first call of any kernel
-    also starts numba, about 0.5 s).
+    Every node that screens pings calls it at start: the first call of any kernel
+    also starts numba, which a ping should not wait for.
     """
     _screen_rows(np.zeros(1, dtype=np.int64), np.zeros(1, dtype=np.int64), np.ones((1, 2)), np.zeros((1, 1)), 1,
                  np.zeros((1, 1), dtype=np.int64), 1.0)
@@ -201,7 +201,9 @@ def screen_ping(echoes: EchoArrays, layout) -> Screened:
     if layout.kind == "triad" and echoes.phase_delay.shape[1] != k - 1:
         return Screened(None, {"missing_phase_delay": 1},
                         f"a triad needs {k - 1} phase delays per row, got {echoes.phase_delay.shape[1]}")
-    # Copies (np.array, astype): a message's arrays are read-only views, another type to numba.
+    # Copies: the row checks set bad values to NaN in place, and the caller's ping stays as it came; as
+    # C-contiguous float64 and int64 (a message's uint16 groups, uint8 transmitters) they are the types the
+    # kernel is compiled for.
     tof, phase_delay = (np.array(array, dtype=float, order="C") for array in (echoes.tof, echoes.phase_delay))
     keep, counts = _screen_rows(np.asarray(echoes.group).astype(np.int64),
                                 np.asarray(echoes.transmitter).astype(np.int64), tof, phase_delay, layout.n_groups,

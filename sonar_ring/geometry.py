@@ -1,4 +1,4 @@
-"""Sensor layouts, the medium and the transducer beam model.
+"""Sensor layouts, the medium and the transducers' beam width.
 
 A *layout* says where the transmitters and receivers of one sensor are, which way
 they face, and how receivers are grouped: a Browne ring pair (2 receivers, one
@@ -236,11 +236,6 @@ def speed_of_sound(temperature_c, relative_humidity=0.0, pressure_pa=101325.0):
     return 20.05 * np.sqrt(virtual_kelvin)
 
 
-def path_length(tof, speed):
-    """Path length ``d = c * tof``, m (Browne's eq 1 has the ratio upside down)."""
-    return np.asarray(speed, dtype=float) * np.asarray(tof)
-
-
 # --------------------------------------------------------------------------- beams
 
 def beam_half_angle(wavelength, aperture_radius):
@@ -252,15 +247,6 @@ def beam_half_angle(wavelength, aperture_radius):
     if np.any(ratio > 1) or np.any(ratio <= 0):
         raise ValueError("beam_half_angle: need 0 < 0.61 * wavelength / aperture_radius <= 1")
     return np.arcsin(ratio)
-
-
-def beam_gain(angle, half_angle):
-    """Pressure gain of one transducer at ``angle`` off its axis (Barshan & Kuc eq 3).
-
-    ``exp(-2 angle**2 / theta0**2)``; the amplitude of a transmitter/receiver pair is
-    the product of two gains (eq 4).  ``angle`` and ``half_angle`` in rad.
-    """
-    return np.exp(-2.0 * np.square(angle) / np.square(half_angle))
 
 
 # --------------------------------------------------------------------------- loading

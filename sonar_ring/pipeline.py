@@ -21,7 +21,7 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
-from sonar_ring import classify, doa, localise
+from sonar_ring import amplitude_rules, confidence, doa, localise, ring_consistency, solvers, uncertainty
 from sonar_ring.compiled import kernel
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import Layout
@@ -65,7 +65,7 @@ class Settings:
     sigma_tof: float = 1e-6
     sigma_speed: float = 0.0
     sigma_amplitude: float = 0.02
-    consistency_z: float = classify.CONSISTENCY_Z
+    consistency_z: float = ring_consistency.CONSISTENCY_Z
     triad_eps: float = 0.0
     triad_max_angle: float = np.radians(50.0)
 
@@ -87,14 +87,15 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
     """
     if layout.kind == "triad":
         return _localise_triads(layout, echoes, settings)
-    localise.check_path_noise(settings.sigma_tof, echoes.speed_of_sound, settings.sigma_speed, "localise_ping")
+    uncertainty.check_path_noise(settings.sigma_tof, echoes.speed_of_sound, settings.sigma_speed, "localise_ping")
     count = echoes.n_echoes
     if echoes.group.shape != (count,) or echoes.transmitter.shape != (count,) or echoes.tof.shape != (count, 2):
         raise ValueError(f"localise_ping: need one group, one transmitter and two TOFs per echo row: group "
                          f"{echoes.group.shape}, transmitter {echoes.transmitter.shape}, tof {echoes.tof.shape}")
     models, model_class = _model_codes(tuple(settings.models))
-    # Copies (astype): decoded from a message, the arrays are read-only views, another type to numba.
-    *fields, lost, covariance_paths = localise.localise_ping_rows(
+    # The types the kernel is compiled for (astype copies): a message's uint16 groups and uint8 transmitters
+    # become int64, and TOFs C-contiguous float64 whatever order or flags the caller's array has.
+    *fields, lost, covariance_paths = solvers.localise_ping_rows(
         layout.transmitters, layout.receivers, layout.groups, echoes.transmitter.astype(np.int64),
         echoes.group.astype(np.int64), echoes.tof.astype(float, order="C"), float(echoes.speed_of_sound),
         settings.vertical_correction, float(settings.sigma_tof), float(settings.sigma_speed), models, model_class)
@@ -109,7 +110,7 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
             receivers = group_receivers[echoes.group[rows], :, :2]
             estimate = localise.PointEstimate(hypotheses.position[entries], np.ones(rows.size, dtype=bool),
                                               hypotheses.reason[entries], settings.models[index])
-            hypotheses.covariance[entries] = localise.position_covariance(
+            hypotheses.covariance[entries] = uncertainty.position_covariance(
                 estimate, layout.transmitters[echoes.transmitter[rows], :2], receivers[:, 0], receivers[:, 1],
                 covariance_paths[rows])
     return hypotheses
@@ -117,11 +118,11 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
 
 @functools.lru_cache(maxsize=8)
 def _model_codes(models: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """The solver index (:data:`sonar_ring.localise.SOLVERS`) and landmark class of each model, shapes (M,).
+    """The solver index (:data:`sonar_ring.solvers.SOLVERS`) and landmark class of each model, shapes (M,).
 
     Cached for every ping: not to be written to.
     """
-    return (np.array([localise.SOLVERS.index(model) for model in models], dtype=np.int64),
+    return (np.array([solvers.SOLVERS.index(model) for model in models], dtype=np.int64),
             np.array([MODEL_CLASS[model] for model in models], dtype=np.uint8))
 
 
@@ -129,8 +130,9 @@ def _model_codes(models: tuple[str, ...]) -> tuple[np.ndarray, np.ndarray]:
 def triad_eps_for(b1: float, b2: float, max_angle: float, wavelength: float, speed_of_sound: float) -> float:
     """Kreczmer's eq 6 tolerance for a triad: the eps of :func:`sonar_ring.doa.robustness`.
 
-    Cached: the procedure takes about 0.1 s and the arguments change only with
-    the layout (the speed of sound is rounded to 1 m/s by the caller).
+    Cached: the procedure steps the timing error over every azimuth it accepts, too slow
+    for every ping, and its arguments change only with the layout (the speed of
+    sound is rounded to 1 m/s by the caller).
     """
     return doa.robustness(b1, b2, max_angle, wavelength, speed_of_sound).eps
 
@@ -189,12 +191,12 @@ def load_kernels() -> None:
     """Load the compiled part of :func:`classify_ping` now instead of at the first ping.
 
     The classifier node and the workers of ``sonar-ring process`` call it at start,
-    with :func:`sonar_ring.classify.load_kernels` on a ring.
+    with :func:`sonar_ring.ring_consistency.load_kernels` on a ring.
     """
     _picks(np.zeros(1, dtype=np.uint8), np.zeros(1, dtype=np.int64), np.ones(1, dtype=bool),
            np.zeros(1, dtype=np.uint8), np.zeros(1))
     _add_edge_discrepancy(np.zeros((1, 2, 2)), np.zeros((1, 2)), np.zeros((1, 2)), np.zeros(1, dtype=np.int64))
-    classify.confidence_from_margin(np.zeros(1))  # the amplitude rules' confidences
+    confidence.load_kernels()
 
 
 @kernel
@@ -261,7 +263,7 @@ def _add_edge_discrepancy(covariance, position, hypothesis_position, edge_row):
 def _evidence(layout: Layout, echoes: EchoArrays, settings: Settings, ping: np.ndarray):
     """Class decision and confidence per echo row, shapes (N,); ``ping`` (N,) keeps pings apart."""
     if echoes.n_echoes and layout.kind == "ring":
-        result = classify.ring_consistency(layout, echoes.group, echoes.path_lengths(),
+        result = ring_consistency.ring_consistency(layout, echoes.group, echoes.path_lengths(),
                                            echoes.speed_of_sound * settings.sigma_tof, ping=ping,
                                            z=settings.consistency_z)
         return result.cls, np.where(result.cls == EDGE, result.confidence, 0.0)
@@ -271,7 +273,7 @@ def _evidence(layout: Layout, echoes: EchoArrays, settings: Settings, ping: np.n
         first, second = _matched_rows(layout, echoes, ping)
         # [[A_aa', A_ab'], [A_ba', A_bb']]: rows by transmitter, columns by receiver.
         amplitudes = np.stack([echoes.amplitude[first], echoes.amplitude[second]], axis=1)
-        result = classify.classify_amplitudes(amplitudes, settings.sigma_amplitude)
+        result = amplitude_rules.classify_amplitudes(amplitudes, settings.sigma_amplitude)
         for rows in (first, second):
             decided[rows] = result.cls
             confidence[rows] = result.confidence

@@ -10,10 +10,11 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose
 
-from sonar_ring import classify, simulate
+from sonar_ring import amplitude_rules, simulate
 from sonar_ring.benchmark.scenes import ring_scene
-from sonar_ring.classify import CORNER, EDGE, PLANE, UNKNOWN
 from sonar_ring.geometry import load_layout
+from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN
+from sonar_ring.ring_consistency import ring_consistency
 
 SIGMA_REL = 0.02
 SIGMA_TOF = 1e-6
@@ -64,7 +65,7 @@ def test_simulated_amplitudes_follow_eqs_6_to_11(bench):
 def test_bench_decisions_are_right_inside_the_working_range_and_abstain_outside(bench):
     scene, targets = bench
     simulator = simulate.Simulator(scene, load_layout("barshan_kuc_pair"))
-    r_min, r_max = classify.working_range(0.08, simulator.half_angle, SIGMA_REL)
+    r_min, r_max = amplitude_rules.working_range(0.08, simulator.half_angle, SIGMA_REL)
     noise = simulate.Noise(tof=SIGMA_TOF, amplitude=SIGMA_REL)
     rng = np.random.default_rng(1990)
     trials = 100
@@ -74,7 +75,7 @@ def test_bench_decisions_are_right_inside_the_working_range_and_abstain_outside(
             for inclination_deg in (-12.5, -10.0, -5.0, -2.5, 0.0, 2.5, 5.0, 10.0, 12.5):
                 amplitude, _ = measure(simulator, target, range_mm / 1000, math.radians(inclination_deg),
                                        trials, noise, rng)
-                codes = classify.classify_amplitudes(amplitude[:, 0], SIGMA_REL).cls
+                codes = amplitude_rules.classify_amplitudes(amplitude[:, 0], SIGMA_REL).cls
                 correct, unknown = np.sum(codes == cls), np.sum(codes == UNKNOWN)
                 inside = abs(inclination_deg) <= 10 and r_min <= range_mm / 1000 <= r_max
                 totals[inside] += [correct, unknown, trials - correct - unknown, trials]
@@ -91,7 +92,7 @@ def ring_outcome(layout, scene, poses, rng):
     """Per echo row: (truth is edge, decided EDGE, decided specular)."""
     simulator = simulate.Simulator(scene, layout)
     table = simulate.stack_pings(simulator.run(poses, noise=simulate.Noise(tof=SIGMA_TOF), rng=rng))
-    result = classify.ring_consistency(layout, table["group"], simulator.speed * table["tof"],
+    result = ring_consistency(layout, table["group"], simulator.speed * table["tof"],
                                        simulator.speed * SIGMA_TOF, ping=table["ping"])
     return table["truth_class"] == EDGE, result.cls == EDGE, result.specular
 
@@ -133,14 +134,14 @@ def test_array_fusion_beats_the_pair_of_eq30(bench):
     layout = load_layout("barshan_kuc_array")
     simulator = simulate.Simulator(scene, layout)
     separation = layout.group_separation()
-    chosen = int(classify.choose_pair(separation, 0.3, math.radians(10), SIGMA_REL))
+    chosen = int(amplitude_rules.choose_pair(separation, 0.3, math.radians(10), SIGMA_REL))
     sigma_range = math.radians(1.85) * separation[chosen] / math.sqrt(2)
     sigma_tof = 2 * sigma_range / simulator.speed
     _, path = measure(simulator, targets[PLANE], 0.3, 0.0, 2000, simulate.Noise(tof=sigma_tof),
                       np.random.default_rng(300))
-    estimates = classify.plane_inclination(path[:, :, 0, 0] / 2, path[:, :, 1, 1] / 2, separation)
-    variance = classify.inclination_variance(separation, sigma_range, 0.0, PLANE)
-    fused, fused_variance = classify.fuse(estimates, np.broadcast_to(variance, estimates.shape))
+    estimates = amplitude_rules.plane_inclination(path[:, :, 0, 0] / 2, path[:, :, 1, 1] / 2, separation)
+    variance = amplitude_rules.inclination_variance(separation, sigma_range, 0.0, PLANE)
+    fused, fused_variance = amplitude_rules.fuse(estimates, np.broadcast_to(variance, estimates.shape))
     assert chosen == 0
     assert_allclose(np.degrees(np.std(estimates[:, chosen])), 1.85, rtol=0.06)
     assert_allclose(np.std(fused), np.sqrt(fused_variance[0]), rtol=0.06)

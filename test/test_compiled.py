@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
-from sonar_ring import classify, localise, mapping, pipeline
+from sonar_ring import confidence, localise, mapping, pipeline, ring_consistency, solvers
 from sonar_ring import echoes as echoes_module
 from sonar_ring.compiled import _DISPATCHERS
 from sonar_ring.echoes import screen_ping
@@ -21,7 +21,7 @@ def test_a_kernel_becomes_its_dispatcher_and_matches_its_python_source():
     assert_allclose(inverse @ matrices, np.broadcast_to(np.eye(2), (2, 2, 2)), atol=1e-15)
     # Every kernel of every module is now the compiled dispatcher itself, and the
     # machine code gives exactly what the Python source gives.
-    for function in (mapping._inverse, mapping._sandwich, localise.solve_rows):
+    for function in (mapping._inverse, mapping._sandwich, solvers.solve_rows):
         assert isinstance(function, numba.core.registry.CPUDispatcher)
     assert_array_equal(mapping._inverse(matrices), mapping._inverse.py_func(matrices))
 
@@ -74,7 +74,7 @@ def test_load_kernels_leaves_nothing_to_compile_at_the_first_ping(layout_name):
     A signature compiled at the first ping stalls that ping for seconds; a read-only
     array (a view of a message's buffer) is another type to numba than a writable one.
     """
-    for module in (echoes_module, localise, classify, pipeline, mapping):
+    for module in (echoes_module, localise, confidence, ring_consistency, pipeline, mapping):
         module.load_kernels()
     compiled = {key: len(dispatcher.signatures) for key, dispatcher in _DISPATCHERS.items()}
     layout = load_layout(layout_name)

@@ -20,7 +20,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
 
-from sonar_ring import classify, doa, localise, pipeline
+from sonar_ring import doa, localise, pipeline, ring_consistency
 from sonar_ring.echoes import EchoArrays, screen_ping
 from sonar_ring.frames import FrameDecoder, encode_echoes
 from sonar_ring.geometry import LayoutError, config_path, load_layout
@@ -142,7 +142,7 @@ def test_ring_consistency_decides_only_on_finite_evidence(data, sigma_path, z):
     n = data.draw(st.integers(0, 30))
     group = data.draw(hnp.arrays(np.int64, n, elements=st.integers(0, layout.n_groups - 1)))
     paths = data.draw(batch((n, 2), st.one_of(st.floats(0.05, 12.0), st.just(np.nan), ANY_FLOAT)))
-    result = classify.ring_consistency(layout, group, paths, sigma_path, z=z)
+    result = ring_consistency.ring_consistency(layout, group, paths, sigma_path, z=z)
     assert set(np.unique(result.cls).tolist()) <= {UNKNOWN, EDGE}
     decided = (result.cls == EDGE) | result.specular
     assert finite(result.confidence, result.margin)

@@ -1,7 +1,6 @@
 """Layouts, the medium and the beam model (sonar_ring.geometry)."""
 
 import copy
-import math
 
 import numpy as np
 import pytest
@@ -160,21 +159,7 @@ def test_speed_of_sound_temperature_sensitivity():
     relative = slope / geometry.speed_of_sound(t)
     assert_allclose(relative, 1.7e-3, rtol=0.03)
     # 1 K of error is ~1.7 mm of range per metre
-    assert_allclose(geometry.path_length(1.0 / 343.3, geometry.speed_of_sound(21.0)) - 1.0, 1.7e-3, rtol=0.03)
-
-
-def test_path_length_is_speed_times_tof():
-    tof = np.array([[1e-3, 2e-3], [5e-3, 0.0]])
-    assert_allclose(geometry.path_length(tof, 343.0), 343.0 * tof, rtol=1e-15)
-    assert_allclose(geometry.path_length(np.float32(1e-3), 343.0), 0.343, rtol=1e-7)
-
-
-def test_beam_model():
-    theta0 = math.radians(10.0)
-    assert_allclose(geometry.beam_gain(0.0, theta0), 1.0)
-    # Gaussian with standard deviation theta0 / 2 (eq 3)
-    assert_allclose(geometry.beam_gain(theta0, theta0), math.exp(-2.0), rtol=1e-15)
-    assert_allclose(geometry.beam_gain(-theta0 / 2, theta0), geometry.beam_gain(theta0 / 2, theta0), rtol=1e-15)
+    assert_allclose(geometry.speed_of_sound(21.0) / 343.3 - 1.0, 1.7e-3, rtol=0.03)
 
 
 def test_error_handling():

@@ -14,6 +14,7 @@ from hypothesis import strategies as st
 from numpy.testing import assert_allclose, assert_array_equal
 
 from sonar_ring import localise as loc
+from sonar_ring import uncertainty
 from sonar_ring.reference import browne
 
 mp.mp.dps = 50
@@ -86,7 +87,7 @@ def edge_inputs(tx, rx1, rx2, point):
 
 def tolerance(estimate, tx, rx1, rx2, d1, d2, ulps=32):
     """``ulps`` units of roundoff in the paths, propagated by the problem's own condition number."""
-    jacobian = loc.position_jacobian(estimate, tx, rx1, rx2)
+    jacobian = uncertainty.position_jacobian(estimate, tx, rx1, rx2)
     gain = np.linalg.norm(jacobian, 2) if np.all(np.isfinite(jacobian)) else np.inf
     return ulps * EPS * (max(d1, d2) * max(1.0, gain) + norm(estimate.position))
 

@@ -55,7 +55,7 @@ def test_message_constants_are_the_core_codes():
     for name in ("UNKNOWN", "PLANE", "CORNER", "EDGE"):
         assert getattr(Landmark, name) == getattr(landmarks, name)
     names = ("OK", "NOT_FINITE", "DEGENERATE", "NEGATIVE", "NO_INTERSECTION", "TOO_SHORT", "BELOW_HEIGHT", "BEHIND",
-             "AMBIGUOUS", "NONE_VALID")
+             "AMBIGUOUS")
     assert [getattr(Landmark, name) for name in names] == [getattr(localise, name) for name in names]
     assert sorted(localise.REASONS) == [getattr(localise, name) for name in names]
 

@@ -327,3 +327,13 @@ def test_without_ros_the_commands_say_what_to_set_up(tmp_path):
     assert result.returncode == 1, result.stderr
     assert result.stderr.startswith("sonar-ring process: error: needs ROS 2")
     assert "source tools/env.sh" in result.stderr and "Traceback" not in result.stderr
+
+
+def test_in_a_log_the_bag_commands_write_no_progress_updates(tmp_path, capsys):
+    """Without --quiet, stderr not a terminal (captured): no carriage-return redraws, only what the commands say."""
+    code, _, err = run_cli(capsys, "record-sim", "room", str(tmp_path / "bag"), "--pings", "20")
+    assert code == 0, err
+    assert "\r" not in err and len(err.splitlines()) <= 2
+    code, _, err = run_cli(capsys, "process", str(tmp_path / "bag"), str(tmp_path / "out"), "--jobs", "1")
+    assert code == 0, err
+    assert "\r" not in err and len(err.splitlines()) <= 2

@@ -41,7 +41,7 @@ colcon --log-base log build --base-paths "$root" --build-base build --install-ba
 # beside the installed modules: do it here (about 20 s after a change), not in the
 # first test or the first ping.  An unchanged build keeps the cache.
 (set +u && source "$root/tools/env.sh" && cd / && python -c \
-  "from sonar_ring import classify, echoes, localise, mapping, pipeline
-for module in (echoes, localise, classify, pipeline, mapping): module.load_kernels()") \
+  "from sonar_ring import confidence, echoes, localise, mapping, pipeline, ring_consistency
+for module in (echoes, localise, confidence, ring_consistency, pipeline, mapping): module.load_kernels()") \
   || { echo "bootstrap: loading the compiled kernels failed"; exit 1; }
 echo "bootstrap: built into install/ (source tools/env.sh to use it)"

@@ -3,9 +3,9 @@
 * :func:`confusion` -- the simulated bench of Barshan & Kuc's section V: the
   ``barshan_kuc_pair`` layout in front of the ``barshan_kuc_bench`` scene's plane
   or corner at 200-1600 mm and -15..15 deg, amplitude noise 2 % of A_max.
-* :func:`ring_decisions` -- :func:`sonar_ring.classify.ring_consistency` on
+* :func:`ring_decisions` -- :func:`sonar_ring.ring_consistency.ring_consistency` on
   stacked ring pings: which rows it calls EDGE, which specular.
-* :func:`amplitude_rule_times` -- the speed of :func:`sonar_ring.classify.classify_amplitudes`.
+* :func:`amplitude_rule_times` -- the speed of :func:`sonar_ring.amplitude_rules.classify_amplitudes`.
 """
 
 from __future__ import annotations
@@ -14,10 +14,10 @@ import math
 
 import numpy as np
 
-from sonar_ring import classify, simulate
+from sonar_ring import amplitude_rules, ring_consistency, simulate
 from sonar_ring.benchmark.timing import best_time
-from sonar_ring.classify import CORNER, EDGE, PLANE
 from sonar_ring.geometry import load_layout
+from sonar_ring.landmarks import CORNER, EDGE, PLANE
 
 MM = 1e-3
 SIGMA_REL = 0.02
@@ -84,7 +84,7 @@ def confusion(trials, rng):
             for j, inclination in enumerate(INCLINATIONS_DEG):
                 poses = poses_at(point, range_mm * MM, math.radians(inclination), trials)
                 amplitude, _ = pair_measurements(simulator, poses, reflector, noise, rng)
-                codes = classify.classify_amplitudes(amplitude[:, 0], SIGMA_REL).cls
+                codes = amplitude_rules.classify_amplitudes(amplitude[:, 0], SIGMA_REL).cls
                 counts[cls, i, j] = np.bincount(codes, minlength=4)
     return counts, simulator.half_angle
 
@@ -92,22 +92,22 @@ def confusion(trials, rng):
 def ring_decisions(layout, table, sigma_tof):
     """Per echo row of stacked ring pings: truth is edge, decided EDGE, decided specular (three (N,) bool)."""
     speed = table["speed_of_sound"][table["ping"]][:, None]
-    result = classify.ring_consistency(layout, table["group"], speed * table["tof"],
+    result = ring_consistency.ring_consistency(layout, table["group"], speed * table["tof"],
                                        float(np.mean(table["speed_of_sound"])) * sigma_tof, ping=table["ping"])
     return table["truth_class"] == EDGE, result.cls == EDGE, result.specular
 
 
 def amplitude_rule_times(rng, batch: int, ping_rows: int, calls: int, repeats: int) -> tuple[float, float]:
-    """Seconds per echo of :func:`classify.classify_amplitudes` in one batch, and per call of ``ping_rows`` echoes.
+    """Seconds per echo of :func:`amplitude_rules.classify_amplitudes` in a batch, and per call of ``ping_rows`` echoes.
 
     Random amplitudes in [0, 1): the rule's cost does not depend on the values.
     """
     amplitude = rng.uniform(0, 1, (batch, 2, 2))
-    per_echo = best_time(lambda: classify.classify_amplitudes(amplitude, SIGMA_REL), repeats) / batch
+    per_echo = best_time(lambda: amplitude_rules.classify_amplitudes(amplitude, SIGMA_REL), repeats) / batch
     ping = amplitude[:ping_rows]
 
     def per_ping():
         for _ in range(calls):
-            classify.classify_amplitudes(ping, SIGMA_REL)
+            amplitude_rules.classify_amplitudes(ping, SIGMA_REL)
 
     return per_echo, best_time(per_ping, repeats) / calls

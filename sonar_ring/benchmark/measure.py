@@ -15,8 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sonar_ring import localise as loc
-from sonar_ring import pipeline
+from sonar_ring import pipeline, uncertainty
 from sonar_ring.benchmark import azimuth, classification, least_squares
 from sonar_ring.benchmark.methods import BASELINE, BEARING, PRODUCTION, RING_FAMILIES, Batch, Family, truth_of
 from sonar_ring.benchmark.scenes import BearingSweep, bearing_sweep, standard_scenes
@@ -199,7 +198,7 @@ def _ring_level(rows_by_key, family: Family, batch: Batch, sigma: float, lsq_ind
 
 def _bearing_level(rows_by_key, sweep: BearingSweep, sigma: float, rng) -> None:
     d1, d2 = sweep.noisy_paths(sigma, rng)
-    sigma_bearing = loc.cramer_rao_bound(sweep.separation, sigma, sweep.speed, sweep.bearing)[0]
+    sigma_bearing = uncertainty.cramer_rao_bound(sweep.separation, sigma, sweep.speed, sweep.bearing)[0]
     within = np.abs(sweep.bearing) <= CRLB_SPAN
     for method in BEARING.methods:
         estimate, valid = method.solve((sweep, d1, d2))

@@ -14,7 +14,7 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.ticker import NullFormatter
 
-from sonar_ring import localise as loc
+from sonar_ring import uncertainty
 from sonar_ring.benchmark.measure import HEADLINE, LSQ_NAME, NOISE_LEVELS, Results
 from sonar_ring.benchmark.scenes import SWEEP_SPEED
 
@@ -148,7 +148,7 @@ def error_vs_bearing(results: Results, path: Path) -> Path:
             ax.plot(np.degrees(centres), np.degrees(values), **style)
     centres = 0.5 * (edges[:-1] + edges[1:])
     separation = results.sweep_separation
-    bound = loc.cramer_rao_bound(separation, HEADLINE, SWEEP_SPEED, centres)[0]
+    bound = uncertainty.cramer_rao_bound(separation, HEADLINE, SWEEP_SPEED, centres)[0]
     noisy.plot(np.degrees(centres), np.degrees(bound), color="black", linewidth=1, label="Cramer-Rao bound")
     _noisy_and_exact(noisy, exact, "5 deg (0.5-5 m)", "true bearing at R1 [deg]", "bearing error [deg]")
     noisy.legend(fontsize=7)

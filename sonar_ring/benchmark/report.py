@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sonar_ring.amplitude_rules import working_range
 from sonar_ring.benchmark import worlds
 from sonar_ring.benchmark.classification import INCLINATIONS_DEG, RANGES_MM, SIGMA_REL
 from sonar_ring.benchmark.environment import machine, revision, today, versions
@@ -33,7 +34,7 @@ from sonar_ring.benchmark.measure import (
     progress_to_stderr,
 )
 from sonar_ring.benchmark.scenes import FARTHEST, NEAREST
-from sonar_ring.classify import CORNER, PLANE, UNKNOWN, working_range
+from sonar_ring.landmarks import CORNER, PLANE, UNKNOWN
 
 DEFAULT_SEED = 0
 REPORT = "BENCHMARKS.md"
@@ -379,9 +380,9 @@ def _classification_section(results: Results) -> list[str]:
     c = results.classification
     summary, (r_min, r_max) = _amplitude_summary(results)
     lines = ["### Classification", "",
-             f"**Amplitude rules** (Barshan & Kuc eqs 13–14, `classify.classify_amplitudes`): the `barshan_kuc_pair` "
-             f"layout (d = 80 mm, θ0 = {math.degrees(c['theta0']):.2f}°) in front of the `barshan_kuc_bench` "
-             f"scene's plane or corner at 200–1600 mm and −15…15°, σ_A = 2 % of A_max, "
+             "**Amplitude rules** (Barshan & Kuc eqs 13–14, `amplitude_rules.classify_amplitudes`): the "
+             f"`barshan_kuc_pair` layout (d = 80 mm, θ0 = {math.degrees(c['theta0']):.2f}°) in front of the "
+             f"`barshan_kuc_bench` scene's plane or corner at 200–1600 mm and −15…15°, σ_A = 2 % of A_max, "
              f"{results.sizes.bench_trials} pings per cell. Inside = |θ| ≤ 10° and R_min ≤ R ≤ R_max "
              f"({r_min * 1e3:.0f}–{r_max * 1e3:.0f} mm, eqs 28–29). Speed: "
              f"{_duration(c['amplitude_ns'])} per decision batched, {_duration(c['amplitude_ping_us'] * 1e3)} "
@@ -389,9 +390,9 @@ def _classification_section(results: Results) -> list[str]:
     body = [(region, f"{total:,}", _percent(decided / max(total, 1)), _percent(wrong / max(decided, 1)), wrong)
             for region, (total, decided, wrong) in summary.items()]
     lines += _table(("region", "pings", "decided", "wrong, of decided", "wrong (count)"), body)
-    lines += ["", f"**Consistency test** (`classify.ring_consistency`, edge vs specular) on every echo row of the "
-              f"standard scenes ({c['consistency_rows']:,} rows): {_duration(c['consistency_ns'])} per row in one "
-              f"batch. For exact data the test is told σ_t = {CLASSIFIER_SIGMA_FLOOR * 1e9:.0f} ns.", ""]
+    lines += ["", "**Consistency test** (`ring_consistency.ring_consistency`, edge vs specular) on every echo row "
+              f"of the standard scenes ({c['consistency_rows']:,} rows): {_duration(c['consistency_ns'])} per row in "
+              f"one batch. For exact data the test is told σ_t = {CLASSIFIER_SIGMA_FLOOR * 1e9:.0f} ns.", ""]
     body = []
     for sigma, decisions in c["consistency"].items():
         decided_share, false_share, decided, wrong = _consistency_summary(decisions)
@@ -476,7 +477,7 @@ def _method_notes(results: Results) -> list[str]:
         "`range-only` judges the conventional ranger on all echoes against the same truth.",
         f"- **Bearing sweep**: pair 0 of the ring, virtual images at bearings uniform in ±80° and distances "
         f"{NEAREST:g}–{FARTHEST:g} m from R1 ({sizes.sweep:,} of them), exact paths in extended precision; the "
-        "true bearing is Browne's φ1, at R1. CRLB: `localise.cramer_rao_bound` (far-field, √2·c·σ_t/(D cos φ)).",
+        "true bearing is Browne's φ1, at R1. CRLB: `uncertainty.cramer_rao_bound` (far-field, √2·c·σ_t/(D cos φ)).",
         "- **Browne's formulas** (`sonar_ring.reference.browne`) work in a pair frame with D and R scalars; their "
         "timing includes the rotation into the sensor frame. Eq 26 is used as his §6 describes: subtract "
         "`t − (R + 2d)` from each path (so it is the exact correction in another arrangement).",

@@ -49,8 +49,6 @@ class PairRows:
         Horizontal positions of the emitter and the pair's receivers (R1 counter-clockwise), m.
     dz : ndarray, shape (N, 2)
         Emitter minus receiver height, m.
-    true_path : ndarray, shape (N, 2)
-        Noise-free 3-D path lengths emitter -> reflector -> receiver, m.
     speed : ndarray, shape (N,)
         Speed of sound of the row's scene, m/s.
     truth_class : ndarray of int, shape (N,)
@@ -70,7 +68,6 @@ class PairRows:
     rx1: np.ndarray
     rx2: np.ndarray
     dz: np.ndarray
-    true_path: np.ndarray
     speed: np.ndarray
     truth_class: np.ndarray
     truth_position: np.ndarray
@@ -85,10 +82,6 @@ class PairRows:
     def select(self, index) -> PairRows:
         """The rows picked by a boolean mask or an index array."""
         return PairRows(**{name: value[index] for name, value in vars(self).items()})
-
-    def true_horizontal(self) -> np.ndarray:
-        """Noise-free horizontal paths ``sqrt(d^2 - dz^2)``, shape (N, 2), m."""
-        return np.sqrt((self.true_path - self.dz) * (self.true_path + self.dz))
 
     @property
     def truth_range(self) -> np.ndarray:
@@ -173,7 +166,6 @@ def _pair_rows(layout: Layout, table: dict) -> PairRows:
         rx1=receivers[:, 0, :2],
         rx2=receivers[:, 1, :2],
         dz=transmitter[:, None, 2] - receivers[:, :, 2],
-        true_path=speed[:, None] * table["tof"][complete],
         speed=speed,
         truth_class=table["truth_class"][complete],
         truth_position=table["truth_position"][complete],

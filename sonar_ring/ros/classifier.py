@@ -15,7 +15,7 @@ import numpy as np
 from rclpy.qos import qos_profile_sensor_data
 from visualization_msgs.msg import MarkerArray
 
-from sonar_ring import classify, pipeline
+from sonar_ring import pipeline, ring_consistency
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.echoes import load_kernels as load_screening_kernels
 from sonar_ring.geometry import load_layout
@@ -38,7 +38,7 @@ PARAMS = [
     Param("sigma_tof", 1e-6, "time-of-flight noise for the consistency test, s", low=1e-9, high=1e-3),
     Param("sigma_amplitude", 0.02, "amplitude noise relative to A_max (Barshan & Kuc rules)", low=1e-4,
           high=0.16),
-    Param("consistency_z", classify.CONSISTENCY_Z, "significance of the edge/specular consistency test, "
+    Param("consistency_z", ring_consistency.CONSISTENCY_Z, "significance of the edge/specular consistency test, "
           "standard deviations", low=1.0, high=10.0),
     Param("marker_lifetime", 0.5, "seconds before a ping's markers vanish", low=0.0, high=60.0),
     EXPECTED_FRAME,
@@ -57,7 +57,7 @@ class Classifier(SonarNode):
         load_screening_kernels()  # now, or the first ping would wait ~0.5 s for them
         pipeline.load_kernels()
         if self.layout.kind == "ring":
-            classify.load_kernels()
+            ring_consistency.load_kernels()
         self.health = NodeHealth(self, hardware_id=self.layout.name)
         self._pending: OrderedDict[tuple, dict] = OrderedDict()
         self._landmarks = self.create_publisher(LandmarkArray, "landmarks", qos_profile_sensor_data)

@@ -4,11 +4,11 @@ The pings the nodes take are read straight from their serialized form
 (:class:`CdrReader`, :func:`echoes_from_cdr`), and what they publish on every
 ping is written straight into it (:class:`Cdr`, :func:`serialize_landmarks`): a
 message object is built, or converted, field by field in Python, which costs
-little back to back but several times more in a process that waited 33 ms for
-its ping.  For code that builds message objects, rclpy stores primitive
-sequences as ``array.array``; building one from a numpy buffer costs well
-under a microsecond for a ping, where assigning the numpy array itself makes
-rclpy check every element (tens of microseconds).
+little back to back but much more in a process that waited for its ping (its
+code and data gone cold).  For code that builds message objects, rclpy stores
+primitive sequences as ``array.array``; one is built from a numpy buffer in a
+single copy, where assigning the numpy array itself makes rclpy check every
+element.  The README's "Benchmarks" has the figures.
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from std_msgs.msg import Header
 
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.landmarks import Landmarks, make_landmarks
-from sonar_ring.msg import Echoes, Landmark, LandmarkArray
+from sonar_ring.msg import Echoes, LandmarkArray
 
 _TYPECODES = {np.float64: "d", np.float32: "f", np.uint8: "B", np.uint16: "H", np.uint32: "I"}
 
@@ -42,8 +42,8 @@ class Stamp(NamedTuple):
 class MessageHeader(NamedTuple):
     """A ``std_msgs/Header`` read from a serialized message, read as the message is (``header.stamp.sec``).
 
-    The nodes only check and copy a ping's header before its markers are out;
-    building the message object would cost tens of microseconds in a process
+    The nodes only check and copy a ping's header before its markers are out,
+    and building the message object would cost more than that in a process
     that waited for its ping.  :func:`header_message` builds it for typed publishers.
     """
 
@@ -301,18 +301,3 @@ def landmarks_from_msg(msg: LandmarkArray) -> Landmarks:
         reason=from_sequence(msg.reason, np.uint8),
     )
 
-
-def landmark_messages(msg: LandmarkArray) -> list[Landmark]:
-    """One :class:`sonar_ring.msg.Landmark` per entry of a LandmarkArray, for code that wants objects."""
-    arrays = landmarks_from_msg(msg)
-    return [
-        Landmark(header=msg.header, landmark_class=int(arrays.landmark_class[i]),
-                 x=float(arrays.position[i, 0]), y=float(arrays.position[i, 1]),
-                 normal_x=float(arrays.normal[i, 0]), normal_y=float(arrays.normal[i, 1]),
-                 bearing=float(arrays.bearing[i]), range=float(arrays.range[i]),
-                 covariance=arrays.covariance[i].ravel().tolist(), confidence=float(arrays.confidence[i]),
-                 segment=arrays.segment[i].ravel().tolist(), observations=int(arrays.observations[i]),
-                 group=int(arrays.group[i]), echo=int(arrays.echo[i]), valid=bool(arrays.valid[i]),
-                 reason=int(arrays.reason[i]))
-        for i in range(len(arrays))
-    ]

@@ -46,7 +46,7 @@ from sonar_ring.cli import realism_field
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import CLASS_NAMES, UNKNOWN
 from sonar_ring.msg import LandmarkArray
-from sonar_ring.progress import Progress
+from sonar_ring.progress import progress_bar
 from sonar_ring.realism import PROFILES
 from sonar_ring.ros.bag import TOPIC, BagWriter, absolute, graph_topics, static_transforms, tf_message
 from sonar_ring.ros.convert import echoes_from_cdr, landmarks_from_msg
@@ -66,17 +66,21 @@ RECORDING_DEPTH = 100
 """Messages a recording subscription keeps between two spins: the driver publishes a Range per group at once."""
 QUIET_SECONDS = 0.3
 """The recorder closes the bag once told to stop and nothing arrived for this long."""
-CONNECT_SECONDS = 10.0
-"""Longest wait for the recorder to start and be discovered."""
+RECORDER_READY = "recorder ready"
+"""What the recorder prints on its standard output once its subscriptions exist."""
+HUNG_RECORDER_SECONDS = 300.0
+"""Last resort against a hung recorder process: it starts in seconds, and is waited for as long as it takes
+(longer on a busy machine), but not for ever."""
 DRAIN_SECONDS = 3.0
 """Longest wait, after the last ping, for the nodes downstream to finish it."""
 
 
-def record(bag_path: Path, layout: str, stop) -> None:
+def record(bag_path: Path, layout: str, stop, ready=lambda: None) -> None:
     """Record every topic of the graph into a new bag, as ``ros2 bag record`` would: run in a process of its own.
 
     Raw subscriptions to the topics of the graph with ``layout`` (a name or a
-    path), written at their arrival time; after ``stop`` (an event) is set,
+    path), written at their arrival time; ``ready()`` is called once they all
+    exist.  After ``stop`` (an event) is set,
     the bag is closed as soon as nothing arrived for :data:`QUIET_SECONDS`.
     A process of its own keeps the recording (a Range per group of every
     ping) from stealing the graph's interpreter time, which would inflate the
@@ -103,6 +107,7 @@ def record(bag_path: Path, layout: str, stop) -> None:
                                  durability=topic.qos.durability)
                 connection = writer.connection(absolute(topic.name), topic.message, topic.qos)
                 node.create_subscription(message, topic.name, lambda raw, c=connection: keep(c, raw), qos, raw=True)
+            ready()
             executor = EventsExecutor()
             executor.add_node(node)
             while not (stop.is_set() and time.monotonic() - last[0] > QUIET_SECONDS):
@@ -172,10 +177,10 @@ class _TransformsFromTopics:
 
 
 def record_until_stdin_closes(bag_path: str, layout: str) -> None:
-    """:func:`record` in the recorder process, told to stop by its standard input closing."""
+    """:func:`record` in the recorder process: says :data:`RECORDER_READY` on stdout, stops when stdin closes."""
     stop = threading.Event()
     threading.Thread(target=lambda: (sys.stdin.read(), stop.set()), daemon=True).start()
-    record(Path(bag_path), layout, stop)
+    record(Path(bag_path), layout, stop, ready=lambda: print(RECORDER_READY, flush=True))
 
 
 def _start_recorder(bag_path: Path, layout: str) -> subprocess.Popen:
@@ -187,16 +192,33 @@ def _start_recorder(bag_path: Path, layout: str) -> subprocess.Popen:
     ``sonar_ring`` (without the generated messages) would shadow the installed one.
     """
     code = f"from sonar_ring.ros.demo import record_until_stdin_closes as r; r({str(bag_path)!r}, {layout!r})"
-    return subprocess.Popen([sys.executable, "-P", "-c", code], stdin=subprocess.PIPE)
+    return subprocess.Popen([sys.executable, "-P", "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                            text=True)
 
 
 def _wait_for_recorder(listener, recorder: subprocess.Popen, executor, topics) -> None:
-    """Spin until each topic (absolute names) shows the recorder's subscription, so the first ping is recorded."""
-    deadline = time.monotonic() + CONNECT_SECONDS
-    while not all(any(info.node_name == RECORDER for info in listener.get_subscriptions_info_by_topic(name))
-                  for name in topics):
-        if recorder.poll() is not None or time.monotonic() > deadline:
-            raise RuntimeError(f"the recorder did not connect within {CONNECT_SECONDS:g} s")
+    """Spin until the recorder says it is ready and each topic (absolute names) shows its subscription.
+
+    So the first ping is recorded.  No fixed window: an interpreter's start
+    and imports take seconds, more on a busy machine, and discovery follows;
+    only the recorder exiting, or :data:`HUNG_RECORDER_SECONDS`, ends the wait.
+    """
+    ready = threading.Event()
+
+    def read_stdout() -> None:
+        for line in recorder.stdout:  # read to the end, so the pipe never fills
+            if line.strip() == RECORDER_READY:
+                ready.set()
+
+    threading.Thread(target=read_stdout, daemon=True).start()
+    deadline = time.monotonic() + HUNG_RECORDER_SECONDS
+    while not (ready.is_set() and all(any(info.node_name == RECORDER
+                                          for info in listener.get_subscriptions_info_by_topic(name))
+                                      for name in topics)):
+        if recorder.poll() is not None:
+            raise RuntimeError(f"the recorder exited (code {recorder.returncode}) before it was ready")
+        if time.monotonic() > deadline:
+            raise RuntimeError(f"the recorder was not ready and discovered after {HUNG_RECORDER_SECONDS:g} s")
         executor.spin_once(timeout_sec=0.05)
 
 
@@ -242,10 +264,10 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
                            [absolute(topic.name) for topic in subscribed_topics(driver.layout)])
         executor.add_node(driver)
         started = time.monotonic()
-        bar = Progress("pings", total)
+        bar = progress_bar(total)
         while driver.pings_published < total:
             executor.spin_once(timeout_sec=0.05)
-            bar.update(driver.pings_published)
+            bar.update(driver.pings_published - bar.n)
         bar.close()
         executor.remove_node(driver)
         deadline = time.monotonic() + DRAIN_SECONDS
@@ -259,7 +281,7 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
         while time.monotonic() < flush:
             executor.spin_once(timeout_sec=0.02)
         recorder.stdin.close()
-        if recorder.wait(timeout=CONNECT_SECONDS) != 0:
+        if recorder.wait(timeout=HUNG_RECORDER_SECONDS) != 0:
             raise RuntimeError(f"the recorder failed (exit code {recorder.returncode}); {bag_path} is incomplete")
         figures = _score(found, truth)
         latency = {node.get_name(): float(np.median(node.health.latencies())) * 1e3 for node in nodes}

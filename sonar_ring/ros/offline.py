@@ -48,13 +48,13 @@ from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import Header
 
-from sonar_ring import classify, localise, mapping, pipeline
+from sonar_ring import localise, mapping, pipeline, ring_consistency
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.echoes import load_kernels as load_screening_kernels
 from sonar_ring.geometry import Layout, LayoutError, config_path, load_layout
 from sonar_ring.landmarks import CLASS_NAMES, Landmarks
 from sonar_ring.map_builder import MapBuilder
-from sonar_ring.progress import Progress
+from sonar_ring.progress import progress_bar
 from sonar_ring.realism import World, scene_realism
 from sonar_ring.ros import classifier, localiser, mapper
 from sonar_ring.ros.bag import (
@@ -267,7 +267,7 @@ def _start_worker(stage: PingStage) -> None:
         localise.load_kernels()
     pipeline.load_kernels()
     if stage.layout.kind == "ring":
-        classify.load_kernels()
+        ring_consistency.load_kernels()
 
 
 def _work(batch: list[bytes]) -> list[PingOutput]:
@@ -541,7 +541,7 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
         classifier's work and the mapper's screening; 1 does everything here;
         default one per CPU this process may use.
     progress : bool
-        Draw a progress bar on stderr.
+        Draw a progress bar on stderr (in a terminal: :func:`~sonar_ring.progress.progress_bar`).
 
     Raises
     ------
@@ -579,7 +579,7 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
                     odometry = _odometry_for(bag, topics, absolute(odom_topic or "odom", namespace),
                                              values["mapper"], tally, report, explicit=odom_topic is not None)
                 graphs[name] = OfflineGraph(values, namespace, odometry, writer, tally, sensor)
-            bar = Progress("pings", sum(c.msgcount for c in echo_connections)) if progress else None
+            bar = progress_bar(sum(c.msgcount for c in echo_connections), enabled=progress)
             times = []
 
             def admitted():
@@ -589,15 +589,13 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
                     ping = graph.admit(time_ns, data)
                     if ping is not None:
                         yield ping, data, (graph, time_ns, ping[0])
-                    if bar:
-                        bar.update(len(times))
+                    bar.update(1)
 
             # The map's kernels load while the workers localise the first batches.
             for (graph, time_ns, header), output in ordered_map(stage, admitted(), workers, jobs,
                                                                 meanwhile=mapping.load_kernels):
                 graph.take(time_ns, header, output)
-            if bar:
-                bar.close()
+            bar.close()
             for graph in graphs.values():
                 graph.finish()
                 report.per_class.update(dict(zip(CLASS_NAMES, graph.per_class.tolist(), strict=True)))
@@ -665,7 +663,7 @@ def record_sim(scene, out_path, *, layout="browne_ring", laps: int = 1, pings: i
     tally = Tally()
     report = RecordReport()
     total = laps * len(poses) if pings is None else min(pings, laps * len(poses))
-    bar = Progress("pings", total) if progress else None
+    bar = progress_bar(total, enabled=progress)
     with BagWriter(out_path, storage) as writer:
         topics = [TOPIC["echoes"], TOPIC["odom"], TOPIC["truth/pose"], TOPIC["truth"],
                   *(range_topics(sensor) if with_range else [])]
@@ -689,10 +687,8 @@ def record_sim(scene, out_path, *, layout="browne_ring", laps: int = 1, pings: i
                     messages += zip(ranges, range_messages(sensor, kept, header), strict=True)
             for name, message in messages:
                 writer.write(connection[name], stamp, serialize_message(message))
-            if bar:
-                bar.update(k + 1)
-        if bar:
-            bar.close()
+            bar.update(1)
+        bar.close()
     report.pings = total
     report.data_seconds = (total - 1) / rate if total else 0.0
     report.problems = tally.problems

@@ -1,5 +1,5 @@
-"""Classifier core: Barshan & Kuc's numbers, amplitude rules on the analytic curves, fusion,
-inclination and the geometric consistency test on exact ring geometry."""
+"""Barshan & Kuc's pairs (sonar_ring.amplitude_rules): the paper's numbers, the amplitude rules on the
+analytic curves, eq 41 fusion and the inclination."""
 
 import math
 
@@ -9,26 +9,21 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from numpy.testing import assert_allclose, assert_array_equal
 
-from sonar_ring import classify, localise
-from sonar_ring.classify import (
-    CORNER,
-    EDGE,
-    PLANE,
-    UNKNOWN,
+from sonar_ring import amplitude_rules, localise
+from sonar_ring.amplitude_rules import (
     amplitude_rule,
     choose_pair,
     classify_amplitudes,
     corner_inclination,
     fuse,
     fusion_weights,
-    geometric_consistency,
     inclination_variance,
     plane_inclination,
     separation_limits,
     working_range,
 )
 from sonar_ring.geometry import beam_half_angle, load_layout
-from sonar_ring.simulate import Noise, Simulator, load_scene
+from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN
 
 # Barshan & Kuc (1990), section V: lambda = 5.72 mm, a = 20 mm, d = 80 mm, sigma = 2 % of A_max.
 WAVELENGTH = 5.72e-3
@@ -71,7 +66,7 @@ def test_separation_limits_eqs_26_27_and_their_inverse():
     # eq 26 at R = 1 m: tan(10 deg) / 2 * 0.357535 = 0.031522 m; eq 27: 2 tan(10 deg) = 0.352654 m
     assert_allclose(d_min[2], 0.031522, rtol=1e-4)
     assert_allclose(d_max, 2 * ranges * math.tan(THETA0_PAPER), rtol=1e-12)
-    for rule in classify.MARGIN_RULES:
+    for rule in amplitude_rules.MARGIN_RULES:
         d_min, d_max = separation_limits(ranges, THETA0, SIGMA_REL, margin_rule=rule)
         # A pair of separation d_max(R) starts working at R, one of d_min(R) stops working at R.
         assert_allclose(working_range(d_max, THETA0, SIGMA_REL, margin_rule=rule)[0], ranges, rtol=1e-12)
@@ -197,17 +192,6 @@ def test_amplitude_rule_with_noise_keeps_the_3_sigma_promise():
             assert (decided & ~correct).mean() <= 1e-3
 
 
-def test_confidence_is_the_gaussian_mass_within_the_margin():
-    margins = np.array([0.0, 0.5, 1.0, 2.0, 3.0, 6.0])
-    expected = [math.erf(m / math.sqrt(2)) for m in margins]
-    assert_allclose(classify.confidence_from_margin(margins), expected, atol=2e-7)
-    assert_array_equal(classify.confidence_from_margin([-1.0, np.nan]), [0.0, 0.0])
-    flat = classify.confidence_from_margin(margins)
-    for grid in (margins.reshape(2, 3), margins.reshape(3, 2).T):  # any shape and memory order, kept
-        assert_array_equal(classify.confidence_from_margin(grid), flat[np.searchsorted(margins, grid)])
-    assert classify.confidence_from_margin(3.0).shape == ()
-
-
 @settings(max_examples=200, deadline=None)
 @given(amplitudes=st.lists(st.floats(0.0, 1.2), min_size=4, max_size=4),
        sigma=st.floats(1e-3, 0.1), scale=st.floats(0.1, 10.0))
@@ -306,161 +290,7 @@ def test_inclination_variance_matches_monte_carlo():
         assert_allclose(np.var(estimate), predicted, rtol=0.05)
 
 
-# --------------------------------------------------------------------------- geometric consistency
-
-SPEED = 343.0
-SIGMA_PATH = SPEED * 1e-6  # sigma_t = 1 us
-
-
-def ring_receivers(pairs=(0, 1)):
-    """Horizontal receiver positions of adjacent pairs of Browne's ring, shape (2 * len(pairs), 2)."""
-    ring = load_layout("browne_ring")
-    return ring.receivers[ring.groups[list(pairs)].reshape(-1), :2]
-
-
-def exact_paths(cls, receivers, range_m, bearing):
-    """Horizontal paths from the ring centre via a plane (normal along bearing), corner or edge."""
-    direction = np.stack([np.cos(bearing), np.sin(bearing)], axis=-1)
-    if cls == EDGE:
-        point = range_m * direction
-        return (np.linalg.norm(point, axis=-1)[:, None]
-                + np.linalg.norm(point[:, None, :] - receivers[None], axis=-1))
-    image = 2 * range_m * direction  # plane: mirror image; corner: 2C - T with C = range * direction
-    return np.linalg.norm(image[:, None, :] - receivers[None], axis=-1)
-
-
-def test_consistency_recovers_the_exact_models():
-    receivers = ring_receivers((47, 0, 1))
-    bearing = np.radians([-5.0, 0.0, 3.0, 7.5])
-    for cls in (PLANE, CORNER, EDGE):
-        paths = exact_paths(cls, receivers, 0.6, bearing)
-        result = geometric_consistency([0.0, 0.0], np.broadcast_to(receivers, (4, 6, 2)), paths, SIGMA_PATH)
-        direction = np.stack([np.cos(bearing), np.sin(bearing)], axis=-1)
-        # With exact data every pair of receivers agrees with the least-squares fit.
-        tx = np.zeros((4, 2))
-        pair_solution = (localise.edge if cls == EDGE else localise.virtual_image)(
-            tx, receivers[2], receivers[3], paths[:, 2], paths[:, 3])
-        fitted = result.edge_position if cls == EDGE else result.virtual_image
-        assert_allclose(fitted, pair_solution.position, atol=1e-9)
-        if cls == EDGE:
-            assert_allclose(result.edge_position, 0.6 * direction, atol=1e-9)
-            assert_allclose(result.chi2_edge, 0.0, atol=1e-9)
-            assert_array_equal(result.cls, EDGE)
-            assert not result.specular.any()
-        else:
-            assert_allclose(result.virtual_image, 1.2 * direction, atol=1e-9)
-            assert_allclose(result.chi2_specular, 0.0, atol=1e-9)
-            assert_array_equal(result.cls, UNKNOWN)  # plane or corner: geometry cannot tell which
-            assert result.specular.all()
-        assert np.all(result.confidence > 0.99) and np.all(result.margin > 3)
-        assert_array_equal(result.dof, 4)
-
-
-def test_consistency_false_decisions_stay_below_1_percent():
-    # Noise sigma_t = 1 us on every receiver of two overlapping pairs; ranges from where
-    # the test is decisive to where it cannot be.  Decisions for the wrong model stay
-    # well under 1 %, and the true model's chi-square follows chi-square with 2 dof.
-    rng = np.random.default_rng(2011)
-    receivers = ring_receivers((0, 1))
-    trials = 3000
-    bearing = np.radians(rng.uniform(0.0, 7.5, trials))
-    for range_m, decisive in ((0.5, True), (1.0, False), (2.5, False)):
-        for cls in (PLANE, EDGE):
-            paths = exact_paths(cls, receivers, range_m, bearing) + rng.normal(0, SIGMA_PATH, (trials, 4))
-            result = geometric_consistency(np.zeros(2), np.broadcast_to(receivers, (trials, 4, 2)),
-                                           paths, SIGMA_PATH)
-            right = result.specular if cls == PLANE else result.cls == EDGE
-            wrong = result.cls == EDGE if cls == PLANE else result.specular
-            assert wrong.mean() < 0.01
-            if decisive:
-                assert right.mean() > 0.98
-            chi2_true = result.chi2_specular if cls == PLANE else result.chi2_edge
-            assert_allclose(np.mean(chi2_true), 2.0, rtol=0.1)
-    # Far away the two models coincide and the test abstains.
-    assert (result.cls == UNKNOWN).mean() > 0.95 and result.specular.mean() < 0.05
-
-
-def test_consistency_fits_reach_the_least_squares_minimum():
-    # Noisy echoes: Gauss-Newton converges only linearly, and the fit stops on the chi-square's
-    # decrease (_CONVERGED), not on the step.  The model that fits must still report the chi-square
-    # and position of the weighted least-squares minimum, found here by scipy's Levenberg-Marquardt.
-    least_squares = pytest.importorskip("scipy.optimize").least_squares
-    rng = np.random.default_rng(5)
-    receivers = ring_receivers((47, 0, 1))
-    trials = 40
-
-    def residuals(point, measured, sigma, edge):
-        emitter = np.linalg.norm(point) if edge else 0.0
-        return (emitter + np.linalg.norm(point - receivers, axis=-1) - measured) / sigma
-
-    for cls, range_m, sigma in ((PLANE, 0.3, SIGMA_PATH), (EDGE, 1.0, SIGMA_PATH), (PLANE, 2.5, 5 * SIGMA_PATH)):
-        bearing = np.radians(rng.uniform(-7.5, 7.5, trials))
-        paths = exact_paths(cls, receivers, range_m, bearing) + rng.normal(0, sigma, (trials, 6))
-        result = geometric_consistency(np.zeros(2), np.broadcast_to(receivers, (trials, 6, 2)), paths, sigma)
-        fitted, chi2 = ((result.edge_position, result.chi2_edge) if cls == EDGE
-                        else (result.virtual_image, result.chi2_specular))
-        for n in range(trials):
-            reference = least_squares(residuals, fitted[n], args=(paths[n], sigma, cls == EDGE), method="lm",
-                                      xtol=1e-15, ftol=1e-15, gtol=1e-15)
-            assert_allclose(chi2[n], np.sum(reference.fun ** 2), atol=1e-6)
-            assert_allclose(fitted[n], reference.x, atol=1e-6)
-
-
-def test_consistency_abstains_when_neither_model_fits():
-    receivers = ring_receivers((0, 1))
-    paths = exact_paths(PLANE, receivers, 0.5, np.radians([2.0]))
-    paths[0, 3] += 0.05  # one receiver heard something else, 5 cm further
-    result = geometric_consistency(np.zeros(2), receivers[None], paths, SIGMA_PATH)
-    assert result.cls[0] == UNKNOWN and not result.specular[0]
-    assert result.confidence[0] == 0.0 and result.margin[0] == 0.0
-    assert result.chi2_specular[0] > 1e3 and result.chi2_edge[0] > 1e3
-
-
-def test_overlapping_groups_of_the_ring_are_two_on_each_side():
-    ring = load_layout("browne_ring")
-    neighbours = classify.overlapping_groups(ring)  # facings 7.5 deg apart, +-10 deg acceptance
-    assert neighbours.shape == (48, 4)
-    assert_array_equal(neighbours[0], [1, 47, 2, 46])
-    assert_array_equal(np.sort(neighbours[10]), [8, 9, 11, 12])
-
-
-def test_ring_consistency_on_a_triad_with_its_emitter_beside_the_receivers():
-    # Kreczmer's triad: one emitter 20 mm above the receiver line, echoes from +x.  The
-    # far-field start must come from the facing, not from emitter -> receivers (along -y).
-    triad = load_layout("kreczmer_triad")
-    receivers = triad.receivers[triad.groups[0], :2]
-    tx = triad.transmitters[0, :2]
-    bearing = np.radians([-20.0, 0.0, 30.0])
-    normal = np.stack([np.cos(bearing), np.sin(bearing)], axis=-1)
-    image = tx + 2 * (0.8 - normal @ tx)[:, None] * normal  # walls 0.8 m from the origin
-    horizontal = np.linalg.norm(image[:, None, :] - receivers[None], axis=-1)
-    paths = np.sqrt(horizontal**2 + triad.height_offset()[0, 0] ** 2)
-    result = classify.ring_consistency(triad, np.zeros(3, int), paths, 343.0 * 0.33e-6)
-    assert_allclose(result.virtual_image, image, atol=1e-9)
-    assert_array_equal(result.dof, 1)
-    assert_array_equal(result.cls, UNKNOWN)  # 15 mm of aperture cannot see the curvature
-
-
-def test_ring_consistency_leaves_out_a_group_flooded_with_echoes():
-    """Thousands of echoes in one pair (firmware gone wrong) cost linear memory and leave the others alone."""
-    ring = load_layout("browne_ring")
-    scene = load_scene("room")
-    ping = Simulator(scene, ring).ping(scene.sensor_pose, noise=Noise(tof=1e-6), rng=np.random.default_rng(1))
-    paths = ping.tof * ping.speed_of_sound
-    flood = 5000
-    flooded_group = np.full(flood, 30)
-    flooded_paths = np.random.default_rng(2).uniform(0.5, 5.0, (flood, 2))
-    together = classify.ring_consistency(ring, np.concatenate([ping.group, flooded_group]),
-                                         np.concatenate([paths, flooded_paths]), SIGMA_PATH)
-    alone = classify.ring_consistency(ring, ping.group, paths, SIGMA_PATH)
-    assert_array_equal(together.cls[ping.n_echoes:], UNKNOWN)
-    assert np.isnan(together.chi2_edge[ping.n_echoes:]).all()
-    # echoes of groups out of reach of group 30 are tested exactly as without the flood
-    others = ~np.isin(ping.group, [28, 29, 30, 31, 32])
-    assert np.count_nonzero(others) > 20
-    assert_array_equal(together.cls[:ping.n_echoes][others], alone.cls[others])
-    assert_allclose(together.chi2_edge[:ping.n_echoes][others], alone.chi2_edge[others], rtol=1e-9)
-
+# --------------------------------------------------------------------------- bad input
 
 # --------------------------------------------------------------------------- bad input
 
@@ -481,32 +311,6 @@ def test_error_handling():
         plane_inclination(1.0, 1.0, 0.0)
     with pytest.raises(ValueError, match="separations"):
         choose_pair([0.04, -0.12], 1.0, THETA0, SIGMA_REL)
-    receivers = np.zeros((2, 3, 2))
-    with pytest.raises(ValueError, match="receivers"):
-        geometric_consistency(np.zeros(2), np.zeros((2, 3)), np.ones((2, 3)), SIGMA_PATH)
-    with pytest.raises(ValueError, match="paths"):
-        geometric_consistency(np.zeros(2), receivers, np.ones((2, 4)), SIGMA_PATH)
-    with pytest.raises(ValueError, match="transmitter"):
-        geometric_consistency(np.zeros(3), receivers, np.ones((2, 3)), SIGMA_PATH)
-    with pytest.raises(ValueError, match="sigma_path"):
-        geometric_consistency(np.zeros(2), receivers, np.ones((2, 3)), 0.0)
-    with pytest.raises(ValueError, match="z must"):
-        geometric_consistency(np.zeros(2), receivers, np.ones((2, 3)), SIGMA_PATH, z=0.0)
-    with pytest.raises(ValueError, match="one emitter"):
-        classify.ring_consistency(load_layout("barshan_kuc_pair"), [0], np.ones((1, 2)), SIGMA_PATH)
-    ring_layout = load_layout("browne_ring")
-    for group in (48, -1):
-        with pytest.raises(ValueError, match=rf"group indices must be in \[0, 48\), got {group} in row 1"):
-            classify.ring_consistency(ring_layout, [0, group], np.ones((2, 2)), SIGMA_PATH)
-    for sigma_path in (np.nan, -SIGMA_PATH, "wide", [SIGMA_PATH, SIGMA_PATH]):
-        with pytest.raises(ValueError, match="sigma_path must be a finite number > 0"):
-            classify.ring_consistency(ring_layout, [0], np.ones((1, 2)), sigma_path)
-    with pytest.raises(ValueError, match="paths"):
-        classify.ring_consistency(ring_layout, [0], np.ones((1, 3)), SIGMA_PATH)
-    for z in (0.0, np.nan, [3.5, 3.5], "3.5", None, np.array("3.5"), 3.5j):
-        with pytest.raises(ValueError, match="z must"):
-            classify.ring_consistency(ring_layout, [0], np.ones((1, 2)), SIGMA_PATH, z=z)
-
     # ... bad data values give UNKNOWN / NaN / zero weight, never an exception.
     result = classify_amplitudes([[[np.nan, 0.5], [0.5, 1.0]], [[np.inf, 0.5], [0.5, 1.0]]], 0.02)
     assert_array_equal(result.cls, UNKNOWN)
@@ -523,24 +327,3 @@ def test_error_handling():
     fused, variance = fuse([[np.nan, 1.0], [np.nan, np.nan]], [[1.0, 4.0], [1.0, 1.0]])
     assert_allclose(fused, [1.0, np.nan])
     assert_allclose(variance, [4.0, np.nan])
-
-    ring = ring_receivers((0, 1))
-    paths = exact_paths(EDGE, ring, 0.5, np.radians([1.0, 2.0, 3.0, 4.0]))
-    paths[0, 1:] = np.nan  # one receiver left: nothing to test
-    paths[1, :2] = np.nan  # two receivers: no redundancy
-    paths[2, 0] = -1.0  # a negative path is dropped; three receivers remain
-    transmitter = np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0], [np.nan, 0.0]])
-    with np.errstate(all="raise"):
-        result = geometric_consistency(transmitter, np.broadcast_to(ring, (4, 4, 2)), paths, SIGMA_PATH)
-    assert_array_equal(result.cls, [UNKNOWN, UNKNOWN, EDGE, UNKNOWN])
-    assert_array_equal(result.dof, [-1, 0, 1, -2])
-    assert_array_equal(result.confidence[[0, 1, 3]], 0.0)
-    assert np.all(np.isnan(result.chi2_edge[[0, 1, 3]])) and np.all(np.isnan(result.virtual_image[[0, 1, 3]]))
-    # A ring ping with missing receivers, a path shorter than the height offset and no echoes at all.
-    paths = np.array([[np.nan, np.nan], [0.05, 2.0], [2.0, np.inf]])
-    with np.errstate(all="raise"):
-        result = classify.ring_consistency(ring_layout, [0, 1, 2], paths, SIGMA_PATH)
-        empty = classify.ring_consistency(ring_layout, np.zeros(0, int), np.zeros((0, 2)), SIGMA_PATH)
-    assert_array_equal(result.cls, UNKNOWN)
-    assert_array_equal(result.confidence, 0.0)
-    assert empty.cls.shape == (0,) and empty.virtual_image.shape == (0, 2)
