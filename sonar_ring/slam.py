@@ -19,8 +19,8 @@ takes the classifier's landmarks (sensor frame) and the robot's odometry pose
    measurement per entry seen since the last keyframe -- a corner, an edge:
    ``BearingRangeFactor2D``; a wall: a foot-point factor (:func:`wall_factor`)
    on the line ``n(theta) . x = d`` -- and updates the estimate incrementally
-   (``IncrementalFixedLagSmoother``: iSAM2 that marginalises what is older than
-   ``smoother_lag``, so memory stays flat).  The new estimates of the landmarks
+   (``IncrementalFixedLagSmoother``: iSAM2 that marginalises keyframes older
+   than ``smoother_lag``, so memory stays flat; landmarks stay).  The new estimates of the landmarks
    go back into the front end.
 
 Only **confirmed** entries enter the graph: an entry must persist
@@ -164,11 +164,10 @@ class SlamReport:
 
 @dataclass
 class _Confirmed:
-    """An entry in the graph: its key, kind (:data:`POINT` or :data:`WALL`) and when it was last measured, s."""
+    """An entry in the graph: its key and kind (:data:`POINT` or :data:`WALL`)."""
 
     key: int
     kind: str
-    stamp: float
 
 
 @dataclass
@@ -486,7 +485,9 @@ class LandmarkSlam:
         graph.add(gtsam.BetweenFactorPose2(previous, key, gtsam.Pose2(*step),
                                            gtsam.noiseModel.Gaussian.Covariance(odometry_noise)))
         values.insert(key, gtsam.Pose2(*compose(self._keyframe_pose, step)))
-        self._add_measurements(previous, graph, values, timestamps, time)
+        self._add_measurements(previous, graph, values)
+        # Landmarks stay: only keyframes older than the lag are marginalised (the map's size bounds the rest).
+        timestamps.update({record.key: time for record in self._confirmed.values()})
         self._smoother.update(graph, values, timestamps)
         self._keyframe += 1
         estimate = self._smoother.calculateEstimate()
@@ -498,7 +499,7 @@ class LandmarkSlam:
         self._window.pings.clear()
         self._write_back(estimate)
 
-    def _add_measurements(self, pose_key: int, graph, values, timestamps, time: float) -> None:
+    def _add_measurements(self, pose_key: int, graph, values) -> None:
         """One fused factor per entry seen since the keyframe ``pose_key``: confirmed and newly confirmed entries.
 
         An UNKNOWN point's factor has its bearing made uninformative, and none once the sensor moved more
@@ -524,10 +525,6 @@ class LandmarkSlam:
                     continue
                 self._confirm(uid, kind, entries, index, values)
             record = self._confirmed[uid]
-            if time - record.stamp > 0.8 * s.smoother_lag:
-                self._renew(record, graph, values)
-            record.stamp = time
-            timestamps[record.key] = time
             if kind == POINT:
                 graph.add(_bearing_range_factor(pose_key, record.key, position, spread))
             else:
@@ -543,26 +540,7 @@ class LandmarkSlam:
             normal = entries.normal[index]
             # n . x = d with n the unit normal away from the side the wall was seen from: d > 0 past the origin
             values.insert(key, np.array([math.atan2(normal[1], normal[0]), float(normal @ entries.position[index])]))
-        self._confirmed[uid] = _Confirmed(key, kind, self._keyframe_time)
-
-    def _renew(self, record: _Confirmed, graph, values) -> None:
-        """A landmark about to leave the smoother's window (unseen for most of the lag) under a new key.
-
-        Its estimate and marginal covariance become a prior on the new key, so
-        what the map knew of it carries over when it is seen again.
-        """
-        kind = POINT if record.kind == POINT else WALL
-        key = gtsam.symbol(kind, self._next_landmark)
-        self._next_landmark += 1
-        noise = gtsam.noiseModel.Gaussian.Covariance(self._smoother.marginalCovariance(record.key))
-        if record.kind == POINT:
-            estimate = self._smoother.calculateEstimatePoint2(record.key)
-            graph.add(gtsam.PriorFactorPoint2(key, estimate, noise))
-        else:
-            estimate = self._smoother.calculateEstimateVector(record.key)
-            graph.add(gtsam.PriorFactorVector(key, estimate, noise))
-        values.insert(key, estimate)
-        record.key = key
+        self._confirmed[uid] = _Confirmed(key, kind)
 
     def _write_back(self, estimate: gtsam.Values) -> None:
         """The graph's landmark estimates into the front end, so association uses them."""

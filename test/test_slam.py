@@ -163,3 +163,23 @@ def test_error_handling():
     builder.add_odometry(10, (math.nan, 0.0, 0.0))
     builder.add_ping(10, Landmarks.empty())
     assert health.problems["not_finite_pose"] == 1
+
+
+def test_a_landmark_unseen_for_longer_than_the_lag_is_still_there_when_seen_again():
+    # A short lag: the keyframes of the first sightings are marginalised while nothing is seen.
+    truth = np.array([[1.0 + 0.01 * k, 1.0, math.radians(-135)] for k in range(60)])
+    landmarks, _ = labelled_pings(CORNER_ROOM, truth)
+    slam = LandmarkSlam(SlamSettings(smoother_lag=1.0))
+    time = 0.0
+    for found, pose in zip(landmarks[:40], truth[:40], strict=True):
+        slam.add_ping(found, pose, time)
+        time += 1 / RING.ping_rate
+    confirmed = set(slam.confirmed.tolist())
+    for k in range(90):  # 3 s of travel with nothing heard, 13.5 cm on and back
+        slam.add_ping(Landmarks.empty(), compose(truth[40], (0.003 * min(k, 90 - k), 0.0, 0.0)), time)
+        time += 1 / RING.ping_rate
+    for k, found in enumerate(landmarks[40:]):  # back where it was, seeing the corner again
+        report = slam.add_ping(found, truth[40 + k], time)
+        time += 1 / RING.ping_rate
+    assert confirmed <= set(slam.confirmed.tolist()) and report.associated > 0
+    assert len(slam.snapshot()) >= 3
