@@ -16,10 +16,11 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-UNKNOWN, PLANE, CORNER, EDGE = 0, 1, 2, 3
-"""Landmark classes (the constants of ``Landmark.msg``)."""
+UNKNOWN, PLANE, CORNER, EDGE, CORNER_OR_EDGE = 0, 1, 2, 3, 4
+"""Landmark classes (the constants of ``Landmark.msg``).  CORNER_OR_EDGE is a map's: a fixed point (motion
+ruled out a plane) whose wavefront's curvature has not yet told a corner from an edge."""
 
-CLASS_NAMES = ("unknown", "plane", "corner", "edge")
+CLASS_NAMES = ("unknown", "plane", "corner", "edge", "corner_or_edge")
 """Lower-case name of each class code, indexable by the code."""
 
 
@@ -30,7 +31,7 @@ class Landmarks:
     Attributes
     ----------
     landmark_class : ndarray of uint8, shape (L,)
-        UNKNOWN, PLANE, CORNER or EDGE.
+        UNKNOWN, PLANE, CORNER, EDGE, or (maps) CORNER_OR_EDGE.
     position : ndarray, shape (L, 2)
         Plane: foot point G of the perpendicular from the transmitter; corner and
         edge: the vertical line's trace, m.

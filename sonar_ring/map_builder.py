@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sonar_ring.curvature import point_models
+from sonar_ring.geometry import Layout
 from sonar_ring.landmarks import Landmarks
 from sonar_ring.mapping import LandmarkMap, MapCounts, transform_landmarks
 from sonar_ring.poses import PoseHistory, compose
@@ -65,6 +67,9 @@ class MapperSettings:
     slam_settings : SlamSettings
     pose_history : int or None
         Odometry poses kept (None: all, for a whole bag).
+    layout : Layout or None
+        The sensor: on a single-emitter ring each point sighting's two models
+        (:func:`sonar_ring.curvature.point_models`) tell edges from corners over motion.
     """
 
     slam: bool = True
@@ -79,6 +84,7 @@ class MapperSettings:
     min_observations: int = 2
     slam_settings: SlamSettings = field(default_factory=SlamSettings)
     pose_history: int | None = 500
+    layout: Layout | None = None
 
 
 class MapBuilder:
@@ -167,12 +173,15 @@ class MapBuilder:
             self.health.problem("not_finite_pose", "odometry pose not finite")
             return
         offset = np.asarray(self.settings.sensor_offset, dtype=float)
+        layout = self.settings.layout
+        models = point_models(layout, landmarks) if layout is not None else None
         if self.slam is None:
             sensor = compose(odometry, offset)
-            self.landmark_map.update(transform_landmarks(landmarks, sensor), sensor)
+            self.landmark_map.update(transform_landmarks(landmarks, sensor), sensor,
+                                     None if models is None else models.transformed(sensor))
             self.robot_pose = odometry
         else:
-            report = self.slam.add_ping(landmarks, odometry, stamp * 1e-9, offset)
+            report = self.slam.add_ping(landmarks, odometry, stamp * 1e-9, offset, models)
             self.robot_pose = report.pose
             if report.fault:
                 self.health.problem(report.fault.replace(" ", "_"), f"{report.fault}: a new map segment starts")

@@ -124,7 +124,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from sonar_ring.compiled import kernel
-from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, Landmarks, make_landmarks
+from sonar_ring.curvature import CONSISTENCY_Z, CURVATURE_THRESHOLD, PointModels, chi2_quantile, decide
+from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, UNKNOWN, Landmarks, make_landmarks
 
 CHI2_2DOF_99 = 9.2103
 """99 % point of chi-square with 2 degrees of freedom; also ``2 ln 100``."""
@@ -134,9 +135,6 @@ CHI2_2DOF_9999 = 18.421
 
 _AMBIGUOUS = -2
 """Association result of a sighting that is neither fused nor allowed to start an entry."""
-
-_CONSISTENCY_Z = 3.0902
-"""Standard normal 99.9 % point, for the Wilson-Hilferty chi-square quantile."""
 
 _MIN_RANGE = 1e-3
 """Sightings closer than this to the sensor (m) define no line of sight."""
@@ -376,13 +374,6 @@ def _fuse_lines(line, information, chi2, with_chi2, anchor, axis, extent, slots,
     return updated, grew
 
 
-def _chi2_quantile(dof, z: float):
-    """Wilson-Hilferty approximation of the chi-square quantile at normal point ``z``."""
-    dof = np.maximum(dof, 1.0)
-    k = 2.0 / (9.0 * dof)
-    return dof * (1.0 - k + z * np.sqrt(k)) ** 3
-
-
 @kernel
 def _line_floor(extent, sigma):
     """Covariance (K, 2, 2) of ``(theta, delta)`` from an error ``sigma`` at each end of a segment.
@@ -541,8 +532,10 @@ class MapCounts:
         Sightings not stored because the map was full of entries seen in the same ping.
     evicted : int
         Entries removed to make room.
-    resolved_plane, resolved_corner : int
-        UNKNOWN points turned into walls / corners by the motion test.
+    resolved_plane, resolved_fixed : int
+        UNKNOWN points turned into walls / fixed points (CORNER_OR_EDGE) by the motion test.
+    resolved_corner, resolved_edge : int
+        Fixed points told a corner / an edge by their curvature.
     merged_walls : int
         Walls absorbed into another wall.
     """
@@ -559,7 +552,9 @@ class MapCounts:
     dropped: int = 0
     evicted: int = 0
     resolved_plane: int = 0
+    resolved_fixed: int = 0
     resolved_corner: int = 0
+    resolved_edge: int = 0
     merged_walls: int = 0
 
 
@@ -590,6 +585,8 @@ class Sightings:
     group : ndarray of uint16, shape (N,)
     sensor : ndarray, shape (2,)
         Sensor position ``S``, m.
+    models : PointModels or None
+        Both point models' positions of each sighting (:mod:`sonar_ring.curvature`), same frame.
     """
 
     rows: np.ndarray
@@ -603,6 +600,7 @@ class Sightings:
     confidence: np.ndarray
     group: np.ndarray
     sensor: np.ndarray
+    models: PointModels | None
     offered: int
     invalid: int
     not_finite: int
@@ -764,7 +762,7 @@ class _Points:
     def __init__(self, capacity: int):
         self.active = np.zeros(capacity, bool)
         self.landmark_class = np.zeros(capacity, np.uint8)
-        self.by_motion = np.zeros(capacity, bool)  # class CORNER from the motion test alone
+        self.by_motion = np.zeros(capacity, bool)  # class from the motion test alone: CORNER_OR_EDGE
         # Point (corner) model: fused position, information matrix, residual chi-square.
         self.mean = np.zeros((capacity, 2))
         self.information = np.zeros((capacity, 2, 2))
@@ -789,6 +787,18 @@ class _Points:
         self.confidence_sum = np.zeros(capacity)
         self.confidence_count = np.zeros(capacity)
         self.uid = np.full(capacity, -1, np.int64)
+        # Edge or corner (sonar_ring.curvature): both models' fits over the sightings that had both, each weighted
+        # by its own covariance, and the sums of W d and d^T W d of their differences d, W the corner model's
+        # weight (the separation, with the corner fit's information).
+        self.corner_fit = np.zeros((capacity, 2))
+        self.edge_fit = np.zeros((capacity, 2))
+        self.corner_information = np.zeros((capacity, 2, 2))
+        self.edge_information = np.zeros((capacity, 2, 2))
+        self.corner_chi2 = np.zeros(capacity)
+        self.edge_chi2 = np.zeros(capacity)
+        self.difference = np.zeros((capacity, 3))  # sum W d (2), sum (d^T W d - separation noise)
+        self.modelled = np.zeros(capacity, np.int64)  # sightings with both models
+        self.curvature_decided = np.zeros(capacity, bool)
 
 
 class _Walls:
@@ -976,6 +986,9 @@ class LandmarkMap:
         sighting, a wall's segment), and walls merge only across gaps below it, m.
     wall_point_spacing : float
         Largest spacing of the points :meth:`points` puts along a wall, m.
+    curvature_threshold : float
+        ``|chi2_corner - chi2_edge|`` needed to tell a fixed point an edge or a
+        corner (:mod:`sonar_ring.curvature`; 13.8 is 1000:1), with ``min_separation``.
 
     Raises
     ------
@@ -987,15 +1000,15 @@ class LandmarkMap:
     def __init__(self, *, max_points: int = 1000, max_walls: int = 200, sighting_sigma: float = 0.002,
                  map_sigma: float = 0.001, gate: float = CHI2_2DOF_99, new_entry_gate: float = CHI2_2DOF_9999,
                  decision_threshold: float = CHI2_2DOF_99, min_separation: float = 25.0, min_baseline: float = 0.1,
-                 search_radius: float = 0.5,
-                 wall_point_spacing: float = 0.05):
+                 search_radius: float = 0.5, wall_point_spacing: float = 0.05,
+                 curvature_threshold: float = CURVATURE_THRESHOLD):
         for name, value in (("max_points", max_points), ("max_walls", max_walls)):
             if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
                 raise ValueError(f"LandmarkMap: {name} must be an integer >= 1, got {value!r}")
         numbers = {"sighting_sigma": sighting_sigma, "map_sigma": map_sigma, "gate": gate,
                    "new_entry_gate": new_entry_gate, "decision_threshold": decision_threshold,
                    "min_separation": min_separation, "min_baseline": min_baseline, "search_radius": search_radius,
-                   "wall_point_spacing": wall_point_spacing}
+                   "wall_point_spacing": wall_point_spacing, "curvature_threshold": curvature_threshold}
         for name, value in numbers.items():
             if isinstance(value, bool) or not isinstance(value, int | float | np.number) or not np.isfinite(value):
                 raise ValueError(f"LandmarkMap: {name} must be a finite number, got {value!r}")
@@ -1015,6 +1028,7 @@ class LandmarkMap:
         self.min_baseline = float(min_baseline)
         self.search_radius = float(search_radius)
         self.wall_point_spacing = float(wall_point_spacing)
+        self.curvature_threshold = float(curvature_threshold)
         self._points = _Points(self.max_points)
         self._walls = _Walls(self.max_walls)
         self._counts = MapCounts()
@@ -1033,7 +1047,7 @@ class LandmarkMap:
 
     # ------------------------------------------------------------------ update
 
-    def update(self, landmarks: Landmarks, sensor_pose) -> Placed:
+    def update(self, landmarks: Landmarks, sensor_pose, models: PointModels | None = None) -> Placed:
         """Add one ping's landmarks, already in ``odom``: :meth:`screen`, then :meth:`add`; where each went.
 
         Parameters
@@ -1045,6 +1059,9 @@ class LandmarkMap:
         sensor_pose : array_like, shape (3,)
             Sensor pose ``(x, y, yaw)`` in ``odom`` at the ping, m and rad; its
             position is the origin of every line of sight.
+        models : PointModels, optional
+            Both point models of each landmark, in ``odom`` (:func:`sonar_ring.curvature.point_models`):
+            the evidence that tells an edge from a corner.
 
         Raises
         ------
@@ -1052,9 +1069,9 @@ class LandmarkMap:
             If ``landmarks`` is not a :class:`Landmarks` with consistent shapes or
             ``sensor_pose`` is not three numbers.  Bad data is counted, never raised.
         """
-        return self.add(self.screen(landmarks, sensor_pose))
+        return self.add(self.screen(landmarks, sensor_pose, models))
 
-    def screen(self, landmarks: Landmarks, sensor_pose) -> Sightings | None:
+    def screen(self, landmarks: Landmarks, sensor_pose, models: PointModels | None = None) -> Sightings | None:
         """The usable landmarks of one ping as sightings, the others counted by kind; None for a bad pose.
 
         Uses the map's settings, never its entries, so any map with the same
@@ -1066,7 +1083,7 @@ class LandmarkMap:
         pose = _pose(sensor_pose, "LandmarkMap.screen")
         if not (np.all(np.isfinite(pose)) and np.all(np.abs(pose[:2]) <= MAX_COORDINATE)):
             return None
-        return self._screen(landmarks, pose[:2])
+        return self._screen(landmarks, pose[:2], models)
 
     def add(self, sightings: Sightings | None) -> Placed:
         """Associate and fuse one ping's sightings (:meth:`screen`); None counts a rejected ping.
@@ -1116,8 +1133,8 @@ class LandmarkMap:
         self._next_uid += count
         return uids
 
-    def _screen(self, landmarks: Landmarks, sensor: np.ndarray) -> Sightings:
-        """The usable landmarks, with the unusable ones counted by kind."""
+    def _screen(self, landmarks: Landmarks, sensor: np.ndarray, models: PointModels | None) -> Sightings:
+        """The usable landmarks, with the unusable ones counted by kind (and their point models, if given)."""
         # Copies: landmarks decoded from a message are read-only views, another type to numba.
         position = np.array(landmarks.position, dtype=float)
         segment = np.array(landmarks.segment, dtype=float)
@@ -1137,6 +1154,7 @@ class LandmarkMap:
             confidence=np.asarray(landmarks.confidence, float)[keep],
             group=np.asarray(landmarks.group)[keep].astype(np.uint16),
             sensor=sensor,
+            models=None if models is None else models.select(keep),
             offered=len(landmarks),
             invalid=int(counts[0]),
             not_finite=int(counts[1]),
@@ -1295,6 +1313,13 @@ class LandmarkMap:
         p.group[slots] = s.group[rows]
         p.confidence_sum[slots] = np.where(classified, s.confidence[rows], 0.0)
         p.confidence_count[slots] = classified
+        p.corner_fit[slots] = p.edge_fit[slots] = 0.0
+        p.corner_information[slots] = p.edge_information[slots] = 0.0
+        p.corner_chi2[slots] = p.edge_chi2[slots] = 0.0
+        p.difference[slots] = 0.0
+        p.modelled[slots] = 0
+        p.curvature_decided[slots] = False
+        self._fuse_models(s, rows, slots)
         return out
 
     def _start_walls(self, s: Sightings, rows) -> np.ndarray:
@@ -1340,11 +1365,14 @@ class LandmarkMap:
         still_open = np.flatnonzero(p.landmark_class[slots] == UNKNOWN)
         if still_open.size:
             self._fuse_plane_hypotheses(s, rows[still_open], slots[still_open])
+        self._fuse_models(s, rows, slots)
         seen = s.landmark_class[rows]
         classified = seen != UNKNOWN
         # A classified sighting names the class of a point that is UNKNOWN or was named by
-        # motion alone (which cannot tell an edge from a corner): the most confident one wins.
-        naming = np.flatnonzero(classified & ((p.landmark_class[slots] == UNKNOWN) | p.by_motion[slots]))
+        # motion alone (which cannot tell an edge from a corner), until the curvature decides:
+        # the most confident one wins.
+        naming = np.flatnonzero(classified & ((p.landmark_class[slots] == UNKNOWN) | p.by_motion[slots])
+                                & ~p.curvature_decided[slots])
         if naming.size:
             by_confidence = naming[np.argsort(s.confidence[rows][naming], kind="stable")]
             named_slots, namer = groups.last(by_confidence)
@@ -1355,6 +1383,32 @@ class LandmarkMap:
             p.confidence_sum[groups.rows] += groups.total(np.where(classified, s.confidence[rows], 0.0))
             p.confidence_count[groups.rows] += groups.total(classified.astype(float))
         return np.unique(stored)
+
+    def _fuse_models(self, s: Sightings, rows, slots) -> None:
+        """Fuse the point models of sightings ``rows`` (those that have both) into points ``slots``."""
+        if s.models is None:
+            return
+        modelled = s.models.valid[rows]
+        if not modelled.any():
+            return
+        rows, slots = rows[modelled], slots[modelled]
+        p, m = self._points, s.models
+        weight = _inverse(m.corner_covariance[rows])
+        edge_weight = _inverse(m.edge_covariance[rows])
+        first = p.modelled[slots] == 0  # its first sighting with both models: the fits start there
+        p.corner_fit[slots[first]] = m.corner[rows[first]]
+        p.edge_fit[slots[first]] = m.edge[rows[first]]
+        groups = _Groups(slots, self.max_points)
+        _information_update(p.corner_fit, p.corner_information, p.corner_chi2, groups,
+                            m.corner[rows] - p.corner_fit[slots], weight)
+        _information_update(p.edge_fit, p.edge_information, p.edge_chi2, groups, m.edge[rows] - p.edge_fit[slots],
+                            edge_weight)
+        difference = m.edge[rows] - m.corner[rows]
+        pulled = _apply(weight, difference)
+        np.add.at(p.difference[:, 0], slots, pulled[:, 0])
+        np.add.at(p.difference[:, 1], slots, pulled[:, 1])
+        np.add.at(p.difference[:, 2], slots, _dot(difference, pulled) - m.separation_noise[rows])
+        np.add.at(p.modelled, slots, 1)
 
     def _fuse_plane_hypotheses(self, s: Sightings, rows, slots) -> None:
         """Fuse sightings ``rows`` into the plane hypotheses, extents and baselines of ``slots``."""
@@ -1393,6 +1447,7 @@ class LandmarkMap:
         open_slots = slots[p.landmark_class[slots] == UNKNOWN]
         named_plane = slots[p.landmark_class[slots] == PLANE]
         if open_slots.size == 0 and named_plane.size == 0:
+            self._tell_edges_from_corners(slots)
             return np.empty(0, np.int64)
         difference = p.chi2[open_slots] - p.line_chi2[open_slots]
         winner = np.where(difference > 0, p.line_chi2[open_slots], p.chi2[open_slots])
@@ -1402,17 +1457,45 @@ class LandmarkMap:
         decided = ((p.baseline[open_slots, 1] - p.baseline[open_slots, 0] >= self.min_baseline)
                    & (separation >= self.min_separation)
                    & (np.abs(difference) >= self.decision_threshold)
-                   & (winner <= _chi2_quantile(dof, _CONSISTENCY_Z)))
+                   & (winner <= chi2_quantile(dof, CONSISTENCY_Z)))
         confidence = 1.0 - np.exp(-0.5 * np.abs(difference))
-        corner = decided & (difference < 0)
+        fixed = decided & (difference < 0)
         plane = decided & (difference > 0)
-        p.landmark_class[open_slots[corner]] = CORNER
-        p.by_motion[open_slots[corner]] = True
+        p.landmark_class[open_slots[fixed]] = CORNER_OR_EDGE
+        p.by_motion[open_slots[fixed]] = True
         p.confidence_sum[open_slots[decided]] = confidence[decided]
         p.confidence_count[open_slots[decided]] = 1.0
-        self._counts.resolved_corner += int(np.count_nonzero(corner))
+        self._counts.resolved_fixed += int(np.count_nonzero(fixed))
         self._counts.resolved_plane += int(np.count_nonzero(plane))
+        self._tell_edges_from_corners(slots)
         return self._points_to_walls(np.concatenate([named_plane, open_slots[plane]]))
+
+    def _tell_edges_from_corners(self, slots) -> None:
+        """Decide the fixed points among ``slots`` (CORNER_OR_EDGE, or named by a ping) by their curvature.
+
+        :func:`sonar_ring.curvature.decide` on the points' two fits; a decision is
+        final, with confidence ``1 - exp(-|Delta| / 2)``, and the point takes the
+        winner's position.
+        """
+        p = self._points
+        fixed = np.isin(p.landmark_class[slots], (CORNER_OR_EDGE, CORNER, EDGE))
+        slots = slots[fixed & ~p.curvature_decided[slots] & (p.modelled[slots] >= 2)]
+        if slots.size == 0:
+            return
+        separation = p.difference[slots, 2] - _quadratic(p.difference[slots, :2], _inverse(p.corner_information[slots]))
+        edge, corner, confidence = decide(p.corner_chi2[slots], p.edge_chi2[slots], separation, p.modelled[slots],
+                                          self.curvature_threshold, self.min_separation)
+        decided = edge | corner
+        p.landmark_class[slots[edge]] = EDGE
+        p.landmark_class[slots[corner]] = CORNER
+        p.mean[slots[edge]] = p.edge_fit[slots[edge]]
+        p.mean[slots[corner]] = p.corner_fit[slots[corner]]
+        p.curvature_decided[slots[decided]] = True
+        p.by_motion[slots[decided]] = False
+        p.confidence_sum[slots[decided]] = confidence[decided]
+        p.confidence_count[slots[decided]] = 1.0
+        self._counts.resolved_edge += int(np.count_nonzero(edge))
+        self._counts.resolved_corner += int(np.count_nonzero(corner))
 
     def _points_to_walls(self, slots) -> np.ndarray:
         """Turn points ``slots`` into walls from their plane hypotheses; the new wall slots.

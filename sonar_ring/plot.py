@@ -23,10 +23,11 @@ from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 
 from sonar_ring.geometry import Layout
-from sonar_ring.landmarks import UNKNOWN, Landmarks, ellipse_outlines
+from sonar_ring.landmarks import CORNER_OR_EDGE, UNKNOWN, Landmarks, ellipse_outlines
 from sonar_ring.simulate import CLASS_NAMES, CORNER, EDGE, PLANE, Ping, Scene
 
-CLASS_COLOURS = {PLANE: "tab:blue", CORNER: "tab:red", EDGE: "tab:green", UNKNOWN: "tab:grey"}
+CLASS_COLOURS = {PLANE: "tab:blue", CORNER: "tab:red", EDGE: "tab:green", CORNER_OR_EDGE: "tab:orange",
+                 UNKNOWN: "tab:grey"}
 """Colour of each class code."""
 
 
@@ -151,7 +152,7 @@ def draw_map(ax, landmarks: Landmarks, sigma: float = 2.0, magnify: float = 1.0)
         ax.add_collection(LineCollection(walls.segment, colors=CLASS_COLOURS[PLANE], linewidths=3.0, alpha=0.75,
                                          label="map: plane", zorder=4))
     points = landmarks.select(landmarks.valid & (landmarks.landmark_class != PLANE))
-    for code in (CORNER, EDGE, UNKNOWN):
+    for code in (CORNER, EDGE, CORNER_OR_EDGE, UNKNOWN):
         chosen = points.select(points.landmark_class == code)
         if len(chosen):
             ax.scatter(*chosen.position.T, s=14, color=CLASS_COLOURS[code], label=f"map: {CLASS_NAMES[code]}",

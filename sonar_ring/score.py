@@ -14,7 +14,8 @@ frame whose pose in the scene's world frame is known) and the scene:
   (walls: both ends within it of the true segment) is **wrong class** when a
   reflector of another class is that near, else a **ghost**;
 * an entry near a reflector of its class but not right is **misplaced**;
-* UNKNOWN entries are **undecided** when near any reflector, else ghosts;
+* UNKNOWN and CORNER_OR_EDGE entries are **undecided** when near any
+  reflector (a corner or edge for the second), else ghosts;
 * a heard reflector without a right entry is **missing**.
 
 Positions: the error of a mapped point (m), the offset of a mapped wall's
@@ -33,7 +34,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sonar_ring.landmarks import CLASS_NAMES, CORNER, EDGE, PLANE, UNKNOWN, Landmarks
+from sonar_ring.landmarks import CLASS_NAMES, CORNER, CORNER_OR_EDGE, EDGE, PLANE, UNKNOWN, Landmarks
 from sonar_ring.mapping import transform_landmarks
 from sonar_ring.simulate import Scene
 
@@ -93,9 +94,9 @@ class MapScore:
     per_class : dict of str to ClassScore
         ``plane``, ``corner`` and ``edge``.
     undecided : int
-        UNKNOWN entries near a true reflector.
+        UNKNOWN entries near a true reflector, and CORNER_OR_EDGE entries near a true corner or edge.
     unknown_ghosts : int
-        UNKNOWN entries near none.
+        UNKNOWN and CORNER_OR_EDGE entries near none.
     point_error : ndarray, shape (P,)
         Distance of each mapped corner and edge from its true point, m.
     wall_offset, wall_angle : ndarray, shape (W,)
@@ -208,7 +209,8 @@ def score_map(landmarks: Landmarks, scene: Scene, heard=None, map_pose=(0.0, 0.0
         else:
             point_error.append(distance[best_entry[matched], matched])
     unknown = world.select(world.landmark_class == UNKNOWN)
-    near = truth.near_any(unknown)
+    fixed = world.select(world.landmark_class == CORNER_OR_EDGE)
+    near = np.concatenate([truth.near_any(unknown), truth.near_points(fixed)])
     return MapScore(per_class=per_class, undecided=int(np.count_nonzero(near)),
                     unknown_ghosts=int(np.count_nonzero(~near)),
                     point_error=np.concatenate(point_error) if point_error else np.empty(0),
@@ -310,6 +312,14 @@ class _Truth:
             distance = np.linalg.norm(entries.position[:, None, :] - points[None, :, :], axis=-1)
             near |= ~wall_entries & (distance <= NEAR_DISTANCE).any(axis=1)
         return near
+
+    def near_points(self, entries: Landmarks) -> np.ndarray:
+        """Whether each entry lies within :data:`NEAR_DISTANCE` of a true corner or edge, (E,)."""
+        points = np.concatenate([self.points[CORNER], self.points[EDGE]])
+        if not len(entries) or not len(points):
+            return np.zeros(len(entries), bool)
+        distance = np.linalg.norm(entries.position[:, None, :] - points[None, :, :], axis=-1)
+        return (distance <= NEAR_DISTANCE).any(axis=1)
 
     def wall_errors(self, entries: Landmarks, reflectors) -> dict:
         """Offset, angle and overshoot of the walls ``entries`` against their reflectors ``reflectors`` (W,)."""

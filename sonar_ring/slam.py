@@ -32,9 +32,10 @@ must not pull the pose towards the wrong model:
 * an UNKNOWN *sighting* is placed with the corner model (Browne s7), which
   for a convex edge is off across the line of sight by about a degree (the
   same way from the same side: fusing does not average it away) and along it
-  by a tenth of a millimetre; a point's UNKNOWN sightings therefore keep only
-  their range (``undecided_bearing_sigma`` across the line of sight), its
-  EDGE or CORNER sightings everything;
+  by a tenth of a millimetre; until its point is told an edge or a corner
+  (:mod:`sonar_ring.curvature`), a point's UNKNOWN sightings keep only their
+  range (``undecided_bearing_sigma`` across the line of sight); once told, the
+  sighting's position under the point's model counts whole;
 * an UNKNOWN *entry* -- still a plane seen head-on or a corner -- predicts the
   same range under both models (to second order) while the sensor has moved
   less than ``undecided_baseline`` across its line of sight; beyond that, until
@@ -62,7 +63,8 @@ from dataclasses import dataclass, field
 import gtsam
 import numpy as np
 
-from sonar_ring.landmarks import UNKNOWN, Landmarks
+from sonar_ring.curvature import PointModels
+from sonar_ring.landmarks import CORNER, EDGE, UNKNOWN, Landmarks
 from sonar_ring.mapping import LandmarkMap, transform_landmarks
 from sonar_ring.poses import compose, inverse, relative_pose
 
@@ -311,8 +313,13 @@ class LandmarkSlam:
 
     # ------------------------------------------------------------------ per ping
 
-    def add_ping(self, landmarks: Landmarks, odometry, time: float, sensor_offset=(0.0, 0.0, 0.0)) -> SlamReport:
+    def add_ping(self, landmarks: Landmarks, odometry, time: float, sensor_offset=(0.0, 0.0, 0.0),
+                 models: PointModels | None = None) -> SlamReport:
         """Add one ping's landmarks (sensor frame) taken with the robot at ``odometry`` (``odom``) at ``time`` s.
+
+        ``models`` are both point models of each landmark (sensor frame,
+        :func:`sonar_ring.curvature.point_models`): the front end's evidence
+        for edge or corner, and a decided point's measurement.
 
         Returns what it did (:class:`SlamReport`).  Never raises on bad data:
         the front end counts unusable landmarks; a non-finite pose skips the ping.
@@ -336,7 +343,15 @@ class LandmarkSlam:
         if not len(landmarks):
             return report
         sensor = compose(pose, offset)
-        placed = self.front.update(self._widened(transform_landmarks(landmarks, sensor), pose, step, offset), sensor)
+        in_map = transform_landmarks(landmarks, sensor)
+        extra = self._pose_spread(in_map.position, pose, step)
+        widened = Landmarks(in_map.landmark_class, in_map.position, in_map.normal, in_map.covariance + extra,
+                            in_map.confidence, in_map.segment, in_map.observations, in_map.group, in_map.echo,
+                            in_map.valid, in_map.reason)
+        models_in_map = None
+        if models is not None:
+            models_in_map = models.transformed(sensor).widened(extra)
+        placed = self.front.update(widened, sensor, models_in_map)
         self._follow_renames(placed.renamed)
         stored = placed.uid >= 0
         rows, uids = placed.rows[stored], placed.uid[stored]
@@ -345,7 +360,8 @@ class LandmarkSlam:
         report.tentative = int(uids.size - report.associated)
         if report.associated:
             self._last_seen_time = time
-        self._remember(landmarks.select(rows), uids, step, offset, sensor)
+        self._remember(landmarks.select(rows), None if models is None else models.select(rows), uids, step, offset,
+                       sensor)
         return report
 
     def _check_odometry(self, odometry: np.ndarray, time: float) -> str:
@@ -360,22 +376,19 @@ class LandmarkSlam:
             return "odometry jump"
         return ""
 
-    def _widened(self, landmarks: Landmarks, pose, step, offset) -> Landmarks:
-        """The landmarks (map frame) with the pose's uncertainty added to their covariances.
+    def _pose_spread(self, position, pose, step) -> np.ndarray:
+        """What the pose's uncertainty adds to the covariance of map-frame positions (L, 2): (L, 2, 2).
 
         A landmark at ``p`` moves by ``dt`` and ``dphi x (p - t)`` when the pose
         moves: ``J = [I, (p - t) turned by 90 deg]`` with the keyframe's covariance
         and the odometry's since (:meth:`_odometry_covariance` of ``step``).
         """
         covariance = self._keyframe_covariance_in_map() + self._odometry_covariance(step, pose[2])
-        lever = landmarks.position - pose[:2]
-        jacobian = np.zeros((len(landmarks), 2, 3))
+        lever = position - pose[:2]
+        jacobian = np.zeros((len(position), 2, 3))
         jacobian[:, 0, 0] = jacobian[:, 1, 1] = 1.0
         jacobian[:, 0, 2], jacobian[:, 1, 2] = -lever[:, 1], lever[:, 0]
-        extra = jacobian @ covariance @ jacobian.transpose(0, 2, 1)
-        return Landmarks(landmarks.landmark_class, landmarks.position, landmarks.normal,
-                         landmarks.covariance + extra, landmarks.confidence, landmarks.segment,
-                         landmarks.observations, landmarks.group, landmarks.echo, landmarks.valid, landmarks.reason)
+        return jacobian @ covariance @ jacobian.transpose(0, 2, 1)
 
     def _keyframe_covariance_in_map(self) -> np.ndarray:
         """The keyframe's marginal covariance (body-frame tangent) as ``(x, y, yaw)`` in ``map``, (3, 3)."""
@@ -399,12 +412,14 @@ class LandmarkSlam:
         covariance[2, 2] = heading
         return covariance
 
-    def _remember(self, landmarks: Landmarks, uids, step, offset, sensor) -> None:
+    def _remember(self, landmarks: Landmarks, models: PointModels | None, uids, step, offset, sensor) -> None:
         """Keep each sighting as a measurement of its entry in the keyframe's robot frame; count its support.
 
-        A point's measurement is its position; a wall's, the foot of the perpendicular from the keyframe's
-        origin onto the wall's line, from the sighting's foot point ``G`` (on the line, perpendicular to the
-        line of sight from the sensor ``S``): the line ``n . x = n . G`` with ``n = (G - S) / |G - S|``.
+        A wall's measurement is the foot of the perpendicular from the keyframe's origin onto the wall's
+        line, from the sighting's foot point ``G`` (on the line, perpendicular to the line of sight from the
+        sensor ``S``): the line ``n . x = n . G`` with ``n = (G - S) / |G - S|``.  A point's is its position
+        under its entry's decided model (an EDGE's edge model, a CORNER's corner model), else the
+        sighting's own keeping only its range (module docstring).
         """
         for uid in np.unique(uids).tolist():
             support = self._support.setdefault(uid, _Support())
@@ -412,21 +427,35 @@ class LandmarkSlam:
             if support.first is None:
                 support.first = sensor[:2].copy()
             support.spread = max(support.spread, float(np.hypot(*(sensor[:2] - support.first))))
-        # sensor frame -> robot frame at the ping -> robot frame at the keyframe
-        in_keyframe = transform_landmarks(transform_landmarks(landmarks, offset), step)
         entries = self.front.entries()
+        classes = dict(zip(entries.uid.tolist(), entries.landmark_class.tolist(), strict=True))
+        entry_class = np.array([classes.get(uid, UNKNOWN) for uid in uids.tolist()], dtype=np.uint8)
         wall = np.isin(uids, entries.uid[entries.is_wall])
-        position = in_keyframe.position.copy()
-        covariance = in_keyframe.covariance + self.settings.sighting_sigma ** 2 * np.eye(2)
+        position = np.array(landmarks.position, dtype=float)
+        covariance = np.array(landmarks.covariance, dtype=float)
+        decided = np.zeros(len(uids), bool)
+        if models is not None:
+            for code, model, model_covariance in ((EDGE, models.edge, models.edge_covariance),
+                                                  (CORNER, models.corner, models.corner_covariance)):
+                chosen = ~wall & models.valid & (entry_class == code)
+                position[chosen] = model[chosen]
+                covariance[chosen] = model_covariance[chosen]
+                decided |= chosen
+        # sensor frame -> robot frame at the ping -> robot frame at the keyframe
+        frame = compose(step, offset)
+        c, s = math.cos(frame[2]), math.sin(frame[2])
+        rotation = np.array([[c, -s], [s, c]])
+        position = position @ rotation.T + frame[:2]
+        covariance = rotation @ covariance @ rotation.T + self.settings.sighting_sigma ** 2 * np.eye(2)
         if wall.any():
-            foot, jacobian = _foot_points(position[wall], compose(step, offset)[:2])
+            foot, jacobian = _foot_points(position[wall], frame[:2])
             position[wall] = foot
             covariance[wall] = jacobian @ covariance[wall] @ jacobian.transpose(0, 2, 1)
-        # An UNKNOWN sighting of a point is placed with the corner model: for an edge its bearing is off by
-        # up to a degree, the same way from the same side, so it keeps only its range (module docstring).
-        ranged = ~wall & (landmarks.landmark_class == UNKNOWN)
+        # A point not yet decided may be an edge placed with the corner model, its bearing up to a degree off,
+        # the same way from the same side: it keeps only its range (module docstring).
+        ranged = ~wall & ~decided & (landmarks.landmark_class != EDGE)
         if ranged.any():
-            covariance[ranged] = _without_bearing(position[ranged] - compose(step, offset)[:2], covariance[ranged],
+            covariance[ranged] = _without_bearing(position[ranged] - frame[:2], covariance[ranged],
                                                   self.settings.undecided_bearing_sigma)
         self._window.pings.append((uids.copy(), wall, position, _inverse(covariance)))
 

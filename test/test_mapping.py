@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
-from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, Landmarks, make_landmarks
+from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, UNKNOWN, Landmarks, make_landmarks
 from sonar_ring.mapping import LandmarkMap, MapCounts, transform_landmarks
 
 # Synthetic scene: the robot drives along +x on y = 0 past a wall on y = WALL_Y (seen from
@@ -221,17 +221,18 @@ def test_unknown_sightings_resolve_into_a_wall_and_a_corner_over_motion():
     for x in xs:
         drive(landmark_map, rng, [x], wall_class=UNKNOWN, corner_class=UNKNOWN)
         counts = landmark_map.counts
-        for name in ("resolved_plane", "resolved_corner"):
+        for name in ("resolved_plane", "resolved_fixed"):
             if getattr(counts, name) and name not in travelled_when_decided:
                 travelled_when_decided[name] = x - xs[0]
     # Nothing is decided before the sensor has moved min_baseline across the line of sight,
     # and both are decided soon after.
-    assert set(travelled_when_decided) == {"resolved_plane", "resolved_corner"}
+    assert set(travelled_when_decided) == {"resolved_plane", "resolved_fixed"}
     for travelled in travelled_when_decided.values():
         assert landmark_map.min_baseline - 1e-9 <= travelled <= 0.5
     snapshot = landmark_map.snapshot()
-    assert_array_equal(np.sort(snapshot.landmark_class), [PLANE, CORNER])
-    wall, corner = by_class(snapshot, PLANE), by_class(snapshot, CORNER)
+    # Motion tells a fixed point from a plane, not a corner from an edge (that is the curvature's).
+    assert_array_equal(np.sort(snapshot.landmark_class), [PLANE, CORNER_OR_EDGE])
+    wall, corner = by_class(snapshot, PLANE), by_class(snapshot, CORNER_OR_EDGE)
     assert wall.confidence[0] >= 0.99 and corner.confidence[0] >= 0.99
     error, sigma = wall_offset_error(wall)
     assert abs(error) <= 3.0 * sigma
@@ -253,7 +254,7 @@ def test_unknown_stays_unknown_without_motion_across_the_line_of_sight(motion):
     snapshot = landmark_map.snapshot()
     assert_array_equal(snapshot.landmark_class, [UNKNOWN])
     assert snapshot.observations[0] + landmark_map.counts.ambiguous == 60
-    assert landmark_map.counts.resolved_plane == landmark_map.counts.resolved_corner == 0
+    assert landmark_map.counts.resolved_plane == landmark_map.counts.resolved_fixed == 0
     assert_allclose(snapshot.confidence, 0.0)
 
 
@@ -287,13 +288,13 @@ def test_classified_sightings_name_unknown_points():
     assert_allclose(snapshot.normal[0], [0.0, -1.0], atol=0.05)
 
 
-def test_edge_sightings_rename_a_corner_named_by_motion_alone():
+def test_edge_sightings_rename_a_fixed_point_named_by_motion_alone():
     rng = np.random.default_rng(8)
     landmark_map = LandmarkMap()
     xs = np.arange(0.0, 1.0, STEP)
     for x in xs:
         landmark_map.update(sightings(rng, np.array([x, 0.0]), [CORNER_POINT], [UNKNOWN]), [x, 0, 0])
-    assert_array_equal(landmark_map.snapshot().landmark_class, [CORNER])
+    assert_array_equal(landmark_map.snapshot().landmark_class, [CORNER_OR_EDGE])
     landmark_map.update(sightings(rng, np.array([xs[-1], 0.0]), [CORNER_POINT], [EDGE], confidence=0.6),
                         [xs[-1], 0, 0])
     snapshot = landmark_map.snapshot()
@@ -535,7 +536,7 @@ def labelled_entries_match_truth(scene, snapshot):
         else:
             error = points - snapshot.position[k]
             nearest = np.argmin(np.hypot(*error.T))
-            assert point_class[nearest] == snapshot.landmark_class[k]
+            assert snapshot.landmark_class[k] in (point_class[nearest], CORNER_OR_EDGE)
             assert mahalanobis2(error[nearest], snapshot.covariance[k]) <= CHI2_2DOF_3SIGMA
             row = nearest - (len(scene.corner_point) if point_class[nearest] == EDGE else 0)
             matched.append(int(np.flatnonzero((scene.reflector_class == point_class[nearest])
@@ -555,7 +556,7 @@ def test_room_end_to_end(room_run, unclassified):
         heard = [f for f in heard if scene.reflector_names[f] not in ("west", "east")]
         unknown = snapshot.select(snapshot.landmark_class == UNKNOWN)
         assert_allclose(np.sort(unknown.position[:, 0]), [0.0, 6.0], atol=0.01)
-        assert landmark_map.counts.resolved_corner == 4
+        assert landmark_map.counts.resolved_fixed == 4
     # Exactly one labelled entry, of the right class and within 3 sigma, for every reflector heard.
     assert sorted(matched) == list(heard)
     # The south wall, driven along, is one segment covering the travel (x 1.2 .. 2.69).

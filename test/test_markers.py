@@ -91,13 +91,13 @@ def test_landmark_arrays_serialize_exactly_as_rclpy_does():
 
 def test_ping_markers_serialize_exactly_as_rclpy_does():
     parts = landmark_markers(some_landmarks(), "landmarks", lifetime=0.5)
-    # unknown, plane, corner, edge
-    assert [p.type for p in parts] == [Marker.POINTS, Marker.LINE_LIST, Marker.POINTS, Marker.POINTS]
+    # unknown, plane, corner, edge, corner or edge (the map's class: none in a ping, its namespace kept)
+    assert [p.type for p in parts] == [Marker.POINTS, Marker.LINE_LIST, Marker.POINTS, Marker.POINTS, Marker.POINTS]
     assert any(len(p.colors) for p in parts)  # the edges' confidences differ: per-point colours
     data = assert_same_as_rclpy(parts, header())
     decoded = deserialize_message(data, MarkerArray)
     assert [m.ns for m in decoded.markers] == ["landmarks/unknown", "landmarks/plane", "landmarks/corner",
-                                               "landmarks/edge"]
+                                               "landmarks/edge", "landmarks/corner_or_edge"]
     assert decoded.markers[0].lifetime.nanosec == 500_000_000
     edge = decoded.markers[3]
     assert len(edge.colors) == len(edge.points) > 0

@@ -15,6 +15,7 @@ from ros_harness import MAP_QOS, executable, spin_until
 from sonar_ring.msg import LandmarkArray
 from visualization_msgs.msg import Marker, MarkerArray
 
+from sonar_ring.landmarks import CLASS_NAMES
 from sonar_ring.ros.classifier import Classifier
 from sonar_ring.ros.convert import echoes_from_cdr, landmarks_from_msg
 from sonar_ring.ros.driver import Driver
@@ -85,8 +86,7 @@ def test_graph_in_one_process_matches_ground_truth(ros):
     assert d2.size > 1000
     assert np.mean(d2 <= CHI2_2DOF_3SIGMA) >= 0.99
     assert_markers_valid(listener.markers[-1])
-    assert {m.ns for m in listener.markers[-1].markers} == {f"landmarks/{c}" for c in
-                                                             ("unknown", "plane", "corner", "edge")}
+    assert {m.ns for m in listener.markers[-1].markers} == {f"landmarks/{c}" for c in CLASS_NAMES}
     for node in [*nodes, listener.node]:
         node.destroy_node()
 

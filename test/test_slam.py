@@ -11,6 +11,7 @@ import pytest
 from numpy.testing import assert_allclose
 
 from sonar_ring import pipeline
+from sonar_ring.curvature import point_models
 from sonar_ring.echoes import screen_ping
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import CORNER, PLANE, Landmarks
@@ -82,7 +83,7 @@ def test_a_pose_offset_is_recovered_from_two_walls_and_a_corner():
     estimates = []
     for k, (found, pose) in enumerate(zip(landmarks, truth, strict=True)):
         odometry = pose if k < 100 else compose(pose, offset * min(1.0, (k - 100) / 10))
-        estimates.append(slam.add_ping(found, odometry, k / RING.ping_rate).pose)
+        estimates.append(slam.add_ping(found, odometry, k / RING.ping_rate, models=point_models(RING, found)).pose)
     classes = slam.snapshot().landmark_class
     assert np.count_nonzero(classes == PLANE) == 2 and np.count_nonzero(classes == CORNER) == 1
     final = relative_pose(truth[-1], estimates[-1])

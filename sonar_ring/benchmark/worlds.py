@@ -112,7 +112,7 @@ def mapped(recorded: Recorded, layout, slam: bool) -> Outcome:
     the odometry.
     """
     settings = pipeline.Settings(sigma_speed=pipeline.ROBOT_SIGMA_SPEED)
-    builder = MapBuilder(MapperSettings(slam=slam, pose_history=None), _Counts())
+    builder = MapBuilder(MapperSettings(slam=slam, pose_history=None, layout=layout), _Counts())
     label_ms, map_ms, estimate = [], [], []
     for k, (echoes, pose) in enumerate(zip(recorded.echoes, recorded.odometry, strict=True)):
         stamp = int(round(1e9 * (1.0 + k / layout.ping_rate)))

@@ -44,7 +44,7 @@ from rclpy.serialization import deserialize_message
 from sonar_ring import poses
 from sonar_ring.cli import realism_field
 from sonar_ring.geometry import load_layout
-from sonar_ring.landmarks import CLASS_NAMES, UNKNOWN
+from sonar_ring.landmarks import CLASS_NAMES, CORNER_OR_EDGE, UNKNOWN
 from sonar_ring.msg import LandmarkArray
 from sonar_ring.progress import progress_bar
 from sonar_ring.realism import PROFILES
@@ -298,7 +298,7 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
         return {
             **figures, "pings": total, "seconds": elapsed, "latency_ms": latency, "world": world,
             "effects": driver.realism.effects(),
-            "map": {CLASS_NAMES[c]: int(np.count_nonzero(snapshot.landmark_class == c)) for c in range(4)},
+            "map": {name: int(np.count_nonzero(snapshot.landmark_class == c)) for c, name in enumerate(CLASS_NAMES)},
             # odom starts at the true first pose, and map at odom's first pose: the map frame is the scene's
             "map_score": score_map(snapshot, driver.scene, heard), "map_frame": mapper.builder.frame,
             "pose_errors": errors,
@@ -326,7 +326,7 @@ def _score(found: dict, truth: dict) -> dict:
     decided = (classes != UNKNOWN) & real
     return {
         "landmarks": int(classes.size),
-        "per_class": {CLASS_NAMES[c]: int(np.count_nonzero(classes == c)) for c in range(4)},
+        "per_class": {name: int(np.count_nonzero(classes == c)) for c, name in enumerate(CLASS_NAMES[:CORNER_OR_EDGE])},
         "of_no_reflector": int(np.count_nonzero(~real)),
         "decided_correct": float(np.mean(classes[decided] == true_classes[decided])) if decided.any() else None,
         "error_percentiles": tuple(np.percentile(error, [50, 95]).tolist()) if error.size else None,

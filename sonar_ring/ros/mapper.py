@@ -35,6 +35,7 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
+from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import Landmarks
 from sonar_ring.map_builder import MapBuilder, MapperSettings
 from sonar_ring.mapping import load_kernels
@@ -88,6 +89,8 @@ SLAM_PARAMS = [
 ]
 
 PARAMS = [
+    Param("layout", "browne_ring", "sensor layout: a name in config/layouts or a YAML path (a ring's echoes tell "
+          "edges from corners over motion)", read_only=True),
     Param("slam", True, "estimate the robot's pose from odometry and landmarks and map in map_frame; false: map in "
           "odom_frame at the odometry's pose", read_only=True),
     Param("map_frame", "map", "frame of the map and of slam/pose with SLAM (REP 105)", read_only=True),
@@ -116,6 +119,7 @@ def mapper_settings(values: dict) -> MapperSettings:
     """The core's settings from the mapper's parameter values (:data:`PARAMS`)."""
     slam = SlamSettings(**{p.name.removeprefix(SLAM_PREFIX): values[p.name] for p in SLAM_PARAMS})
     return MapperSettings(slam=values["slam"], use_odometry=values["use_odometry"],
+                          layout=load_layout(values["layout"]),
                           fixed_pose=tuple(values["fixed_pose"]), sensor_offset=tuple(values["sensor_offset"]),
                           map_frame=values["map_frame"], odom_frame=values["odom_frame"],
                           max_points=values["max_points"], max_walls=values["max_walls"], gate=values["gate"],

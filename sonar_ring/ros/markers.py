@@ -21,13 +21,14 @@ from dataclasses import dataclass
 import numpy as np
 from visualization_msgs.msg import Marker
 
-from sonar_ring.landmarks import CLASS_NAMES, CORNER, EDGE, PLANE, UNKNOWN, Landmarks, ellipse_outlines
+from sonar_ring.landmarks import CLASS_NAMES, CORNER, CORNER_OR_EDGE, EDGE, PLANE, UNKNOWN, Landmarks, ellipse_outlines
 from sonar_ring.ros.convert import Cdr
 
 CLASS_COLOURS = {
     PLANE: (0.15, 0.45, 1.0),
     CORNER: (1.0, 0.3, 0.15),
     EDGE: (0.1, 0.8, 0.3),
+    CORNER_OR_EDGE: (0.95, 0.7, 0.1),
     UNKNOWN: (0.7, 0.7, 0.7),
 }
 """RGB of each class."""

@@ -356,7 +356,7 @@ class OfflineGraph:
     def __init__(self, values: dict, namespace: str, odometry, writer: BagWriter, tally: Tally,
                  layout: Layout) -> None:
         self._mapper = values["mapper"]
-        settings = replace(mapper.mapper_settings(self._mapper), pose_history=None)
+        settings = replace(mapper.mapper_settings(self._mapper), pose_history=None, layout=layout)
         self.builder = MapBuilder(settings, tally)
         self._odometry = odometry if odometry is not None else ([], np.empty((0, 3)))
         for stamp, pose in zip(*self._odometry, strict=True):
