@@ -64,6 +64,7 @@ import numpy as np
 
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import Layout, config_path, read_config, speed_of_sound
+from sonar_ring.image_method import blocked_legs, wall_frames
 
 # The class codes of Landmark.msg, defined once in sonar_ring.landmarks; re-exported
 # because ground truth is labelled with them.
@@ -90,10 +91,6 @@ DEFAULT_REFLECTIVITY = {"plane": 1.0, "corner": 1.0, "edge": 0.3}
 
 DEFAULT_THRESHOLD = 10.0 ** (-30.0 / 20.0)
 """Detection threshold, relative to ``A_max``: -30 dB (Barshan & Kuc, section II)."""
-
-_TIME_EPS = 1e-9
-"""Fraction of a leg's length at either end where crossing a wall is not a
-blockage: legs start and end *on* the reflecting walls."""
 
 
 class SceneError(ValueError):
@@ -609,37 +606,6 @@ def _angle_off_axis(direction, axis):
     return np.arctan2(_cross(axis, direction), _dot(axis, direction))
 
 
-def _blocked(starts, ends, walls):
-    """Whether each leg ``starts[i] -> ends[i]`` crosses any wall.
-
-    Parameters
-    ----------
-    starts, ends : ndarray, shape (n, 2)
-        Leg end points, m.
-    walls : ndarray, shape (W, 2, 2)
-        Wall segments, m.
-
-    Returns
-    -------
-    ndarray of bool, shape (n,)
-        True where a wall crosses the leg strictly between its ends; touching a
-        wall at a leg's end (the leg's own reflection point) does not count, nor
-        does running along a wall (parallel).
-    """
-    p = starts[:, None, :]
-    r = ends[:, None, :] - p
-    a = walls[None, :, 0]
-    s = walls[None, :, 1] - a
-    denominator = _cross(r, s)
-    ap = a - p
-    with np.errstate(divide="ignore", invalid="ignore"):
-        along_leg = _cross(ap, s) / denominator
-        along_wall = _cross(ap, r) / denominator
-    hit = ((denominator != 0) & (along_leg > _TIME_EPS) & (along_leg < 1 - _TIME_EPS)
-           & (along_wall >= 0) & (along_wall <= 1))
-    return hit.any(axis=1)
-
-
 @dataclass
 class Paths:
     """Echo paths of one family (a reflector kind, or an effect's), broadcast over (F, G, M, K).
@@ -810,11 +776,7 @@ class Simulator:
         self._dz = layout.height_offset()  # (G, M, K)
         self._triad = layout.kind == "triad"
         s = scene
-        self.wall_start = s.walls[:, 0]
-        wall_vector = s.walls[:, 1] - s.walls[:, 0]
-        self.wall_length = np.hypot(wall_vector[:, 0], wall_vector[:, 1])
-        self.wall_direction = wall_vector / self.wall_length[:, None]
-        self.wall_normal = np.stack([-self.wall_direction[:, 1], self.wall_direction[:, 0]], axis=-1)
+        self.wall_start, self.wall_direction, self.wall_normal, self.wall_length = wall_frames(s.walls)
         # Reflector index of each row of the walls / corners / edges tables (both in file order).
         self._reflectors = {code: np.flatnonzero(s.reflector_class == code) for code in (PLANE, CORNER, EDGE)}
 
@@ -991,7 +953,7 @@ class Simulator:
         if self.scene.walls.size and index[0].size:
             starts = np.concatenate([np.broadcast_to(start, shape + (2,))[index] for start, _ in paths.legs])
             ends = np.concatenate([np.broadcast_to(end, shape + (2,))[index] for _, end in paths.legs])
-            blocked = _blocked(starts, ends, self.scene.walls).reshape(len(paths.legs), -1).any(axis=0)
+            blocked = blocked_legs(starts, ends, self.scene.walls).reshape(len(paths.legs), -1).any(axis=0)
             index = tuple(i[~blocked] for i in index)
         f, g, m, k = index
         # Barshan & Kuc eqs 3-4: the product of the transmit and receive Gaussian gains.
