@@ -730,6 +730,37 @@ class Heard:
         return Heard(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Heard)))
 
 
+def place(layout: Layout, pose) -> Placement:
+    """A layout's transducers in a world frame (a scene's, a map's) with the sensor at ``pose``.
+
+    Parameters
+    ----------
+    layout : Layout
+    pose : array_like, shape (3,)
+        Sensor pose ``(x, y, yaw)`` in that frame, m and rad.
+
+    Raises
+    ------
+    ValueError
+        If ``pose`` is not three finite numbers.
+    """
+    pose = np.asarray(pose, dtype=float)
+    if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+        raise ValueError(f"place: pose must be finite (x, y, yaw), got {pose!r}")
+    cos_yaw, sin_yaw = math.cos(pose[2]), math.sin(pose[2])
+    rotation = np.array([[cos_yaw, -sin_yaw], [sin_yaw, cos_yaw]])
+    tx_yaw = layout.transmitter_yaw[layout.group_transmitters] + pose[2]
+    rx_yaw = layout.receiver_yaw[layout.groups] + pose[2]
+    return Placement(
+        pose=pose,
+        rotation=rotation,
+        tx=layout.transmitters[layout.group_transmitters][..., :2] @ rotation.T + pose[:2],
+        rx=layout.receivers[layout.groups][..., :2] @ rotation.T + pose[:2],
+        tx_axis=np.stack([np.cos(tx_yaw), np.sin(tx_yaw)], axis=-1)[:, :, None, :],
+        rx_axis=np.stack([np.cos(rx_yaw), np.sin(rx_yaw)], axis=-1)[:, None, :, :],
+    )
+
+
 class Simulator:
     """Forward model of one sensor layout in one scene.
 
@@ -768,11 +799,6 @@ class Simulator:
         self.half_angle = transducer_half_angle(layout, self.speed)
         self.period = 1.0 / layout.frequency
         self.max_path = 2.0 * layout.max_range
-        # Sensor-frame transducers per (group, transmitter slot) and (group, receiver column).
-        self._tx = layout.transmitters[layout.group_transmitters]  # (G, M, 3)
-        self._tx_yaw = layout.transmitter_yaw[layout.group_transmitters]  # (G, M)
-        self._rx = layout.receivers[layout.groups]  # (G, K, 3)
-        self._rx_yaw = layout.receiver_yaw[layout.groups]  # (G, K)
         self._dz = layout.height_offset()  # (G, M, K)
         self._triad = layout.kind == "triad"
         s = scene
@@ -891,28 +917,14 @@ class Simulator:
         return self.echo_rows(measured, placement, noise, rng, time, self.speed)
 
     def place(self, pose) -> Placement:
-        """The sensor's transducers in the world at ``pose`` (x, y, yaw; m, rad).
+        """The sensor's transducers in the world at ``pose`` (x, y, yaw; m, rad): :func:`place`.
 
         Raises
         ------
         ValueError
             If ``pose`` is not three finite numbers.
         """
-        pose = np.asarray(pose, dtype=float)
-        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
-            raise ValueError(f"Simulator.ping: pose must be finite (x, y, yaw), got {pose!r}")
-        cos_yaw, sin_yaw = math.cos(pose[2]), math.sin(pose[2])
-        rotation = np.array([[cos_yaw, -sin_yaw], [sin_yaw, cos_yaw]])
-        tx_yaw = self._tx_yaw + pose[2]
-        rx_yaw = self._rx_yaw + pose[2]
-        return Placement(
-            pose=pose,
-            rotation=rotation,
-            tx=self._tx[..., :2] @ rotation.T + pose[:2],
-            rx=self._rx[..., :2] @ rotation.T + pose[:2],
-            tx_axis=np.stack([np.cos(tx_yaw), np.sin(tx_yaw)], axis=-1)[:, :, None, :],
-            rx_axis=np.stack([np.cos(rx_yaw), np.sin(rx_yaw)], axis=-1)[:, None, :, :],
-        )
+        return place(self.layout, pose)
 
     def reflections(self, placement: Placement, max_path: float | None = None) -> Heard:
         """What the scene's walls, corners and edges return to the sensor at ``placement`` (no noise).
@@ -1004,7 +1016,7 @@ class Simulator:
         K = self.layout.receivers_per_group
         pose = placement.pose
         # One row per (source, group, transmitter slot); receivers are its columns.
-        n_slots = self._tx.shape[1]
+        n_slots = self.layout.group_transmitters.shape[1]
         key = (c.source * self.layout.n_groups + c.group) * n_slots + c.slot
         row_key, row = np.unique(key, return_inverse=True)
         N = row_key.size
