@@ -1,11 +1,14 @@
 """Sound paths between walls and points: legs that cross a wall, double bounces by the image method.
 
-One geometry for the world and for the map: the forward model
-(:mod:`sonar_ring.simulate`) blocks its paths with :func:`blocked_legs`, the realistic
-world (:mod:`sonar_ring.realism`) makes its multipath echoes with
-:func:`double_bounces` from the scene's walls and edges, and the map's explanation
-of echoes (:mod:`sonar_ring.explain`) predicts the same paths from the map's walls
-and points, with the same functions.
+One geometry for the world and for the map.  The forward model
+(:mod:`sonar_ring.simulate`) blocks its paths with :func:`blocked_legs` and
+measures its walls with :func:`wall_frames`; the realistic world
+(:mod:`sonar_ring.realism`) makes its multipath echoes with :func:`double_bounces`
+from the scene's walls and edges; the map's explanation of echoes
+(:mod:`sonar_ring.explain`) predicts the same paths from the map's walls and
+points with :func:`map_paths`, which bounces by the same functions, matches
+echoes to them with :func:`match_rows` and tests landmark hypotheses with
+:func:`reflections_blocked`, which blocks by the same test.
 
 Walls are vertical planes given as segments ``[[x0, y0], [x1, y1]]``
 (:func:`wall_frames` gives each its start, unit direction, unit normal and
@@ -18,17 +21,23 @@ double bounce from transmitter ``T`` to receiver ``R`` is one of
 * **wall -> point** (``a`` then ``P``): ``|T_a - P| + |P - R|``, the bounce where
   ``P -> T_a`` crosses ``a``;
 * **point -> wall** (``P`` then ``b``): ``|T - P| + |P - R_b|``, the bounce where
-  ``P -> R_b`` crosses ``b``.
+  ``P -> R_b`` crosses ``b``;
 
-A path exists where every bounce lies on its wall's segment (within ``margin``
-of it) and comes from the side the sound arrives on: each crossing is strict, so
-a point on a wall's line, or a transducer on it, has no path by that wall.
+and a single bounce, an entry's own echo, is a wall's (``|T_b - R|``, the
+bounce where ``R -> T_b`` crosses ``b``) or a point's (``|T - P| + |P - R|``).  A
+path exists where every bounce lies on its wall's segment (within ``margin`` of
+it) and comes from the side the sound arrives on: each crossing is strict, so a
+point on a wall's line, or a transducer on it, has no path by that wall.  The
+3-D path is ``sqrt(h**2 + dz**2)`` of the horizontal one ``h``, ``dz`` the
+transmitter's height above the receiver's.
 
 All positions in one frame (the world's or the map's), m.  The loops are numba
 kernels (:mod:`sonar_ring.compiled`): a ping's paths are thousands of scalar
 computations, each a few operations, where numpy would spend its time starting
 operations.  Their arithmetic is that of the numpy code they replaced, operation
-for operation, so the realistic world's echoes are the same to the last bit.
+for operation, so the forward model's and the realistic world's echoes are the
+same to the last bit.  One module, because a kernel calls kernels of its own
+module only.
 """
 
 from __future__ import annotations
@@ -42,35 +51,48 @@ from sonar_ring.compiled import kernel
 WALL_WALL, WALL_POINT, POINT_WALL = 0, 1, 2
 """Kinds of double bounce: first reflector then second (:func:`double_bounces`)."""
 
-KIND_NAMES = ("wall-wall", "wall-point", "point-wall")
+WALL, POINT = 3, 4
+"""Kinds of single bounce, a reflector's own echo (:func:`map_paths` predicts them beside the double bounces)."""
+
+KIND_NAMES = ("wall-wall", "wall-point", "point-wall", "wall", "point")
 """Name of each kind code, indexable by the code."""
+
+_SLACK = 1e-9
+"""m and rad added to the pruning's cones, sides and extents, so that rounding never drops a path at their edge."""
 
 LEG_END_FRACTION = 1e-9
 """Fraction of a leg's length at either end where crossing a wall is not a
 blockage: legs start and end *on* the reflecting walls."""
 
 
-def wall_frames(walls) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+@kernel
+def wall_frames(walls):
     """Start, unit direction, unit normal and length of wall segments.
 
     Parameters
     ----------
     walls : ndarray, shape (W, 2, 2)
-        Segments ``[[x0, y0], [x1, y1]]`` of non-zero length, m.
+        Segments ``[[x0, y0], [x1, y1]]``, m.
 
     Returns
     -------
     start, direction, normal : ndarray, shape (W, 2)
         First end point (m), unit vector from it to the second, and that vector
-        turned 90 deg counter-clockwise.
+        turned 90 deg counter-clockwise (NaN for a segment of no length).
     length : ndarray, shape (W,)
         m.
     """
-    start = walls[:, 0]
-    vector = walls[:, 1] - walls[:, 0]
-    length = np.hypot(vector[:, 0], vector[:, 1])
-    direction = vector / length[:, None]
-    normal = np.stack([-direction[:, 1], direction[:, 0]], axis=-1)
+    count = walls.shape[0]
+    start = np.empty((count, 2))
+    direction = np.empty((count, 2))
+    normal = np.empty((count, 2))
+    length = np.empty(count)
+    for w in range(count):
+        start[w, 0], start[w, 1] = walls[w, 0, 0], walls[w, 0, 1]
+        vector_x, vector_y = walls[w, 1, 0] - walls[w, 0, 0], walls[w, 1, 1] - walls[w, 0, 1]
+        length[w] = math.hypot(vector_x, vector_y)
+        direction[w, 0], direction[w, 1] = vector_x / length[w], vector_y / length[w]
+        normal[w, 0], normal[w, 1] = -direction[w, 1], direction[w, 0]
     return start, direction, normal, length
 
 
@@ -82,7 +104,7 @@ def load_kernels() -> None:
     """
     walls = np.array([[[0.0, 0.0], [1.0, 0.0]], [[1.0, 0.0], [1.0, 1.0]]])
     blocked_legs(np.zeros((1, 2)), np.ones((1, 2)), walls)
-    start, direction, normal, length = (np.ascontiguousarray(a) for a in wall_frames(walls))
+    start, direction, normal, length = wall_frames(walls)
     index = np.zeros(1, dtype=np.int64)
     double_bounces(index, index, index + 1, index, index, start, direction, normal, length, np.zeros((1, 2)),
                    np.full((1, 1, 2), 0.5), np.full((1, 2, 2), 0.5), 0.0)
@@ -112,23 +134,27 @@ def blocked_legs(starts, ends, walls):
     """
     hit = np.zeros(starts.shape[0], dtype=np.bool_)
     for i in range(starts.shape[0]):
-        hit[i] = _leg_blocked(starts[i, 0], starts[i, 1], ends[i, 0], ends[i, 1], walls)
+        hit[i] = _leg_blocked(starts[i, 0], starts[i, 1], ends[i, 0], ends[i, 1], walls, 0.0)
     return hit
 
 
 @kernel
-def _leg_blocked(x0, y0, x1, y1, walls):
-    """:func:`blocked_legs` for one leg ``(x0, y0) -> (x1, y1)``."""
+def _leg_blocked(x0, y0, x1, y1, walls, wall_margin):
+    """:func:`blocked_legs` for one leg ``(x0, y0) -> (x1, y1)``.
+
+    Crossings within ``wall_margin`` (m) of a wall's ends do not count (0: every crossing does).
+    """
     rx, ry = x1 - x0, y1 - y0
     for w in range(walls.shape[0]):
         ax, ay = walls[w, 0, 0], walls[w, 0, 1]
         sx, sy = walls[w, 1, 0] - ax, walls[w, 1, 1] - ay
+        trim = wall_margin / math.hypot(sx, sy) if wall_margin > 0 else 0.0
         denominator = rx * sy - ry * sx
         apx, apy = ax - x0, ay - y0
         along_leg = (apx * sy - apy * sx) / denominator
         along_wall = (apx * ry - apy * rx) / denominator
         if (denominator != 0 and along_leg > LEG_END_FRACTION and along_leg < 1 - LEG_END_FRACTION
-                and along_wall >= 0 and along_wall <= 1):
+                and along_wall >= trim and along_wall <= 1 - trim):
             return True
     return False
 
@@ -240,24 +266,767 @@ def _wall_wall(tx_x, tx_y, rx_x, rx_y, a, b, start, direction, normal, length, m
 
 
 @kernel
+def _via_wall(p_x, p_y, x, y, wall, start, direction, normal, length, margin):
+    """Point P and a transducer X by way of ``wall``: ``(|P - X_w|, exists, bounce x, y)``.
+
+    ``X_w`` is the image of X in the wall; the bounce is where ``P -> X_w``
+    crosses it, and exists where that is on the segment (P and X on one side).
+    """
+    x_side = _side(x, y, wall, start, normal)
+    image_x, image_y = x - 2.0 * x_side * normal[wall, 0], y - 2.0 * x_side * normal[wall, 1]
+    p_side = _side(p_x, p_y, wall, start, normal)
+    bounce_x, bounce_y, on_wall = _crossing(p_x, p_y, p_side, image_x, image_y, -x_side, wall, start, direction,
+                                            length, margin)
+    return math.hypot(p_x - image_x, p_y - image_y), on_wall, bounce_x, bounce_y
+
+
+@kernel
 def _wall_point(tx_x, tx_y, rx_x, rx_y, a, p_x, p_y, start, direction, normal, length, margin):
     """T -> wall ``a`` -> point P -> R: ``(horizontal, exists, first x, y, last x, y)``."""
-    t_side = _side(tx_x, tx_y, a, start, normal)
-    image_x, image_y = tx_x - 2.0 * t_side * normal[a, 0], tx_y - 2.0 * t_side * normal[a, 1]
-    p_side = _side(p_x, p_y, a, start, normal)
-    bounce_x, bounce_y, on_wall = _crossing(p_x, p_y, p_side, image_x, image_y, -t_side, a, start, direction, length,
-                                            margin)
-    horizontal = math.hypot(p_x - image_x, p_y - image_y) + math.hypot(p_x - rx_x, p_y - rx_y)
-    return horizontal, on_wall, bounce_x, bounce_y, p_x, p_y
+    out, on_wall, bounce_x, bounce_y = _via_wall(p_x, p_y, tx_x, tx_y, a, start, direction, normal, length, margin)
+    return out + math.hypot(p_x - rx_x, p_y - rx_y), on_wall, bounce_x, bounce_y, p_x, p_y
 
 
 @kernel
 def _point_wall(tx_x, tx_y, rx_x, rx_y, p_x, p_y, b, start, direction, normal, length, margin):
     """T -> point P -> wall ``b`` -> R: ``(horizontal, exists, first x, y, last x, y)``."""
-    r_side = _side(rx_x, rx_y, b, start, normal)
-    image_x, image_y = rx_x - 2.0 * r_side * normal[b, 0], rx_y - 2.0 * r_side * normal[b, 1]
-    p_side = _side(p_x, p_y, b, start, normal)
-    bounce_x, bounce_y, on_wall = _crossing(p_x, p_y, p_side, image_x, image_y, -r_side, b, start, direction, length,
-                                            margin)
-    horizontal = math.hypot(p_x - tx_x, p_y - tx_y) + math.hypot(p_x - image_x, p_y - image_y)
-    return horizontal, on_wall, p_x, p_y, bounce_x, bounce_y
+    back, on_wall, bounce_x, bounce_y = _via_wall(p_x, p_y, rx_x, rx_y, b, start, direction, normal, length, margin)
+    return math.hypot(p_x - tx_x, p_y - tx_y) + back, on_wall, p_x, p_y, bounce_x, bounce_y
+
+
+# --------------------------------------------------------------------------- the map's paths to one ping
+
+
+@kernel
+def junctions(walls, points, gap):
+    """Which walls meet, and which points lie on a wall: within ``gap`` (m) of each other.
+
+    Parameters
+    ----------
+    walls : ndarray, shape (W, 2, 2)
+        Segments, m.
+    points : ndarray, shape (P, 2)
+        m.
+    gap : float
+        m.
+
+    Returns
+    -------
+    meet : ndarray of bool, shape (W, W)
+        Symmetric: the segments cross or come within ``gap`` of each other.
+    on_wall : ndarray of bool, shape (W, P)
+        The point is within ``gap`` of the segment.
+    """
+    count = walls.shape[0]
+    meet = np.zeros((count, count), dtype=np.bool_)
+    on_wall = np.zeros((count, points.shape[0]), dtype=np.bool_)
+    for a in range(count):
+        for b in range(a + 1, count):
+            near = _segments_cross(walls, a, b)
+            for end in range(2):
+                near = near or _segment_distance(walls[b, end, 0], walls[b, end, 1], walls, a) <= gap
+                near = near or _segment_distance(walls[a, end, 0], walls[a, end, 1], walls, b) <= gap
+            meet[a, b] = meet[b, a] = near
+        for p in range(points.shape[0]):
+            on_wall[a, p] = _segment_distance(points[p, 0], points[p, 1], walls, a) <= gap
+    return meet, on_wall
+
+
+@kernel
+def map_paths(start, direction, normal, length, walls, points, excluded_pair, excluded_point, tx, rx, tx_axis,
+              rx_axis, height_offset, transmitter, row_channel, row_paths, pose, spread, window, acceptance,
+              yaw_margin, position_margin, extent_margin, pose_covariance, sigma_path, sigma_speed, sigma_map, gate,
+              fixed_variance, isotropic, prune, gated):
+    """The double-bounce paths a map of walls and points sends to the receivers of one ping's channels.
+
+    The engine of :func:`sonar_ring.explain.predict`, whose docstring gives the
+    model, the margins and the pruning.  Paths exist as :func:`double_bounces`
+    says (within ``extent_margin`` of the segments), fit the ``window`` (3-D
+    length with ``height_offset``), arrive within the acceptance angle widened
+    to ``acceptance + yaw_margin + position_margin / distance`` (and leave a
+    directional transmitter within it), and have no leg that crosses one of
+    ``walls`` farther than ``extent_margin`` from its reflecting ends.  Three
+    passes: the candidates that pass the pruning, with their lengths; where
+    ``gated``, those near a measured row; their geometry and tests.
+
+    Parameters
+    ----------
+    start, direction, normal : ndarray, shape (W, 2)
+        The walls as :func:`wall_frames` gives them, m.
+    length : ndarray, shape (W,)
+        m.
+    walls : ndarray, shape (W, 2, 2)
+        The same walls as segments, which block legs.  Walls of no length or
+        with a non-finite value give no path.
+    points : ndarray, shape (P, 2)
+        Diffracting points, m; non-finite ones give no path.
+    excluded_pair : ndarray of bool, shape (W, W)
+        Wall pairs whose double bounce is not a path to predict (a corner's own echo).
+    excluded_point : ndarray of bool, shape (W, P)
+        Wall and point pairs likewise (a wall's end or corner).
+    tx, rx : ndarray, shape (G, M, 2) and (G, K, 2)
+        Transmitters and receivers, m (:class:`sonar_ring.simulate.Placement`).
+    tx_axis, rx_axis : ndarray, shape (G, M, 1, 2) and (G, 1, K, 2)
+        Their unit axes.
+    height_offset : ndarray, shape (G, M, K)
+        Transmitter minus receiver height, m.
+    transmitter : ndarray of int, shape (G, M)
+        Which transmitter each slot is (what depends on the transmitter alone is computed once).
+    row_channel : ndarray of int, shape (N,)
+        Channel ``group * M + slot`` of each echo row: the channels to predict.
+    row_paths : ndarray, shape (N, K)
+        Where ``gated``, the rows' measured paths, m, NaN where not heard.
+    pose : ndarray, shape (3,)
+        The sensor's pose (x, y, yaw), m and rad.
+    spread : float
+        The transducers' largest distance from the pose's position, m.
+    window : float
+        Longest 3-D path, m.
+    acceptance, yaw_margin : float
+        rad.
+    position_margin, extent_margin : float
+        m.
+    pose_covariance : ndarray, shape (3, 3)
+    sigma_path, sigma_speed, sigma_map, gate : float
+        Where ``gated``, a path is kept only if some row of its channel is
+        within Mahalanobis distance ``gate`` of it (:func:`match_rows`).
+    fixed_variance : float
+        The largest variance of a receiver's path but for the speed's term, m^2:
+        before computing a path's geometry, a row must be within ``gate``
+        standard deviations of it at every receiver that heard it.
+    isotropic, prune, gated : bool
+        An isotropic emitter (no transmit beam); prune (:mod:`sonar_ring.explain`,
+        "Pruning"); keep only paths near a measured row.
+
+    Returns
+    -------
+    kind, first, second, group, slot : ndarray of int, shape (Q,)
+        Each path's kind, reflectors (rows of the walls or points) and channel, sorted by channel.
+    path : ndarray, shape (Q, K)
+        3-D length to each receiver, m, NaN where that receiver gets none.
+    jacobian : ndarray, shape (Q, K, 3)
+        Its derivative by the pose (x, y, yaw): ``h / d (e_T + e_R, e_T . (T - S)^perp + e_R . (R - S)^perp)``.
+    first_point, last_point : ndarray, shape (Q, K, 2)
+        The first and the last reflection, m.
+    channel_start : ndarray of int, shape (G * M + 1,)
+        The paths of channel ``i`` are rows ``channel_start[i]:channel_start[i + 1]``.
+    """
+    n_walls, n_points = start.shape[0], points.shape[0]
+    slots, receivers = tx.shape[1], rx.shape[1]
+    all_channels = tx.shape[0] * slots
+    # The rows of each channel (a counting sort), and the channels that have rows.
+    row_start = np.zeros(all_channels + 1, dtype=np.int64)
+    for n in range(row_channel.shape[0]):
+        row_start[row_channel[n] + 1] += 1
+    channels = 0
+    for i in range(all_channels):
+        channels += row_start[i + 1] > 0
+        row_start[i + 1] += row_start[i]
+    row_order = np.empty(row_channel.shape[0], dtype=np.int64)
+    filled = row_start.copy()
+    for n in range(row_channel.shape[0]):
+        row_order[filled[row_channel[n]]] = n
+        filled[row_channel[n]] += 1
+    channel_id = np.empty(channels, dtype=np.int64)
+    c = 0
+    for i in range(all_channels):
+        if row_start[i + 1] > row_start[i]:
+            channel_id[c] = i
+            c += 1
+
+    ends = np.empty((n_walls, 2, 2))
+    for w in range(n_walls):
+        for axis in range(2):
+            ends[w, 0, axis] = start[w, axis] - extent_margin * direction[w, axis]
+            ends[w, 1, axis] = start[w, axis] + (length[w] + extent_margin) * direction[w, axis]
+    # Range: entries farther than this from the centre give no path.
+    reach = 0.5 * window + spread + _SLACK
+    wall_near = np.ones(n_walls, dtype=np.bool_)
+    point_near = np.ones(n_points, dtype=np.bool_)
+    # Beam: an entry's paths arrive within ``acceptance + yaw_margin + position_margin / distance`` of a
+    # transducer's axis, the distance at least the entry's from the centre less the spread: the widest such
+    # cone of each entry, as its half-angle's cosine and sine (NaN: as wide as a half-plane or more, all seen).
+    wall_cone = np.full((n_walls, 2), np.nan)
+    point_cone = np.full((n_points, 2), np.nan)
+    for w in range(n_walls):
+        distance = _segment_distance(pose[0], pose[1], ends, w)
+        usable = np.isfinite(length[w]) and length[w] > 0 and np.isfinite(start[w, 0]) and np.isfinite(start[w, 1])
+        wall_near[w] = usable and (not prune or distance <= reach)
+        _widest_cone(wall_cone, w, distance - spread, acceptance, yaw_margin, position_margin, prune)
+    for p in range(n_points):
+        distance = math.hypot(points[p, 0] - pose[0], points[p, 1] - pose[1])
+        point_near[p] = np.isfinite(distance) and (not prune or distance <= reach)
+        _widest_cone(point_cone, p, distance - spread, acceptance, yaw_margin, position_margin, prune)
+    # Sides of every wall's (extended) ends and of every point from each wall's line.
+    end_side = np.empty((n_walls, n_walls, 2))
+    point_side = np.empty((n_walls, n_points))
+    for a in range(n_walls):
+        for b in range(n_walls):
+            for end in range(2):
+                end_side[a, b, end] = _side(ends[b, end, 0], ends[b, end, 1], a, start, normal)
+        for p in range(n_points):
+            point_side[a, p] = _side(points[p, 0], points[p, 1], a, start, normal)
+
+    # What each receiver of each channel sees: walls with a part in its cone, with the cone from its image
+    # in the wall through that part (where first reflections lie), and points in its cone; a directional
+    # transmitter's cone likewise marks what it sends to.
+    wall_seen = np.zeros((channels, receivers, n_walls), dtype=np.bool_)
+    wall_seen_any = np.zeros((channels, n_walls), dtype=np.bool_)
+    mirror = np.zeros((channels, receivers, n_walls, 6))
+    point_seen_any = np.zeros((channels, n_points), dtype=np.bool_)
+    wall_sent = np.ones((channels, n_walls), dtype=np.bool_)
+    point_sent = np.ones((channels, n_points), dtype=np.bool_)
+    for c in range(channels):
+        g, m = channel_id[c] // slots, channel_id[c] % slots
+        for k in range(receivers):
+            rx_x, rx_y, axis_x, axis_y = rx[g, k, 0], rx[g, k, 1], rx_axis[g, 0, k, 0], rx_axis[g, 0, k, 1]
+            for w in range(n_walls):
+                if wall_near[w]:
+                    seen, low, high = _part_in_cone(rx_x, rx_y, axis_x, axis_y, wall_cone, ends, w)
+                    wall_seen[c, k, w] = seen
+                    wall_seen_any[c, w] = wall_seen_any[c, w] or seen
+                    if seen and prune:
+                        _mirror_cone(mirror, c, k, rx_x, rx_y, w, ends, low, high, start, normal)
+            for p in range(n_points):
+                point_seen_any[c, p] = point_seen_any[c, p] or (
+                    point_near[p] and _in_cone(rx_x, rx_y, axis_x, axis_y, point_cone, points, p))
+        if not isotropic:
+            for w in range(n_walls):
+                wall_sent[c, w] = _part_in_cone(tx[g, m, 0], tx[g, m, 1], tx_axis[g, m, 0, 0], tx_axis[g, m, 0, 1],
+                                                wall_cone, ends, w)[0]
+            for p in range(n_points):
+                point_sent[c, p] = _in_cone(tx[g, m, 0], tx[g, m, 1], tx_axis[g, m, 0, 0], tx_axis[g, m, 0, 1],
+                                            point_cone, points, p)
+
+    # What depends on the transmitter alone, computed once for all its channels: its images in every wall
+    # and pair of walls, its distance to every point, and the first bounce of every wall -> point path.
+    n_transmitters = 0
+    for c in range(channels):
+        n_transmitters = max(n_transmitters, transmitter[channel_id[c] // slots, channel_id[c] % slots] + 1)
+    double_image = np.empty((n_transmitters, n_walls, n_walls, 2))
+    to_point = np.empty((n_transmitters, n_points))
+    via_length = np.empty((n_transmitters, n_walls, n_points))
+    via_exists = np.zeros((n_transmitters, n_walls, n_points), dtype=np.bool_)
+    via_bounce = np.empty((n_transmitters, n_walls, n_points, 2))
+    done = np.zeros(n_transmitters, dtype=np.bool_)
+    for c in range(channels):
+        g, m = channel_id[c] // slots, channel_id[c] % slots
+        t = transmitter[g, m]
+        if done[t]:
+            continue
+        done[t] = True
+        tx_x, tx_y = tx[g, m, 0], tx[g, m, 1]
+        for p in range(n_points):
+            to_point[t, p] = math.hypot(points[p, 0] - tx_x, points[p, 1] - tx_y)
+        for a in range(n_walls):
+            side = _side(tx_x, tx_y, a, start, normal)
+            image_x, image_y = tx_x - 2.0 * side * normal[a, 0], tx_y - 2.0 * side * normal[a, 1]
+            for b in range(n_walls):
+                side = _side(image_x, image_y, b, start, normal)
+                double_image[t, a, b, 0] = image_x - 2.0 * side * normal[b, 0]
+                double_image[t, a, b, 1] = image_y - 2.0 * side * normal[b, 1]
+            for p in range(n_points):
+                if wall_near[a] and point_near[p] and not excluded_point[a, p]:
+                    (via_length[t, a, p], via_exists[t, a, p], via_bounce[t, a, p, 0],
+                     via_bounce[t, a, p, 1]) = _via_wall(points[p, 0], points[p, 1], tx_x, tx_y, a, start, direction,
+                                                         normal, length, extent_margin)
+
+    # Pass 1: the candidates that pass the pruning, with their horizontal lengths (walls' bounces not yet
+    # placed).  At most: every seen wall or point alone, and last with every entry (a point: every wall) first.
+    capacity = 0
+    for c in range(channels):
+        for w in range(n_walls):
+            capacity += (1 + n_walls + n_points) * wall_seen_any[c, w]
+        for p in range(n_points):
+            capacity += (1 + n_walls) * point_seen_any[c, p]
+    kind = np.empty(capacity, dtype=np.int64)
+    first = np.empty(capacity, dtype=np.int64)
+    second = np.empty(capacity, dtype=np.int64)
+    channel = np.empty(capacity, dtype=np.int64)
+    horizontal = np.empty((capacity, receivers))
+    transmitter_side = np.empty(n_walls)
+    receiver_side = np.empty(receivers)
+    receiver_image = np.empty((receivers, 2))
+    count = 0
+    for c in range(channels):
+        g, m = channel_id[c] // slots, channel_id[c] % slots
+        t = transmitter[g, m]
+        for a in range(n_walls):
+            transmitter_side[a] = _side(tx[g, m, 0], tx[g, m, 1], a, start, normal)
+        for b in range(n_walls):
+            if not wall_seen_any[c, b]:
+                continue
+            for k in range(receivers):
+                receiver_side[k] = _side(rx[g, k, 0], rx[g, k, 1], b, start, normal)
+                receiver_image[k, 0] = rx[g, k, 0] - 2.0 * receiver_side[k] * normal[b, 0]
+                receiver_image[k, 1] = rx[g, k, 1] - 2.0 * receiver_side[k] * normal[b, 1]
+                horizontal[count, k] = math.hypot(tx[g, m, 0] - receiver_image[k, 0],
+                                                  tx[g, m, 1] - receiver_image[k, 1])
+            kind[count], first[count], second[count], channel[count] = WALL, b, b, c
+            count += 1
+            for a in range(n_walls):
+                if a == b or excluded_pair[a, b] or not wall_near[a] or not wall_sent[c, a]:
+                    continue
+                if prune:
+                    if max(end_side[a, b, 0] * transmitter_side[a], end_side[a, b, 1] * transmitter_side[a]) <= -_SLACK:
+                        continue  # no part of b on the transmitter's side of a
+                    kept = False
+                    for k in range(receivers):
+                        kept = kept or (
+                            wall_seen[c, k, b]
+                            and max(end_side[b, a, 0] * receiver_side[k],
+                                    end_side[b, a, 1] * receiver_side[k]) > -_SLACK
+                            and _clip_to_wedge(mirror[c, k, b, 0], mirror[c, k, b, 1], mirror[c, k, b, 2],
+                                               mirror[c, k, b, 3], mirror[c, k, b, 4], mirror[c, k, b, 5], ends, a)[0])
+                    if not kept:
+                        continue
+                for k in range(receivers):
+                    horizontal[count, k] = math.hypot(double_image[t, a, b, 0] - rx[g, k, 0],
+                                                      double_image[t, a, b, 1] - rx[g, k, 1])
+                kind[count], first[count], second[count], channel[count] = WALL_WALL, a, b, c
+                count += 1
+            for p in range(n_points):
+                if excluded_point[b, p] or not point_near[p] or not point_sent[c, p]:
+                    continue
+                if prune:
+                    kept = False
+                    for k in range(receivers):
+                        kept = kept or (
+                            wall_seen[c, k, b] and point_side[b, p] * receiver_side[k] > -_SLACK
+                            and _in_wedge(mirror[c, k, b, 0], mirror[c, k, b, 1], mirror[c, k, b, 2],
+                                          mirror[c, k, b, 3], mirror[c, k, b, 4], mirror[c, k, b, 5], points[p, 0],
+                                          points[p, 1]))
+                    if not kept:
+                        continue
+                for k in range(receivers):
+                    horizontal[count, k] = to_point[t, p] + math.hypot(points[p, 0] - receiver_image[k, 0],
+                                                                       points[p, 1] - receiver_image[k, 1])
+                kind[count], first[count], second[count], channel[count] = POINT_WALL, p, b, c
+                count += 1
+        for p in range(n_points):
+            if not point_seen_any[c, p]:
+                continue
+            for k in range(receivers):
+                horizontal[count, k] = to_point[t, p] + math.hypot(points[p, 0] - rx[g, k, 0],
+                                                                   points[p, 1] - rx[g, k, 1])
+            kind[count], first[count], second[count], channel[count] = POINT, p, p, c
+            count += 1
+            for a in range(n_walls):
+                if excluded_point[a, p] or not wall_near[a] or not wall_sent[c, a] or not via_exists[t, a, p]:
+                    continue
+                for k in range(receivers):
+                    horizontal[count, k] = via_length[t, a, p] + math.hypot(points[p, 0] - rx[g, k, 0],
+                                                                            points[p, 1] - rx[g, k, 1])
+                kind[count], first[count], second[count], channel[count] = WALL_POINT, a, p, c
+                count += 1
+
+    # Pass 2, where gated: the candidates near a measured row of their channel move up.  Near: within the
+    # gate at every receiver that heard the row, with the largest variance a pose error could give.
+    if gated:
+        near_count = 0
+        distance = np.empty(receivers)
+        for q in range(count):
+            g, m = channel_id[channel[q]] // slots, channel_id[channel[q]] % slots
+            for k in range(receivers):
+                distance[k] = math.sqrt(horizontal[q, k] ** 2 + height_offset[g, m, k] ** 2)
+            near = False
+            for r in range(row_start[channel_id[channel[q]]], row_start[channel_id[channel[q]] + 1]):
+                n = row_order[r]
+                all_near, heard = True, False
+                for k in range(receivers):
+                    if np.isfinite(row_paths[n, k]):
+                        heard = True
+                        all_near = all_near and (row_paths[n, k] - distance[k]) ** 2 <= gate ** 2 * (
+                            fixed_variance + sigma_speed ** 2 * distance[k] ** 2)
+                near = near or (all_near and heard)
+            if near:
+                kind[near_count], first[near_count], second[near_count] = kind[q], first[q], second[q]
+                channel[near_count] = channel[q]
+                near_count += 1
+        count = near_count
+
+    # Pass 3: each candidate's geometry, window, beams and derivative; where gated, whether a row of its
+    # channel is within the gate of it (the Mahalanobis distance of :func:`match_rows`); then blocking.
+    out_kind = np.empty(count, dtype=np.int64)
+    out_first = np.empty(count, dtype=np.int64)
+    out_second = np.empty(count, dtype=np.int64)
+    out_group = np.empty(count, dtype=np.int64)
+    out_slot = np.empty(count, dtype=np.int64)
+    path = np.empty((count, receivers))
+    jacobian = np.zeros((count, receivers, 3))
+    first_point = np.empty((count, receivers, 2))
+    last_point = np.empty((count, receivers, 2))
+    channel_start = np.zeros(all_channels + 1, dtype=np.int64)
+    scratch = _work_arrays(receivers)
+    kept_count = 0
+    for q in range(count):
+        g, m = channel_id[channel[q]] // slots, channel_id[channel[q]] % slots
+        t = transmitter[g, m]
+        a, b = first[q], second[q]
+        audible = False
+        for k in range(receivers):
+            if kind[q] == WALL_WALL:
+                h, exists, first_x, first_y, last_x, last_y = _wall_wall(
+                    tx[g, m, 0], tx[g, m, 1], rx[g, k, 0], rx[g, k, 1], a, b, start, direction, normal, length,
+                    extent_margin)
+            elif kind[q] == POINT_WALL:
+                h, exists, first_x, first_y, last_x, last_y = _point_wall(
+                    tx[g, m, 0], tx[g, m, 1], rx[g, k, 0], rx[g, k, 1], points[a, 0], points[a, 1], b, start,
+                    direction, normal, length, extent_margin)
+            elif kind[q] == WALL_POINT:
+                h = via_length[t, a, b] + math.hypot(points[b, 0] - rx[g, k, 0], points[b, 1] - rx[g, k, 1])
+                exists, first_x, first_y = True, via_bounce[t, a, b, 0], via_bounce[t, a, b, 1]
+                last_x, last_y = points[b, 0], points[b, 1]
+            elif kind[q] == WALL:
+                h, exists, first_x, first_y = _via_wall(rx[g, k, 0], rx[g, k, 1], tx[g, m, 0], tx[g, m, 1], b, start,
+                                                        direction, normal, length, extent_margin)
+                last_x, last_y = first_x, first_y
+            else:
+                h = to_point[t, b] + math.hypot(points[b, 0] - rx[g, k, 0], points[b, 1] - rx[g, k, 1])
+                exists, first_x, first_y, last_x, last_y = True, points[b, 0], points[b, 1], points[b, 0], points[b, 1]
+            first_point[kept_count, k, 0], first_point[kept_count, k, 1] = first_x, first_y
+            last_point[kept_count, k, 0], last_point[kept_count, k, 1] = last_x, last_y
+            distance_k = math.sqrt(h ** 2 + height_offset[g, m, k] ** 2)
+            heard = (exists and distance_k <= window
+                     and _accepted(last_x, last_y, rx[g, k, 0], rx[g, k, 1], rx_axis[g, 0, k, 0], rx_axis[g, 0, k, 1],
+                                   acceptance, yaw_margin, position_margin))
+            if not isotropic:
+                heard = heard and _accepted(first_x, first_y, tx[g, m, 0], tx[g, m, 1], tx_axis[g, m, 0, 0],
+                                            tx_axis[g, m, 0, 1], acceptance, yaw_margin, position_margin)
+            path[kept_count, k] = distance_k if heard else np.nan
+            for axis in range(3):
+                jacobian[kept_count, k, axis] = 0.0
+            if not heard:
+                continue
+            audible = True
+            out_x, out_y = _unit(tx[g, m, 0] - first_x, tx[g, m, 1] - first_y)
+            in_x, in_y = _unit(rx[g, k, 0] - last_x, rx[g, k, 1] - last_y)
+            scale = h / distance_k
+            jacobian[kept_count, k, 0] = scale * (out_x + in_x)
+            jacobian[kept_count, k, 1] = scale * (out_y + in_y)
+            jacobian[kept_count, k, 2] = scale * (out_y * (tx[g, m, 0] - pose[0]) - out_x * (tx[g, m, 1] - pose[1])
+                                                  + in_y * (rx[g, k, 0] - pose[0]) - in_x * (rx[g, k, 1] - pose[1]))
+        if not audible:
+            continue
+        if gated:
+            near = False
+            for r in range(row_start[channel_id[channel[q]]], row_start[channel_id[channel[q]] + 1]):
+                near = near or _distance2(row_paths, row_order[r], path, jacobian, kept_count, pose_covariance,
+                                          sigma_path, sigma_speed, sigma_map, scratch) <= gate ** 2
+            if not near:
+                continue
+        heard_any = False
+        for k in range(receivers):
+            if not np.isfinite(path[kept_count, k]):
+                continue
+            first_x, first_y = first_point[kept_count, k, 0], first_point[kept_count, k, 1]
+            last_x, last_y = last_point[kept_count, k, 0], last_point[kept_count, k, 1]
+            if (_shortened_leg_blocked(tx[g, m, 0], tx[g, m, 1], first_x, first_y, 0.0, extent_margin, walls,
+                                       extent_margin)
+                    or _shortened_leg_blocked(first_x, first_y, last_x, last_y, extent_margin, extent_margin, walls,
+                                              extent_margin)
+                    or _shortened_leg_blocked(last_x, last_y, rx[g, k, 0], rx[g, k, 1], extent_margin, 0.0, walls,
+                                              extent_margin)):
+                path[kept_count, k] = np.nan
+                for axis in range(3):
+                    jacobian[kept_count, k, axis] = 0.0
+            else:
+                heard_any = True
+        if heard_any:
+            out_kind[kept_count], out_first[kept_count], out_second[kept_count] = kind[q], a, b
+            out_group[kept_count], out_slot[kept_count] = g, m
+            channel_start[channel_id[channel[q]] + 1] += 1
+            kept_count += 1
+    for i in range(all_channels):
+        channel_start[i + 1] += channel_start[i]
+    return (out_kind[:kept_count], out_first[:kept_count], out_second[:kept_count], out_group[:kept_count],
+            out_slot[:kept_count], path[:kept_count], jacobian[:kept_count], first_point[:kept_count],
+            last_point[:kept_count], channel_start)
+
+
+@kernel
+def match_rows(channel, paths, channel_start, kind, predicted, jacobian, pose_covariance, sigma_path, sigma_speed,
+               sigma_map):
+    """Each echo row's closest double bounce and closest single bounce of its channel, by Mahalanobis distance.
+
+    The engine of :func:`sonar_ring.explain.match`, whose module docstring gives the covariance.
+
+    Parameters
+    ----------
+    channel : ndarray of int, shape (N,)
+        Each row's channel ``group * M + slot``.
+    paths : ndarray, shape (N, K)
+        Measured paths, m; NaN where a receiver heard nothing.
+    channel_start : ndarray of int, shape (G * M + 1,)
+        The predicted paths of channel i are rows ``channel_start[i]:channel_start[i + 1]`` of
+    kind, predicted, jacobian : ndarray, shape (Q,), (Q, K) and (Q, K, 3)
+        their kinds, 3-D lengths (NaN: not to this receiver) and derivatives by the pose.
+    pose_covariance : ndarray, shape (3, 3)
+    sigma_path, sigma_speed, sigma_map : float
+        m, relative, m.
+
+    Returns
+    -------
+    double, single : ndarray of int, shape (N,)
+        The closest double bounce and the closest single bounce; -1 where
+        none reaches every receiver that heard the row.
+    double_distance, single_distance : ndarray, shape (N,)
+        Their Mahalanobis distances; inf where none, NaN where no receiver heard the row.
+    """
+    rows = paths.shape[0]
+    best = np.full((2, rows), -1, dtype=np.int64)
+    distance = np.full((2, rows), np.inf)
+    scratch = _work_arrays(paths.shape[1])
+    for n in range(rows):
+        heard = False
+        for k in range(paths.shape[1]):
+            heard = heard or np.isfinite(paths[n, k])
+        if not heard:
+            distance[:, n] = np.nan
+            continue
+        for q in range(channel_start[channel[n]], channel_start[channel[n] + 1]):
+            squared = _distance2(paths, n, predicted, jacobian, q, pose_covariance, sigma_path, sigma_speed, sigma_map,
+                                 scratch)
+            bounces = 1 if kind[q] == WALL or kind[q] == POINT else 0
+            if squared < distance[bounces, n]:
+                distance[bounces, n], best[bounces, n] = squared, q
+    return best[0], best[1], np.sqrt(distance[0]), np.sqrt(distance[1])
+
+
+@kernel
+def _work_arrays(receivers):
+    """Work arrays for :func:`_distance2`: heard receivers, errors, covariance, covariance times derivative."""
+    return (np.empty(receivers, dtype=np.int64), np.empty(receivers), np.empty((receivers, receivers)),
+            np.empty((receivers, 3)))
+
+
+@kernel
+def _distance2(paths, n, predicted, jacobian, q, pose_covariance, sigma_path, sigma_speed, sigma_map, scratch):
+    """Squared Mahalanobis distance of row ``n`` of ``paths`` from predicted path ``q``.
+
+    Over the receivers that heard the row; inf where the path does not reach
+    one of them, NaN where none heard it or the covariance is not positive definite.
+    """
+    heard, error, covariance, spread = scratch
+    count = 0
+    for k in range(paths.shape[1]):
+        if np.isfinite(paths[n, k]):
+            if not np.isfinite(predicted[q, k]):
+                return np.inf
+            heard[count] = k
+            count += 1
+    if count == 0:
+        return np.nan
+    for i in range(count):
+        k = heard[i]
+        error[i] = paths[n, k] - predicted[q, k]
+        for j in range(3):
+            spread[i, j] = (jacobian[q, k, 0] * pose_covariance[0, j] + jacobian[q, k, 1] * pose_covariance[1, j]
+                            + jacobian[q, k, 2] * pose_covariance[2, j])
+    for i in range(count):
+        for j in range(count):
+            row, column = heard[i], heard[j]
+            covariance[i, j] = (spread[i, 0] * jacobian[q, column, 0] + spread[i, 1] * jacobian[q, column, 1]
+                                + spread[i, 2] * jacobian[q, column, 2]
+                                + sigma_speed ** 2 * predicted[q, row] * predicted[q, column] + 8.0 * sigma_map ** 2)
+        covariance[i, i] += sigma_path ** 2
+    # Cholesky in place, then the squared norm of L^-1 e.
+    for j in range(count):
+        diagonal = covariance[j, j]
+        for i in range(j):
+            diagonal -= covariance[j, i] ** 2
+        if not diagonal > 0:
+            return np.nan
+        covariance[j, j] = math.sqrt(diagonal)
+        for i in range(j + 1, count):
+            value = covariance[i, j]
+            for h in range(j):
+                value -= covariance[i, h] * covariance[j, h]
+            covariance[i, j] = value / covariance[j, j]
+    total = 0.0
+    for i in range(count):
+        value = error[i]
+        for h in range(i):
+            value -= covariance[i, h] * error[h]
+        error[i] = value / covariance[i, i]
+        total += error[i] ** 2
+    return total
+
+
+@kernel
+def reflections_blocked(points, group, slot, tx, rx, walls, margin):
+    """Whether a straight leg to or from each hypothesis' reflection points crosses a wall.
+
+    Parameters
+    ----------
+    points : ndarray, shape (L, K, 2)
+        Where each hypothesis reflects the sound to each receiver of its group, m; NaN: left out.
+    group, slot : ndarray of int, shape (L,)
+        The group and transmitter slot of its echo.
+    tx, rx : ndarray, shape (G, M, 2) and (G, K, 2)
+        Transmitters and receivers, m.
+    walls : ndarray, shape (W, 2, 2)
+        m.
+    margin : ndarray, shape (L,)
+        m: crossings within this of the reflection point do not count.
+
+    Returns
+    -------
+    ndarray of bool, shape (L,)
+        Some leg transmitter -> point or point -> receiver crosses a wall
+        strictly between its ends, beyond ``margin`` of the point.
+    """
+    blocked = np.zeros(points.shape[0], dtype=np.bool_)
+    for n in range(points.shape[0]):
+        g, m = group[n], slot[n]
+        for k in range(points.shape[1]):
+            x, y = points[n, k, 0], points[n, k, 1]
+            if not (np.isfinite(x) and np.isfinite(y)):
+                continue
+            blocked[n] = blocked[n] or (
+                _shortened_leg_blocked(tx[g, m, 0], tx[g, m, 1], x, y, 0.0, margin[n], walls, margin[n])
+                or _shortened_leg_blocked(x, y, rx[g, k, 0], rx[g, k, 1], margin[n], 0.0, walls, margin[n]))
+    return blocked
+
+
+@kernel
+def _accepted(x, y, transducer_x, transducer_y, axis_x, axis_y, acceptance, yaw_margin, position_margin):
+    """Whether ``(x, y)`` is within the widened acceptance angle of a transducer along a unit axis."""
+    dx, dy = x - transducer_x, y - transducer_y
+    angle = math.atan2(axis_x * dy - axis_y * dx, axis_x * dx + axis_y * dy)
+    return abs(angle) <= acceptance + yaw_margin + position_margin / math.hypot(dx, dy)
+
+
+@kernel
+def _shortened_leg_blocked(x0, y0, x1, y1, start_margin, end_margin, walls, wall_margin):
+    """Whether a wall crosses the leg ``(x0, y0) -> (x1, y1)``, less the margins at its ends, inside its own.
+
+    Nothing left of the leg: no; crossings within ``wall_margin`` (m) of the wall's ends do not count.
+    """
+    if start_margin == 0.0 and end_margin == 0.0:
+        return _leg_blocked(x0, y0, x1, y1, walls, wall_margin)
+    dx, dy = x1 - x0, y1 - y0
+    length = math.hypot(dx, dy)
+    if not length > start_margin + end_margin:
+        return False
+    return _leg_blocked(x0 + start_margin / length * dx, y0 + start_margin / length * dy,
+                        x1 - end_margin / length * dx, y1 - end_margin / length * dy, walls, wall_margin)
+
+
+@kernel
+def _unit(x, y):
+    norm = math.hypot(x, y)
+    return x / norm, y / norm
+
+
+# --------------------------------------------------------------------------- pruning
+
+
+@kernel
+def _widest_cone(cones, row, distance, acceptance, yaw_margin, position_margin, prune):
+    """Into ``cones[row]``: cosine and sine of the widest half-angle at which an entry ``distance`` away is heard.
+
+    Left NaN (seen from anywhere) without pruning, at no distance, or for half-angles of 90 deg or more.
+    """
+    if not prune or not distance > 0:
+        return
+    half = acceptance + yaw_margin + position_margin / distance + _SLACK
+    if half < 0.5 * math.pi:
+        cones[row, 0], cones[row, 1] = math.cos(half), math.sin(half)
+
+
+@kernel
+def _in_cone(apex_x, apex_y, axis_x, axis_y, cones, points, row):
+    """Whether ``points[row]`` is inside its widest cone (``cones[row]``, :func:`_widest_cone`) at the apex."""
+    if np.isnan(cones[row, 0]):
+        return True
+    dx, dy = points[row, 0] - apex_x, points[row, 1] - apex_y
+    along, across = axis_x * dx + axis_y * dy, axis_x * dy - axis_y * dx
+    return abs(across) * cones[row, 0] <= along * cones[row, 1] + _SLACK * (abs(dx) + abs(dy))
+
+
+@kernel
+def _part_in_cone(apex_x, apex_y, axis_x, axis_y, cones, segments, row):
+    """The part of ``segments[row]`` inside its widest cone (``cones[row]``) at the apex: ``(any, from, to)``."""
+    cos_half, sin_half = cones[row, 0], cones[row, 1]
+    if np.isnan(cos_half):
+        return True, 0.0, 1.0
+    return _clip_to_wedge(apex_x, apex_y, axis_x * cos_half - axis_y * sin_half, axis_x * sin_half + axis_y * cos_half,
+                          axis_x * cos_half + axis_y * sin_half, -axis_x * sin_half + axis_y * cos_half, segments, row)
+
+
+@kernel
+def _in_wedge(apex_x, apex_y, left_x, left_y, right_x, right_y, x, y):
+    """Whether ``(x, y)`` lies in the wedge from the apex between its right and left edges (< 180 deg), with slack."""
+    dx, dy = x - apex_x, y - apex_y
+    slack = _SLACK * (abs(dx) + abs(dy)) * (abs(left_x) + abs(left_y) + abs(right_x) + abs(right_y))
+    return right_x * dy - right_y * dx >= -slack and dx * left_y - dy * left_x >= -slack
+
+
+@kernel
+def _clip_to_wedge(apex_x, apex_y, left_x, left_y, right_x, right_y, segments, row):
+    """The part of ``segments[row]`` (of (S, 2, 2)) inside a wedge (< 180 deg), with slack.
+
+    Returns ``(any, from, to)``, the part's ends as fractions of the segment.
+    """
+    low, high = 0.0, 1.0
+    # Inside is where the cross products with both edges are >= 0; each is linear along the segment.
+    start_x, start_y = segments[row, 0, 0] - apex_x, segments[row, 0, 1] - apex_y
+    end_x, end_y = segments[row, 1, 0] - apex_x, segments[row, 1, 1] - apex_y
+    edges = abs(left_x) + abs(left_y) + abs(right_x) + abs(right_y)
+    start_slack = _SLACK * (abs(start_x) + abs(start_y)) * edges
+    end_slack = _SLACK * (abs(end_x) + abs(end_y)) * edges
+    for edge in range(2):
+        if edge == 0:
+            at_start = right_x * start_y - right_y * start_x + start_slack
+            at_end = right_x * end_y - right_y * end_x + end_slack
+        else:
+            at_start = start_x * left_y - start_y * left_x + start_slack
+            at_end = end_x * left_y - end_y * left_x + end_slack
+        if at_start < 0 and at_end < 0:
+            return False, 1.0, 0.0
+        if at_start < 0:
+            low = max(low, at_start / (at_start - at_end))
+        elif at_end < 0:
+            high = min(high, at_start / (at_start - at_end))
+    return low <= high, low, high
+
+
+@kernel
+def _mirror_cone(mirror, c, k, x, y, wall, ends, low, high, start, normal):
+    """The cone from the image of ``(x, y)`` in ``wall`` through part of the wall, into ``mirror[c, k, wall]`` (6,).
+
+    The apex, then the left and right edges (not unit vectors) through the part
+    ``low..high`` (fractions) of the wall's extended segment ``ends[wall]``.
+    """
+    side = _side(x, y, wall, start, normal)
+    apex_x, apex_y = x - 2.0 * side * normal[wall, 0], y - 2.0 * side * normal[wall, 1]
+    ux, uy = ends[wall, 1, 0] - ends[wall, 0, 0], ends[wall, 1, 1] - ends[wall, 0, 1]
+    a_x, a_y = ends[wall, 0, 0] + low * ux - apex_x, ends[wall, 0, 1] + low * uy - apex_y
+    b_x, b_y = ends[wall, 0, 0] + high * ux - apex_x, ends[wall, 0, 1] + high * uy - apex_y
+    if a_x * b_y - a_y * b_x < 0:
+        a_x, a_y, b_x, b_y = b_x, b_y, a_x, a_y
+    mirror[c, k, wall, 0], mirror[c, k, wall, 1] = apex_x, apex_y
+    mirror[c, k, wall, 2], mirror[c, k, wall, 3], mirror[c, k, wall, 4], mirror[c, k, wall, 5] = b_x, b_y, a_x, a_y
+
+
+@kernel
+def _segment_distance(x, y, segments, row):
+    """Distance from ``(x, y)`` to ``segments[row]`` (of (S, 2, 2)), m."""
+    ux, uy = segments[row, 1, 0] - segments[row, 0, 0], segments[row, 1, 1] - segments[row, 0, 1]
+    squared = ux * ux + uy * uy
+    along = ((x - segments[row, 0, 0]) * ux + (y - segments[row, 0, 1]) * uy) / squared if squared > 0 else 0.0
+    along = min(max(along, 0.0), 1.0)
+    return math.hypot(segments[row, 0, 0] + along * ux - x, segments[row, 0, 1] + along * uy - y)
+
+
+@kernel
+def _segments_cross(segments, first, second):
+    """Whether ``segments[first]`` and ``segments[second]`` cross: each one's ends strictly either side of the other."""
+    crossing = True
+    for a, b in ((first, second), (second, first)):
+        ux, uy = segments[a, 1, 0] - segments[a, 0, 0], segments[a, 1, 1] - segments[a, 0, 1]
+        at_start = ux * (segments[b, 0, 1] - segments[a, 0, 1]) - uy * (segments[b, 0, 0] - segments[a, 0, 0])
+        at_end = ux * (segments[b, 1, 1] - segments[a, 0, 1]) - uy * (segments[b, 1, 0] - segments[a, 0, 0])
+        crossing = crossing and at_start * at_end < 0
+    return crossing

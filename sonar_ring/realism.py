@@ -66,8 +66,9 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
+from sonar_ring import image_method
 from sonar_ring.geometry import Layout, speed_of_sound
-from sonar_ring.image_method import POINT_WALL, WALL_POINT, WALL_WALL, double_bounces
+from sonar_ring.image_method import POINT_WALL, WALL_POINT, WALL_WALL
 from sonar_ring.simulate import (
     DEFAULT_THRESHOLD,
     EDGE,
@@ -502,12 +503,11 @@ def _second_order(simulator: Simulator, placement: Placement, kind: int, first, 
     tx, rx = placement.tx, placement.rx
     groups, slots = tx.shape[:2]
     member, group, slot = (index.reshape(-1) for index in np.indices((len(first), groups, slots)))
-    horizontal, exists, first_point, last_point = double_bounces(
+    # Through the module: a kernel imported by name stays the wrapper that compiles at first use.
+    horizontal, exists, first_point, last_point = image_method.double_bounces(
         np.full(member.size, kind), first[member], second[member], group, slot,
-        *(np.ascontiguousarray(array) for array in (simulator.wall_start, simulator.wall_direction,
-                                                    simulator.wall_normal, simulator.wall_length,
-                                                    simulator.scene.edges)),
-        tx, rx, 0.0)
+        simulator.wall_start, simulator.wall_direction, simulator.wall_normal, simulator.wall_length,
+        np.ascontiguousarray(simulator.scene.edges), tx, rx, 0.0)
     shape = (len(first),) + tx.shape[:2] + rx.shape[1:2]
     first_point, last_point = first_point.reshape(shape + (2,)), last_point.reshape(shape + (2,))
     t = tx[None, :, :, None, :]

@@ -62,9 +62,9 @@ from pathlib import Path
 
 import numpy as np
 
+from sonar_ring import image_method
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import Layout, config_path, read_config, speed_of_sound
-from sonar_ring.image_method import blocked_legs, wall_frames
 
 # The class codes of Landmark.msg, defined once in sonar_ring.landmarks; re-exported
 # because ground truth is labelled with them.
@@ -802,7 +802,8 @@ class Simulator:
         self._dz = layout.height_offset()  # (G, M, K)
         self._triad = layout.kind == "triad"
         s = scene
-        self.wall_start, self.wall_direction, self.wall_normal, self.wall_length = wall_frames(s.walls)
+        frames = image_method.wall_frames(np.ascontiguousarray(s.walls))
+        self.wall_start, self.wall_direction, self.wall_normal, self.wall_length = frames
         # Reflector index of each row of the walls / corners / edges tables (both in file order).
         self._reflectors = {code: np.flatnonzero(s.reflector_class == code) for code in (PLANE, CORNER, EDGE)}
 
@@ -965,7 +966,9 @@ class Simulator:
         if self.scene.walls.size and index[0].size:
             starts = np.concatenate([np.broadcast_to(start, shape + (2,))[index] for start, _ in paths.legs])
             ends = np.concatenate([np.broadcast_to(end, shape + (2,))[index] for _, end in paths.legs])
-            blocked = blocked_legs(starts, ends, self.scene.walls).reshape(len(paths.legs), -1).any(axis=0)
+            # Through the module: a kernel imported by name stays the wrapper that compiles at first use.
+            blocked = image_method.blocked_legs(starts, ends, self.scene.walls)
+            blocked = blocked.reshape(len(paths.legs), -1).any(axis=0)
             index = tuple(i[~blocked] for i in index)
         f, g, m, k = index
         # Barshan & Kuc eqs 3-4: the product of the transmit and receive Gaussian gains.
