@@ -176,15 +176,12 @@ class Tolerance:
         variance = float(self.pose_covariance[2, 2])
         return math.sqrt(variance) if variance >= 0 else math.nan
 
-    def position_sigma(self, spread: float) -> float:
-        """Largest standard deviation of the position of a transducer within ``spread`` (m) of the pose's, m.
-
-        The pose's position error along its worst direction (the larger eigenvalue
-        of the (x, y) block) plus the yaw error's lever ``spread``.
-        """
+    @property
+    def xy_sigma(self) -> float:
+        """Standard deviation of the pose's position along its worst direction, m (the larger eigenvalue's root)."""
         (xx, xy), (_, yy) = self.pose_covariance[:2, :2].tolist()
         largest = 0.5 * (xx + yy) + math.sqrt(0.25 * (xx - yy) ** 2 + xy ** 2)
-        return (math.sqrt(largest) if largest >= 0 else math.nan) + spread * self.yaw_sigma
+        return math.sqrt(largest) if largest >= 0 else math.nan
 
 
 @dataclass(frozen=True)
@@ -308,17 +305,15 @@ def predict(walls, points, placement: Placement, layout: Layout, group, transmit
     row_paths = np.empty((group.size, layout.receivers_per_group)) if paths is None else _row_paths(
         paths, group.size, layout, "predict")
     window = 2.0 * layout.max_range if window is None else float(window)
-    margins = _Margins(layout, tolerance)
     start, direction, normal, length = image_method.wall_frames(walls)
     excluded_pair, excluded_point = image_method.junctions(walls, points, junction)
     (kind, first, second, path_group, path_slot, path, jacobian, first_point, last_point,
      channel_start) = image_method.map_paths(
         start, direction, normal, length, walls, points, excluded_pair, excluded_point, placement.tx, placement.rx,
         placement.tx_axis, placement.rx_axis, layout.plan.height_offset, layout.group_transmitters,
-        group * layout.group_transmitters.shape[1] + slot, row_paths, placement.pose, margins.spread, window,
-        layout.beam_half_angle, margins.yaw, margins.position, margins.extent, tolerance.pose_covariance,
-        tolerance.sigma_path, tolerance.sigma_speed, tolerance.sigma_map, tolerance.gate, margins.fixed_variance,
-        layout.isotropic_emitter, prune, paths is not None)
+        group * layout.group_transmitters.shape[1] + slot, row_paths, placement.pose, window, layout.beam_half_angle,
+        tolerance.pose_covariance, tolerance.xy_sigma, tolerance.yaw_sigma, tolerance.sigma_path, tolerance.sigma_speed,
+        tolerance.sigma_map, tolerance.gate, layout.isotropic_emitter, prune, paths is not None)
     return Prediction(group=path_group, slot=path_slot, kind=kind, first=first, second=second, path=path,
                       jacobian=jacobian, first_point=first_point, last_point=last_point, channel_start=channel_start)
 
@@ -357,7 +352,7 @@ def match(prediction: Prediction, layout: Layout, group, transmitter, paths, tol
     channel = group * layout.group_transmitters.shape[1] + slot
     best, direct, residual, direct_residual = image_method.match_rows(
         channel, paths, prediction.channel_start, prediction.kind, prediction.path, prediction.jacobian,
-        tolerance.pose_covariance, tolerance.sigma_path, tolerance.sigma_speed, tolerance.sigma_map)
+        tolerance.pose_covariance, tolerance.sigma_path, tolerance.sigma_speed, tolerance.sigma_map, tolerance.gate)
     # An echo that a mapped reflector's own echo explains as well may be that reflector's: not multipath.
     label = np.where((residual <= tolerance.gate) & ~(direct_residual <= tolerance.gate), MULTIPATH, NONE)
     return Explanation(label=label.astype(np.uint8), best=best, residual=residual, direct=direct,
@@ -496,13 +491,12 @@ def _channels(layout: Layout, group, transmitter, caller: str):
     if group.ndim != 1 or transmitter.shape != group.shape:
         raise ValueError(f"{caller}: group and transmitter must be 1-D and of one length, got shapes "
                          f"{group.shape} and {transmitter.shape}")
-    if group.size and not (np.issubdtype(group.dtype, np.integer) and np.issubdtype(transmitter.dtype, np.integer)):
+    if group.size and not (group.dtype.kind in "iu" and transmitter.dtype.kind in "iu"):
         raise ValueError(f"{caller}: group and transmitter must be integers, got {group.dtype} and "
                          f"{transmitter.dtype}")
     group = group.astype(np.int64, copy=False)
-    slot = _slots(group, transmitter.astype(np.int64, copy=False), layout.group_transmitters)
-    if np.any(slot < 0):
-        bad = int(np.argmax(slot < 0))
+    slot, bad = _slots(group, transmitter.astype(np.int64, copy=False), layout.group_transmitters)
+    if bad >= 0:
         if not 0 <= group[bad] < layout.n_groups:
             raise ValueError(f"{caller}: group must be in 0..{layout.n_groups - 1}, got {group[bad]}")
         raise ValueError(f"{caller}: transmitter {transmitter[bad]} is not one of group {group[bad]}'s "
@@ -527,21 +521,6 @@ def _row_paths(paths, rows: int, layout: Layout, caller: str) -> np.ndarray:
     return paths
 
 
-class _Margins:
-    """How far the uncertainty widens :func:`predict`'s tests (module docstring, "Tolerance")."""
-
-    def __init__(self, layout: Layout, tolerance: Tolerance):
-        plan = layout.plan
-        self.spread = float(max(np.max(np.hypot(plan.transmitters[..., 0], plan.transmitters[..., 1])),
-                                np.max(np.hypot(plan.receivers[..., 0], plan.receivers[..., 1]))))
-        position = tolerance.position_sigma(self.spread)
-        self.yaw = tolerance.gate * tolerance.yaw_sigma
-        self.position = tolerance.gate * (2.0 * position + tolerance.sigma_map)
-        self.extent = tolerance.gate * (position + tolerance.sigma_map)
-        # The largest variance of a receiver's path but for the speed's term: |J_xy| <= 2, |J_yaw| <= 2 spread.
-        self.fixed_variance = tolerance.sigma_path ** 2 + 4.0 * position ** 2 + 8.0 * tolerance.sigma_map ** 2
-
-
 def _dot(u, v):
     return u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1]
 
@@ -551,11 +530,18 @@ def _dot(u, v):
 
 @kernel
 def _slots(group, transmitter, group_transmitters):
-    """The slot of each row's transmitter in its group's ``group_transmitters`` row (-1: not there, or no group)."""
+    """The slot of each row's transmitter in its group's ``group_transmitters`` row, and the first row without.
+
+    A row has no slot when its group or its transmitter is unknown (-1 there); the first such row is -1 when
+    every row has one.
+    """
     slot = np.full(group.shape[0], -1, dtype=np.int64)
+    bad = -1
     for n in range(group.shape[0]):
         if 0 <= group[n] < group_transmitters.shape[0]:
             for m in range(group_transmitters.shape[1]):
                 if group_transmitters[group[n], m] == transmitter[n] and slot[n] < 0:
                     slot[n] = m
-    return slot
+        if slot[n] < 0 and bad < 0:
+            bad = n
+    return slot, bad

@@ -60,6 +60,9 @@ KIND_NAMES = ("wall-wall", "wall-point", "point-wall", "wall", "point")
 _SLACK = 1e-9
 """m and rad added to the pruning's cones, sides and extents, so that rounding never drops a path at their edge."""
 
+_BOX_SLACK = 1e-6
+"""m: how much :func:`_leg_blocked` grows the bounding boxes it compares (rounding is below 1e-9 m at 1 km)."""
+
 LEG_END_FRACTION = 1e-9
 """Fraction of a leg's length at either end where crossing a wall is not a
 blockage: legs start and end *on* the reflecting walls."""
@@ -133,22 +136,40 @@ def blocked_legs(starts, ends, walls):
         running along a wall (parallel), nor a leg with a non-finite end.
     """
     hit = np.zeros(starts.shape[0], dtype=np.bool_)
+    length = _lengths(walls)
     for i in range(starts.shape[0]):
-        hit[i] = _leg_blocked(starts[i, 0], starts[i, 1], ends[i, 0], ends[i, 1], walls, 0.0)
+        hit[i] = _leg_blocked(starts[i, 0], starts[i, 1], ends[i, 0], ends[i, 1], walls, length, 0.0)
     return hit
 
 
 @kernel
-def _leg_blocked(x0, y0, x1, y1, walls, wall_margin):
-    """:func:`blocked_legs` for one leg ``(x0, y0) -> (x1, y1)``.
+def _lengths(walls):
+    """Length of each wall (W, 2, 2), m."""
+    length = np.empty(walls.shape[0])
+    for w in range(walls.shape[0]):
+        length[w] = math.hypot(walls[w, 1, 0] - walls[w, 0, 0], walls[w, 1, 1] - walls[w, 0, 1])
+    return length
+
+
+@kernel
+def _leg_blocked(x0, y0, x1, y1, walls, length, wall_margin):
+    """:func:`blocked_legs` for one leg ``(x0, y0) -> (x1, y1)``; ``length`` (W,) the walls' lengths, m.
 
     Crossings within ``wall_margin`` (m) of a wall's ends do not count (0: every crossing does).
     """
     rx, ry = x1 - x0, y1 - y0
+    # A crossing lies in both segments' bounding boxes: most walls are skipped before the divisions.  The
+    # boxes grow by a slack far above rounding, so the test decides nothing the fractions would not.
+    leg_low_x, leg_high_x = min(x0, x1) - _BOX_SLACK, max(x0, x1) + _BOX_SLACK
+    leg_low_y, leg_high_y = min(y0, y1) - _BOX_SLACK, max(y0, y1) + _BOX_SLACK
     for w in range(walls.shape[0]):
         ax, ay = walls[w, 0, 0], walls[w, 0, 1]
-        sx, sy = walls[w, 1, 0] - ax, walls[w, 1, 1] - ay
-        trim = wall_margin / math.hypot(sx, sy) if wall_margin > 0 else 0.0
+        bx, by = walls[w, 1, 0], walls[w, 1, 1]
+        if (max(ax, bx) < leg_low_x or min(ax, bx) > leg_high_x or max(ay, by) < leg_low_y
+                or min(ay, by) > leg_high_y):
+            continue
+        sx, sy = bx - ax, by - ay
+        trim = wall_margin / length[w] if wall_margin > 0 else 0.0
         denominator = rx * sy - ry * sx
         apx, apy = ax - x0, ay - y0
         along_leg = (apx * sy - apy * sx) / denominator
@@ -157,9 +178,6 @@ def _leg_blocked(x0, y0, x1, y1, walls, wall_margin):
                 and along_wall >= trim and along_wall <= 1 - trim):
             return True
     return False
-
-
-# --------------------------------------------------------------------------- double bounces
 
 
 @kernel
@@ -320,34 +338,40 @@ def junctions(walls, points, gap):
     count = walls.shape[0]
     meet = np.zeros((count, count), dtype=np.bool_)
     on_wall = np.zeros((count, points.shape[0]), dtype=np.bool_)
+    # Each wall's bounding box grown by the gap: what lies outside it is farther than the gap.
+    box = np.empty((count, 4))
+    for w in range(count):
+        box[w, 0], box[w, 1] = min(walls[w, 0, 0], walls[w, 1, 0]) - gap, max(walls[w, 0, 0], walls[w, 1, 0]) + gap
+        box[w, 2], box[w, 3] = min(walls[w, 0, 1], walls[w, 1, 1]) - gap, max(walls[w, 0, 1], walls[w, 1, 1]) + gap
     for a in range(count):
         for b in range(a + 1, count):
+            if box[b, 1] < box[a, 0] or box[b, 0] > box[a, 1] or box[b, 3] < box[a, 2] or box[b, 2] > box[a, 3]:
+                continue
             near = _segments_cross(walls, a, b)
             for end in range(2):
                 near = near or _segment_distance(walls[b, end, 0], walls[b, end, 1], walls, a) <= gap
                 near = near or _segment_distance(walls[a, end, 0], walls[a, end, 1], walls, b) <= gap
             meet[a, b] = meet[b, a] = near
         for p in range(points.shape[0]):
-            on_wall[a, p] = _segment_distance(points[p, 0], points[p, 1], walls, a) <= gap
+            on_wall[a, p] = (box[a, 0] <= points[p, 0] <= box[a, 1] and box[a, 2] <= points[p, 1] <= box[a, 3]
+                             and _segment_distance(points[p, 0], points[p, 1], walls, a) <= gap)
     return meet, on_wall
 
 
 @kernel
 def map_paths(start, direction, normal, length, walls, points, excluded_pair, excluded_point, tx, rx, tx_axis,
-              rx_axis, height_offset, transmitter, row_channel, row_paths, pose, spread, window, acceptance,
-              yaw_margin, position_margin, extent_margin, pose_covariance, sigma_path, sigma_speed, sigma_map, gate,
-              fixed_variance, isotropic, prune, gated):
+              rx_axis, height_offset, transmitter, row_channel, row_paths, pose, window, acceptance, pose_covariance,
+              xy_sigma, yaw_sigma, sigma_path, sigma_speed, sigma_map, gate, isotropic, prune, gated):
     """The double-bounce paths a map of walls and points sends to the receivers of one ping's channels.
 
     The engine of :func:`sonar_ring.explain.predict`, whose docstring gives the
     model, the margins and the pruning.  Paths exist as :func:`double_bounces`
-    says (within ``extent_margin`` of the segments), fit the ``window`` (3-D
-    length with ``height_offset``), arrive within the acceptance angle widened
-    to ``acceptance + yaw_margin + position_margin / distance`` (and leave a
-    directional transmitter within it), and have no leg that crosses one of
-    ``walls`` farther than ``extent_margin`` from its reflecting ends.  Three
-    passes: the candidates that pass the pruning, with their lengths; where
-    ``gated``, those near a measured row; their geometry and tests.
+    says (within the extent margin of the segments), fit the ``window`` (3-D
+    length with ``height_offset``), arrive within the widened acceptance angle
+    (and leave a directional transmitter within it), and have no leg that a
+    wall crosses away from the leg's reflecting ends and the wall's own.  Two
+    passes: the candidates that pass the pruning (and, where ``gated``, come
+    near a measured row by their lengths); their geometry and tests.
 
     Parameters
     ----------
@@ -378,22 +402,17 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
         Where ``gated``, the rows' measured paths, m, NaN where not heard.
     pose : ndarray, shape (3,)
         The sensor's pose (x, y, yaw), m and rad.
-    spread : float
-        The transducers' largest distance from the pose's position, m.
     window : float
         Longest 3-D path, m.
-    acceptance, yaw_margin : float
-        rad.
-    position_margin, extent_margin : float
-        m.
+    acceptance : float
+        Acceptance half-angle of the transducers, rad.
     pose_covariance : ndarray, shape (3, 3)
+    xy_sigma, yaw_sigma : float
+        The pose's position error along its worst direction (m) and its yaw error (rad).
     sigma_path, sigma_speed, sigma_map, gate : float
-        Where ``gated``, a path is kept only if some row of its channel is
-        within Mahalanobis distance ``gate`` of it (:func:`match_rows`).
-    fixed_variance : float
-        The largest variance of a receiver's path but for the speed's term, m^2:
-        before computing a path's geometry, a row must be within ``gate``
-        standard deviations of it at every receiver that heard it.
+        The tolerance (:class:`sonar_ring.explain.Tolerance`); where ``gated``,
+        a path is kept only if some row of its channel is within Mahalanobis
+        distance ``gate`` of it (:func:`match_rows`).
     isotropic, prune, gated : bool
         An isotropic emitter (no transmit beam); prune (:mod:`sonar_ring.explain`,
         "Pruning"); keep only paths near a measured row.
@@ -414,6 +433,22 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
     n_walls, n_points = start.shape[0], points.shape[0]
     slots, receivers = tx.shape[1], rx.shape[1]
     all_channels = tx.shape[0] * slots
+    # The margins (sonar_ring.explain, "Tolerance"): a transducer's position error, the transducers being at
+    # most ``spread`` from the pose's position; how far a bounce may lie beyond a segment's ends or a wall's
+    # crossing from a leg's or a wall's ends (extent), and the acceptance angle's widening, yaw_margin +
+    # position_margin / distance.
+    spread = 0.0
+    for g in range(tx.shape[0]):
+        for m in range(slots):
+            spread = max(spread, math.hypot(tx[g, m, 0] - pose[0], tx[g, m, 1] - pose[1]))
+        for k in range(receivers):
+            spread = max(spread, math.hypot(rx[g, k, 0] - pose[0], rx[g, k, 1] - pose[1]))
+    position = xy_sigma + spread * yaw_sigma
+    extent_margin = gate * (position + sigma_map)
+    yaw_margin = gate * yaw_sigma
+    position_margin = gate * (2.0 * position + sigma_map)
+    # The largest variance of a receiver's path but for the speed's term: |J_xy| <= 2, |J_yaw| <= 2 spread.
+    fixed_variance = sigma_path ** 2 + 4.0 * position ** 2 + 8.0 * sigma_map ** 2
     # The rows of each channel (a counting sort), and the channels that have rows.
     row_start = np.zeros(all_channels + 1, dtype=np.int64)
     for n in range(row_channel.shape[0]):
@@ -532,7 +567,11 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
                                                          normal, length, extent_margin)
 
     # Pass 1: the candidates that pass the pruning, with their horizontal lengths (walls' bounces not yet
-    # placed).  At most: every seen wall or point alone, and last with every entry (a point: every wall) first.
+    # placed); where gated, channel by channel, only those near a measured row of their channel, with which
+    # rows (bits of the row's place in its channel; the 64th: any from there on).  Near: within the gate at
+    # every receiver that heard the row, with the largest variance a pose error could give
+    # (:func:`_row_intervals`).  At most: every seen wall or point alone, and last with every entry (a point:
+    # every wall) first.
     capacity = 0
     for c in range(channels):
         for w in range(n_walls):
@@ -544,6 +583,10 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
     second = np.empty(capacity, dtype=np.int64)
     channel = np.empty(capacity, dtype=np.int64)
     horizontal = np.empty((capacity, receivers))
+    near_rows = np.zeros(capacity, dtype=np.uint64)
+    low, high = _row_intervals(row_paths, gate, fixed_variance, sigma_speed)
+    squared = np.empty(receivers)
+    back = np.empty(receivers)
     transmitter_side = np.empty(n_walls)
     receiver_side = np.empty(receivers)
     receiver_image = np.empty((receivers, 2))
@@ -551,6 +594,7 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
     for c in range(channels):
         g, m = channel_id[c] // slots, channel_id[c] % slots
         t = transmitter[g, m]
+        channel_first = count
         for a in range(n_walls):
             transmitter_side[a] = _side(tx[g, m, 0], tx[g, m, 1], a, start, normal)
         for b in range(n_walls):
@@ -607,63 +651,59 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
             if not point_seen_any[c, p]:
                 continue
             for k in range(receivers):
-                horizontal[count, k] = to_point[t, p] + math.hypot(points[p, 0] - rx[g, k, 0],
-                                                                   points[p, 1] - rx[g, k, 1])
+                back[k] = math.hypot(points[p, 0] - rx[g, k, 0], points[p, 1] - rx[g, k, 1])
+                horizontal[count, k] = to_point[t, p] + back[k]
             kind[count], first[count], second[count], channel[count] = POINT, p, p, c
             count += 1
             for a in range(n_walls):
                 if excluded_point[a, p] or not wall_near[a] or not wall_sent[c, a] or not via_exists[t, a, p]:
                     continue
                 for k in range(receivers):
-                    horizontal[count, k] = via_length[t, a, p] + math.hypot(points[p, 0] - rx[g, k, 0],
-                                                                            points[p, 1] - rx[g, k, 1])
+                    horizontal[count, k] = via_length[t, a, p] + back[k]
                 kind[count], first[count], second[count], channel[count] = WALL_POINT, a, p, c
                 count += 1
-
-    # Pass 2, where gated: the candidates near a measured row of their channel move up.  Near: within the
-    # gate at every receiver that heard the row, with the largest variance a pose error could give.
-    if gated:
-        near_count = 0
-        distance = np.empty(receivers)
-        for q in range(count):
-            g, m = channel_id[channel[q]] // slots, channel_id[channel[q]] % slots
-            for k in range(receivers):
-                distance[k] = math.sqrt(horizontal[q, k] ** 2 + height_offset[g, m, k] ** 2)
-            near = False
-            for r in range(row_start[channel_id[channel[q]]], row_start[channel_id[channel[q]] + 1]):
-                n = row_order[r]
-                all_near, heard = True, False
+        if gated:
+            near_count = channel_first
+            first_row, end_row = row_start[channel_id[c]], row_start[channel_id[c] + 1]
+            for q in range(channel_first, count):
                 for k in range(receivers):
-                    if np.isfinite(row_paths[n, k]):
-                        heard = True
-                        all_near = all_near and (row_paths[n, k] - distance[k]) ** 2 <= gate ** 2 * (
-                            fixed_variance + sigma_speed ** 2 * distance[k] ** 2)
-                near = near or (all_near and heard)
-            if near:
-                kind[near_count], first[near_count], second[near_count] = kind[q], first[q], second[q]
-                channel[near_count] = channel[q]
-                near_count += 1
-        count = near_count
+                    squared[k] = horizontal[q, k] ** 2 + height_offset[g, m, k] ** 2
+                mask = np.uint64(0)
+                for r in range(first_row, end_row):
+                    n = row_order[r]
+                    near, heard = True, False
+                    for k in range(receivers):
+                        if low[n, k] <= high[n, k]:
+                            heard = True
+                            near = near and low[n, k] <= squared[k] <= high[n, k]
+                    if near and heard:
+                        mask |= np.uint64(1) << np.uint64(min(r - first_row, 63))
+                if mask:
+                    kind[near_count], first[near_count], second[near_count] = kind[q], first[q], second[q]
+                    channel[near_count], near_rows[near_count] = c, mask
+                    near_count += 1
+            count = near_count
 
-    # Pass 3: each candidate's geometry, window, beams and derivative; where gated, whether a row of its
-    # channel is within the gate of it (the Mahalanobis distance of :func:`match_rows`); then blocking.
+    # Pass 2: each candidate's geometry, window and derivative; where gated, whether a row of its channel is
+    # within the gate of it (the Mahalanobis distance of :func:`match_rows`); then beams and blocking.
     out_kind = np.empty(count, dtype=np.int64)
     out_first = np.empty(count, dtype=np.int64)
     out_second = np.empty(count, dtype=np.int64)
     out_group = np.empty(count, dtype=np.int64)
     out_slot = np.empty(count, dtype=np.int64)
     path = np.empty((count, receivers))
-    jacobian = np.zeros((count, receivers, 3))
+    jacobian = np.empty((count, receivers, 3))
     first_point = np.empty((count, receivers, 2))
     last_point = np.empty((count, receivers, 2))
     channel_start = np.zeros(all_channels + 1, dtype=np.int64)
     scratch = _work_arrays(receivers)
+    variance = np.empty((1, receivers))
     kept_count = 0
     for q in range(count):
         g, m = channel_id[channel[q]] // slots, channel_id[channel[q]] % slots
         t = transmitter[g, m]
         a, b = first[q], second[q]
-        audible = False
+        reaches = False
         for k in range(receivers):
             if kind[q] == WALL_WALL:
                 h, exists, first_x, first_y, last_x, last_y = _wall_wall(
@@ -686,53 +726,59 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
                 exists, first_x, first_y, last_x, last_y = True, points[b, 0], points[b, 1], points[b, 0], points[b, 1]
             first_point[kept_count, k, 0], first_point[kept_count, k, 1] = first_x, first_y
             last_point[kept_count, k, 0], last_point[kept_count, k, 1] = last_x, last_y
-            distance_k = math.sqrt(h ** 2 + height_offset[g, m, k] ** 2)
-            heard = (exists and distance_k <= window
-                     and _accepted(last_x, last_y, rx[g, k, 0], rx[g, k, 1], rx_axis[g, 0, k, 0], rx_axis[g, 0, k, 1],
-                                   acceptance, yaw_margin, position_margin))
-            if not isotropic:
-                heard = heard and _accepted(first_x, first_y, tx[g, m, 0], tx[g, m, 1], tx_axis[g, m, 0, 0],
-                                            tx_axis[g, m, 0, 1], acceptance, yaw_margin, position_margin)
-            path[kept_count, k] = distance_k if heard else np.nan
+            distance = math.sqrt(h ** 2 + height_offset[g, m, k] ** 2)
+            path[kept_count, k] = distance if exists and distance <= window else np.nan
             for axis in range(3):
                 jacobian[kept_count, k, axis] = 0.0
-            if not heard:
+            if not np.isfinite(path[kept_count, k]):
                 continue
-            audible = True
+            reaches = True
             out_x, out_y = _unit(tx[g, m, 0] - first_x, tx[g, m, 1] - first_y)
             in_x, in_y = _unit(rx[g, k, 0] - last_x, rx[g, k, 1] - last_y)
-            scale = h / distance_k
+            scale = h / distance
             jacobian[kept_count, k, 0] = scale * (out_x + in_x)
             jacobian[kept_count, k, 1] = scale * (out_y + in_y)
             jacobian[kept_count, k, 2] = scale * (out_y * (tx[g, m, 0] - pose[0]) - out_x * (tx[g, m, 1] - pose[1])
                                                   + in_y * (rx[g, k, 0] - pose[0]) - in_x * (rx[g, k, 1] - pose[1]))
-        if not audible:
+        if not reaches:
             continue
         if gated:
+            _variances(variance, 0, path, jacobian, kept_count, pose_covariance, sigma_path, sigma_speed, sigma_map)
             near = False
-            for r in range(row_start[channel_id[channel[q]]], row_start[channel_id[channel[q]] + 1]):
-                near = near or _distance2(row_paths, row_order[r], path, jacobian, kept_count, pose_covariance,
-                                          sigma_path, sigma_speed, sigma_map, scratch) <= gate ** 2
+            first_row = row_start[channel_id[channel[q]]]
+            for r in range(first_row, row_start[channel_id[channel[q]] + 1]):
+                if near or not (near_rows[q] >> np.uint64(min(r - first_row, 63))) & np.uint64(1):
+                    continue
+                near = (_near_at_every_receiver(row_paths, row_order[r], path, kept_count, variance, 0, gate)
+                        and _distance2(row_paths, row_order[r], path, jacobian, kept_count, pose_covariance,
+                                       sigma_path, sigma_speed, sigma_map, scratch) <= gate ** 2)
             if not near:
                 continue
-        heard_any = False
+        heard = False
         for k in range(receivers):
             if not np.isfinite(path[kept_count, k]):
                 continue
             first_x, first_y = first_point[kept_count, k, 0], first_point[kept_count, k, 1]
             last_x, last_y = last_point[kept_count, k, 0], last_point[kept_count, k, 1]
-            if (_shortened_leg_blocked(tx[g, m, 0], tx[g, m, 1], first_x, first_y, 0.0, extent_margin, walls,
+            audible = _accepted(last_x, last_y, rx[g, k, 0], rx[g, k, 1], rx_axis[g, 0, k, 0], rx_axis[g, 0, k, 1],
+                                acceptance, yaw_margin, position_margin)
+            if not isotropic:
+                audible = audible and _accepted(first_x, first_y, tx[g, m, 0], tx[g, m, 1], tx_axis[g, m, 0, 0],
+                                                tx_axis[g, m, 0, 1], acceptance, yaw_margin, position_margin)
+            audible = audible and not (
+                _shortened_leg_blocked(tx[g, m, 0], tx[g, m, 1], first_x, first_y, 0.0, extent_margin, walls, length,
                                        extent_margin)
-                    or _shortened_leg_blocked(first_x, first_y, last_x, last_y, extent_margin, extent_margin, walls,
-                                              extent_margin)
-                    or _shortened_leg_blocked(last_x, last_y, rx[g, k, 0], rx[g, k, 1], extent_margin, 0.0, walls,
-                                              extent_margin)):
+                or _shortened_leg_blocked(first_x, first_y, last_x, last_y, extent_margin, extent_margin, walls,
+                                          length, extent_margin)
+                or _shortened_leg_blocked(last_x, last_y, rx[g, k, 0], rx[g, k, 1], extent_margin, 0.0, walls, length,
+                                          extent_margin))
+            if audible:
+                heard = True
+            else:
                 path[kept_count, k] = np.nan
                 for axis in range(3):
                     jacobian[kept_count, k, axis] = 0.0
-            else:
-                heard_any = True
-        if heard_any:
+        if heard:
             out_kind[kept_count], out_first[kept_count], out_second[kept_count] = kind[q], a, b
             out_group[kept_count], out_slot[kept_count] = g, m
             channel_start[channel_id[channel[q]] + 1] += 1
@@ -745,8 +791,33 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
 
 
 @kernel
+def _row_intervals(row_paths, gate, fixed_variance, sigma_speed):
+    """The squared 3-D path lengths near each row at each receiver, ``low`` and ``high`` (N, K), m^2.
+
+    Near: ``|measured - d| <= gate sqrt(fixed_variance + sigma_speed^2 d^2)``, a
+    quadratic inequality in ``d`` whose roots bound an interval (none above when
+    ``gate sigma_speed >= 1``); widened by a slack against rounding.  NaN rows give
+    an empty interval.
+    """
+    low = np.full(row_paths.shape, np.inf)
+    high = np.full(row_paths.shape, -np.inf)
+    spread = (gate * sigma_speed) ** 2
+    for n in range(row_paths.shape[0]):
+        for k in range(row_paths.shape[1]):
+            measured = row_paths[n, k]
+            if not np.isfinite(measured):
+                continue
+            root = math.sqrt(spread * measured ** 2 + (1.0 - spread) * gate ** 2 * fixed_variance)
+            lowest = max((measured - root) / (1.0 - spread), 0.0) if spread < 1 else 0.0
+            highest = (measured + root) / (1.0 - spread) if spread < 1 else np.inf
+            low[n, k] = (max(lowest * (1.0 - 1e-12) - _SLACK, 0.0)) ** 2
+            high[n, k] = (highest * (1.0 + 1e-12) + _SLACK) ** 2
+    return low, high
+
+
+@kernel
 def match_rows(channel, paths, channel_start, kind, predicted, jacobian, pose_covariance, sigma_path, sigma_speed,
-               sigma_map):
+               sigma_map, gate):
     """Each echo row's closest double bounce and closest single bounce of its channel, by Mahalanobis distance.
 
     The engine of :func:`sonar_ring.explain.match`, whose module docstring gives the covariance.
@@ -764,12 +835,15 @@ def match_rows(channel, paths, channel_start, kind, predicted, jacobian, pose_co
     pose_covariance : ndarray, shape (3, 3)
     sigma_path, sigma_speed, sigma_map : float
         m, relative, m.
+    gate : float
+        Paths farther than ``gate`` standard deviations from the row at one of
+        its receivers are not considered (they cannot be within the gate).
 
     Returns
     -------
     double, single : ndarray of int, shape (N,)
-        The closest double bounce and the closest single bounce; -1 where
-        none reaches every receiver that heard the row.
+        The closest double bounce and the closest single bounce; -1 where none
+        reaches every receiver that heard the row within the gate there.
     double_distance, single_distance : ndarray, shape (N,)
         Their Mahalanobis distances; inf where none, NaN where no receiver heard the row.
     """
@@ -777,6 +851,9 @@ def match_rows(channel, paths, channel_start, kind, predicted, jacobian, pose_co
     best = np.full((2, rows), -1, dtype=np.int64)
     distance = np.full((2, rows), np.inf)
     scratch = _work_arrays(paths.shape[1])
+    variance = np.empty(predicted.shape)
+    for q in range(predicted.shape[0]):
+        _variances(variance, q, predicted, jacobian, q, pose_covariance, sigma_path, sigma_speed, sigma_map)
     for n in range(rows):
         heard = False
         for k in range(paths.shape[1]):
@@ -785,6 +862,8 @@ def match_rows(channel, paths, channel_start, kind, predicted, jacobian, pose_co
             distance[:, n] = np.nan
             continue
         for q in range(channel_start[channel[n]], channel_start[channel[n] + 1]):
+            if not _near_at_every_receiver(paths, n, predicted, q, variance, q, gate):
+                continue
             squared = _distance2(paths, n, predicted, jacobian, q, pose_covariance, sigma_path, sigma_speed, sigma_map,
                                  scratch)
             bounces = 1 if kind[q] == WALL or kind[q] == POINT else 0
@@ -798,6 +877,33 @@ def _work_arrays(receivers):
     """Work arrays for :func:`_distance2`: heard receivers, errors, covariance, covariance times derivative."""
     return (np.empty(receivers, dtype=np.int64), np.empty(receivers), np.empty((receivers, receivers)),
             np.empty((receivers, 3)))
+
+
+@kernel
+def _variances(variance, row, predicted, jacobian, q, pose_covariance, sigma_path, sigma_speed, sigma_map):
+    """Into ``variance[row]`` (K,): each receiver's variance of predicted path ``q``, the diagonal of the covariance."""
+    for k in range(predicted.shape[1]):
+        pose = 0.0
+        for i in range(3):
+            for j in range(3):
+                pose += jacobian[q, k, i] * pose_covariance[i, j] * jacobian[q, k, j]
+        variance[row, k] = pose + sigma_speed ** 2 * predicted[q, k] ** 2 + 8.0 * sigma_map ** 2 + sigma_path ** 2
+
+
+@kernel
+def _near_at_every_receiver(paths, n, predicted, q, variance, row, gate):
+    """Whether path ``q`` reaches every receiver that heard row ``n`` within ``gate`` standard deviations there.
+
+    ``variance[row]`` (K,) the path's variances: necessary for a Mahalanobis
+    distance within the gate, as ``e^T C^-1 e >= e_k^2 / C_kk``.
+    """
+    heard = False
+    for k in range(paths.shape[1]):
+        if np.isfinite(paths[n, k]):
+            heard = True
+            if not (paths[n, k] - predicted[q, k]) ** 2 <= gate ** 2 * variance[row, k]:
+                return False
+    return heard
 
 
 @kernel
@@ -868,7 +974,7 @@ def reflections_blocked(points, group, slot, tx, rx, walls, margin):
     walls : ndarray, shape (W, 2, 2)
         m.
     margin : ndarray, shape (L,)
-        m: crossings within this of the reflection point do not count.
+        m: crossings within this of the reflection point, or of a wall's ends, do not count.
 
     Returns
     -------
@@ -876,16 +982,20 @@ def reflections_blocked(points, group, slot, tx, rx, walls, margin):
         Some leg transmitter -> point or point -> receiver crosses a wall
         strictly between its ends, beyond ``margin`` of the point.
     """
+    length = _lengths(walls)
     blocked = np.zeros(points.shape[0], dtype=np.bool_)
     for n in range(points.shape[0]):
         g, m = group[n], slot[n]
         for k in range(points.shape[1]):
             x, y = points[n, k, 0], points[n, k, 1]
-            if not (np.isfinite(x) and np.isfinite(y)):
+            if blocked[n] or not (np.isfinite(x) and np.isfinite(y)):
                 continue
-            blocked[n] = blocked[n] or (
-                _shortened_leg_blocked(tx[g, m, 0], tx[g, m, 1], x, y, 0.0, margin[n], walls, margin[n])
-                or _shortened_leg_blocked(x, y, rx[g, k, 0], rx[g, k, 1], margin[n], 0.0, walls, margin[n]))
+            # A corner's, an edge's or an undecided point's legs from the transmitter are one for all receivers.
+            same = k > 0 and x == points[n, k - 1, 0] and y == points[n, k - 1, 1]
+            blocked[n] = ((not same and _shortened_leg_blocked(tx[g, m, 0], tx[g, m, 1], x, y, 0.0, margin[n], walls,
+                                                               length, margin[n]))
+                          or _shortened_leg_blocked(x, y, rx[g, k, 0], rx[g, k, 1], margin[n], 0.0, walls, length,
+                                                    margin[n]))
     return blocked
 
 
@@ -898,19 +1008,20 @@ def _accepted(x, y, transducer_x, transducer_y, axis_x, axis_y, acceptance, yaw_
 
 
 @kernel
-def _shortened_leg_blocked(x0, y0, x1, y1, start_margin, end_margin, walls, wall_margin):
+def _shortened_leg_blocked(x0, y0, x1, y1, start_margin, end_margin, walls, length, wall_margin):
     """Whether a wall crosses the leg ``(x0, y0) -> (x1, y1)``, less the margins at its ends, inside its own.
 
-    Nothing left of the leg: no; crossings within ``wall_margin`` (m) of the wall's ends do not count.
+    ``length`` (W,) the walls' lengths, m.  Nothing left of the leg: no;
+    crossings within ``wall_margin`` (m) of the wall's ends do not count.
     """
     if start_margin == 0.0 and end_margin == 0.0:
-        return _leg_blocked(x0, y0, x1, y1, walls, wall_margin)
+        return _leg_blocked(x0, y0, x1, y1, walls, length, wall_margin)
     dx, dy = x1 - x0, y1 - y0
-    length = math.hypot(dx, dy)
-    if not length > start_margin + end_margin:
+    leg = math.hypot(dx, dy)
+    if not leg > start_margin + end_margin:
         return False
-    return _leg_blocked(x0 + start_margin / length * dx, y0 + start_margin / length * dy,
-                        x1 - end_margin / length * dx, y1 - end_margin / length * dy, walls, wall_margin)
+    return _leg_blocked(x0 + start_margin / leg * dx, y0 + start_margin / leg * dy,
+                        x1 - end_margin / leg * dx, y1 - end_margin / leg * dy, walls, length, wall_margin)
 
 
 @kernel
