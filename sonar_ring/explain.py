@@ -98,9 +98,13 @@ predictions on random poses), and each has a slack of 1e-9 against rounding:
   on the receiver's side;
 * **rows**: given the measured paths, a pair's lengths are compared with the
   rows of its channel before its bounces are placed, with the largest variance
-  any pose error could give (``|J_xy| <= 2``, ``|J_yaw| <= 2 rho``); then, with its
-  derivative, by the Mahalanobis distance itself, before its legs are tested
-  for blocking.
+  any pose error could give (``|J_xy| <= 2``, ``|J_yaw| <= 2 rho``); for a path whose
+  first reflection is the same for every receiver (a point first, or a wall
+  then a point) the differences between receivers too, with a bound on how a
+  pose error changes them (:func:`sonar_ring.image_method.map_paths`); then, with
+  its derivative, by the Mahalanobis distance itself, before its legs are tested
+  for blocking.  Each is a necessary condition of a match: the Mahalanobis
+  distance bounds that of any one receiver or difference.
 
 What depends on the transmitter alone (its images in the walls, its distance to
 the points, the first bounce of every wall -> point path) is computed once per
@@ -402,13 +406,13 @@ def impossible(points, placement: Placement, layout: Layout, group, transmitter,
         raise ValueError(f"impossible: points must have shape ({group.size}, {layout.receivers_per_group}, 2) "
                          f"(hypotheses, receivers, xy), got {points.shape}")
     margin = np.asarray(margin, dtype=float)
-    if margin.shape not in ((), (group.size,)) or np.any(margin < 0):
+    if margin.shape not in ((), (group.size,)) or (margin.size and margin.min() < 0):
         raise ValueError(f"impossible: margin must be a number >= 0 or one per hypothesis ({group.size},), "
                          f"got {margin!r}")
     _check_placement(placement, layout, "impossible")
     walls, _ = _map_arrays(walls, np.empty((0, 2)), "impossible")
-    return image_method.reflections_blocked(points, group, slot, placement.tx, placement.rx, walls,
-                                            np.ascontiguousarray(np.broadcast_to(margin, group.shape)))
+    margin = np.full(group.size, float(margin)) if margin.ndim == 0 else np.ascontiguousarray(margin)
+    return image_method.reflections_blocked(points, group, slot, placement.tx, placement.rx, walls, margin)
 
 
 def reflection_points(landmarks: Landmarks, placement: Placement, layout: Layout, transmitter) -> np.ndarray:

@@ -586,6 +586,7 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
     near_rows = np.zeros(capacity, dtype=np.uint64)
     low, high = _row_intervals(row_paths, gate, fixed_variance, sigma_speed)
     squared = np.empty(receivers)
+    image_distance = np.empty(receivers)
     back = np.empty(receivers)
     transmitter_side = np.empty(n_walls)
     receiver_side = np.empty(receivers)
@@ -666,8 +667,15 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
             near_count = channel_first
             first_row, end_row = row_start[channel_id[c]], row_start[channel_id[c] + 1]
             for q in range(channel_first, count):
+                # A point's paths, and a wall -> point path, leave the transmitter the same way for every
+                # receiver and come to each from one point (the last point, or the first one's image in the last
+                # wall), this far away: the differences between receivers must match too (_differences_near).
+                same_start = kind[q] == POINT or kind[q] == POINT_WALL or kind[q] == WALL_POINT
                 for k in range(receivers):
                     squared[k] = horizontal[q, k] ** 2 + height_offset[g, m, k] ** 2
+                    if same_start:
+                        image_distance[k] = horizontal[q, k] - (via_length[t, first[q], second[q]]
+                                                                if kind[q] == WALL_POINT else to_point[t, first[q]])
                 mask = np.uint64(0)
                 for r in range(first_row, end_row):
                     n = row_order[r]
@@ -676,7 +684,10 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
                         if low[n, k] <= high[n, k]:
                             heard = True
                             near = near and low[n, k] <= squared[k] <= high[n, k]
-                    if near and heard:
+                    near = near and heard and (not same_start or _differences_near(
+                        row_paths, n, horizontal, q, squared, image_distance, rx, g, spread, xy_sigma, yaw_sigma,
+                        sigma_path, sigma_speed, gate))
+                    if near:
                         mask |= np.uint64(1) << np.uint64(min(r - first_row, 63))
                 if mask:
                     kind[near_count], first[near_count], second[near_count] = kind[q], first[q], second[q]
@@ -813,6 +824,45 @@ def _row_intervals(row_paths, gate, fixed_variance, sigma_speed):
             low[n, k] = (max(lowest * (1.0 - 1e-12) - _SLACK, 0.0)) ** 2
             high[n, k] = (highest * (1.0 + 1e-12) + _SLACK) ** 2
     return low, high
+
+
+@kernel
+def _differences_near(row_paths, n, horizontal, q, squared, image_distance, rx, g, spread, xy_sigma, yaw_sigma,
+                      sigma_path, sigma_speed, gate):
+    """Whether the differences between row ``n``'s receivers match those of candidate ``q`` within the gate.
+
+    For a path that leaves the transmitter the same way for every receiver (its
+    first reflection is theirs) and comes to receiver k from one point X at
+    ``image_distance[k]``: a pose error moves receiver k's path less the
+    reference's (the first that heard the row) by ``(J_k - J_r) . delta``, with
+    ``|J_k - J_r|`` in (x, y) at most ``s_k |e_k - e_r| + 2 |s_k - s_r|`` and in yaw at
+    most ``s_k (|e_k - e_r| rho + b) + 2 rho |s_k - s_r|`` (``s = h / d``, ``e`` the unit
+    vectors from X, ``|e_k - e_r| <= 2 b / max |R - X|``, ``b = |R_k - R_r|``, ``rho`` the
+    spread), and the map's common error cancels; so the squared difference of the
+    errors is at most ``gate^2 (2 sigma_path^2 + (|dJ_xy| xy_sigma + |dJ_yaw| yaw_sigma)^2
+    + sigma_speed^2 (d_k - d_r)^2)`` for a row within the gate (the Mahalanobis
+    distance bounds that of any difference).  ``squared`` (K,): the 3-D lengths squared.
+    """
+    reference = -1
+    for k in range(row_paths.shape[1]):
+        if not np.isfinite(row_paths[n, k]):
+            continue
+        if reference < 0:
+            reference = k
+            continue
+        length, reference_length = math.sqrt(squared[k]), math.sqrt(squared[reference])
+        scale, reference_scale = horizontal[q, k] / length, horizontal[q, reference] / reference_length
+        baseline = math.hypot(rx[g, k, 0] - rx[g, reference, 0], rx[g, k, 1] - rx[g, reference, 1])
+        turn = 2.0 * baseline / max(image_distance[k], image_distance[reference])
+        change = abs(scale - reference_scale)
+        along = scale * turn + 2.0 * change
+        around = scale * (turn * spread + baseline) + 2.0 * spread * change
+        variance = (2.0 * sigma_path ** 2 + (along * xy_sigma + around * yaw_sigma) ** 2
+                    + sigma_speed ** 2 * (length - reference_length) ** 2)
+        error = (row_paths[n, k] - row_paths[n, reference]) - (length - reference_length)
+        if error ** 2 > gate ** 2 * variance * (1.0 + 1e-9) + _SLACK ** 2:
+            return False
+    return True
 
 
 @kernel
