@@ -124,7 +124,7 @@ import numpy as np
 from sonar_ring import image_method
 from sonar_ring.compiled import kernel
 from sonar_ring.geometry import Layout
-from sonar_ring.landmarks import PLANE, Landmarks
+from sonar_ring.landmarks import PLANE, Landmarks, make_landmarks
 from sonar_ring.simulate import Placement
 
 NONE, MULTIPATH = 0, 1
@@ -438,18 +438,11 @@ def reflection_points(landmarks: Landmarks, placement: Placement, layout: Layout
     """
     group, slot = _channels(layout, landmarks.group.astype(np.int64), transmitter, "reflection_points")
     _check_placement(placement, layout, "reflection_points")
-    position = landmarks.position[:, None, :]
-    normal = landmarks.normal[:, None, :]
-    tx = placement.tx[group, slot][:, None, :]
-    rx = placement.rx[group]
-    tx_side = _dot(tx - position, normal)
-    image = tx - 2.0 * tx_side[..., None] * normal
-    rx_side = _dot(rx - position, normal)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        fraction = np.where(tx_side * rx_side > 0, rx_side / (rx_side + tx_side), np.nan)
-    on_plane = rx + fraction[..., None] * (image - rx)
+    position = np.ascontiguousarray(landmarks.position, dtype=float)
+    on_plane = image_method.plane_reflections(position, np.ascontiguousarray(landmarks.normal, dtype=float), group,
+                                              slot, placement.tx, placement.rx)
     plane = (landmarks.landmark_class == PLANE)[:, None, None]
-    return np.where(plane, on_plane, np.broadcast_to(position, rx.shape))
+    return np.where(plane, on_plane, position[:, None, :])
 
 
 def load_kernels() -> None:
@@ -471,7 +464,8 @@ def load_kernels() -> None:
     paths = np.ones((1, layout.receivers_per_group))
     prediction = predict(walls, points, placement, layout, rows, rows, tolerance, paths=paths)
     match(prediction, layout, rows, rows, paths, tolerance)
-    impossible(np.ones((1, layout.receivers_per_group, 2)), placement, layout, rows, rows, walls, 0.01)
+    plane = make_landmarks([PLANE], [[1.0, 0.0]], normal=[[0.0, 1.0]])
+    impossible(reflection_points(plane, placement, layout, rows), placement, layout, rows, rows, walls, 0.01)
 
 
 # --------------------------------------------------------------------------- checks and set-up
@@ -523,10 +517,6 @@ def _row_paths(paths, rows: int, layout: Layout, caller: str) -> np.ndarray:
         raise ValueError(f"{caller}: paths must have shape ({rows}, {layout.receivers_per_group}) "
                          f"(rows, receivers), got {paths.shape}")
     return paths
-
-
-def _dot(u, v):
-    return u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1]
 
 
 # --------------------------------------------------------------------------- kernels

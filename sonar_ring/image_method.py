@@ -1050,6 +1050,41 @@ def reflections_blocked(points, group, slot, tx, rx, walls, margin):
 
 
 @kernel
+def plane_reflections(position, normal, group, slot, tx, rx):
+    """Where planes reflect each group's transmitter to each of its receivers: the single bounce of :func:`map_paths`.
+
+    Parameters
+    ----------
+    position, normal : ndarray, shape (L, 2)
+        A point of each plane's line and its unit normal, m.
+    group, slot : ndarray of int, shape (L,)
+        The receiver group and transmitter slot of each plane.
+    tx, rx : ndarray, shape (G, M, 2) and (G, K, 2)
+        Transmitters and receivers, m.
+
+    Returns
+    -------
+    ndarray, shape (L, K, 2)
+        The reflection point on the (unbounded) line, m; NaN where the
+        transmitter and the receiver are not on one side of it.
+    """
+    count, receivers = position.shape[0], rx.shape[1]
+    direction = np.empty((count, 2))
+    for n in range(count):
+        direction[n, 0], direction[n, 1] = normal[n, 1], -normal[n, 0]
+    length = np.zeros(count)
+    points = np.full((count, receivers, 2), np.nan)
+    for n in range(count):
+        g, m = group[n], slot[n]
+        for k in range(receivers):
+            _, exists, x, y = _via_wall(rx[g, k, 0], rx[g, k, 1], tx[g, m, 0], tx[g, m, 1], n, position, direction,
+                                        normal, length, np.inf)
+            if exists:
+                points[n, k, 0], points[n, k, 1] = x, y
+    return points
+
+
+@kernel
 def _accepted(x, y, transducer_x, transducer_y, axis_x, axis_y, acceptance, yaw_margin, position_margin):
     """Whether ``(x, y)`` is within the widened acceptance angle of a transducer along a unit axis."""
     dx, dy = x - transducer_x, y - transducer_y
