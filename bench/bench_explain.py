@@ -125,8 +125,9 @@ def main() -> None:
         f"Browne's 48-pair ring, one lap of the room in the realistic world, {len(pings)} pings (every {STEP}th) with "
         f"{np.median(rows):.0f} echo rows per ping (median; {rows.min()}-{rows.max()}); a map of {len(walls)} walls "
         f"and {len(points)} points, all within range.  Per ping: `predict` (given the rows' paths), `match`, and "
-        "`impossible` for one point hypothesis per row; thread CPU time, "
-        f"{args.repeats} passes.  Unpruned: every pair of entries for every channel (the same paths).",
+        "`impossible` for one point hypothesis per row, at the true pose; the tolerance: 1 us of TOF, the pose's "
+        f"standard deviations, {100 * SIGMA_SPEED:.2f} % of the speed of sound.  Thread CPU time, {args.repeats} "
+        "passes.  Unpruned: every pair of entries for every channel (the same paths).",
         "",
         "| tolerance | pruned | median ms | p99 ms | predict | match | impossible | paths kept |",
         "|---|---|---|---|---|---|---|---|",

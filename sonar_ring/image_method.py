@@ -362,7 +362,7 @@ def junctions(walls, points, gap):
 def map_paths(start, direction, normal, length, walls, points, excluded_pair, excluded_point, tx, rx, tx_axis,
               rx_axis, height_offset, transmitter, row_channel, row_paths, pose, window, acceptance, pose_covariance,
               xy_sigma, yaw_sigma, sigma_path, sigma_speed, sigma_map, gate, isotropic, prune, gated):
-    """The double-bounce paths a map of walls and points sends to the receivers of one ping's channels.
+    """The paths, double and single bounces, a map of walls and points sends to one ping's channels' receivers.
 
     The engine of :func:`sonar_ring.explain.predict`, whose docstring gives the
     model, the margins and the pruning.  Paths exist as :func:`double_bounces`
