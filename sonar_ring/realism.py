@@ -66,7 +66,9 @@ from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
+from sonar_ring import image_method
 from sonar_ring.geometry import Layout, speed_of_sound
+from sonar_ring.image_method import POINT_WALL, WALL_POINT, WALL_WALL
 from sonar_ring.poses import compose, relative_pose
 from sonar_ring.simulate import (
     DEFAULT_THRESHOLD,
@@ -463,100 +465,45 @@ def multipath_paths(simulator: Simulator, placement: Placement, gain: float, fir
     families = []
     source = first_source
     if first.size:
-        families.append(_wall_wall(simulator, placement, first, second, np.arange(first.size) + source,
-                                   np.full(first.size, gain * plane * plane)))
+        families.append(_second_order(simulator, placement, WALL_WALL, first, second, np.arange(first.size) + source,
+                                      np.full(first.size, gain * plane * plane)))
         source += first.size
     if len(scene.edges) and walls:
         offsets = np.abs(_dot(scene.edges[None, :, :] - simulator.wall_start[:, None, :],
                               simulator.wall_normal[:, None, :]))  # (W, E)
         wall, edge = np.nonzero(offsets > _ON_LINE)
         strength = np.full(wall.size, gain * plane * scene.reflectivity[EDGE])
-        families.append(_wall_edge(simulator, placement, wall, edge, np.arange(wall.size) + source, strength))
+        families.append(_second_order(simulator, placement, WALL_POINT, wall, edge, np.arange(wall.size) + source,
+                                      strength))
         source += wall.size
-        families.append(_edge_wall(simulator, placement, edge, wall, np.arange(wall.size) + source, strength))
+        families.append(_second_order(simulator, placement, POINT_WALL, edge, wall, np.arange(wall.size) + source,
+                                      strength))
     return families
 
 
-def _mirror(point, start, normal):
-    """Images of ``point`` in the lines through ``start`` with unit ``normal`` (broadcast), and its signed side."""
-    side = _dot(point - start, normal)
-    return point - 2.0 * side[..., None] * normal, side
+def _second_order(simulator: Simulator, placement: Placement, kind: int, first, second, source, strength) -> Paths:
+    """The family of double bounces ``kind`` (:mod:`sonar_ring.image_method`) at the walls and edges of each member.
 
-
-def _crossing(inside, inside_side, image, image_side, start, direction, length):
-    """Where segment ``inside`` -> ``image`` crosses a line, and whether it does so on the segment of the line.
-
-    ``inside_side`` and ``image_side`` are the signed distances of the two
-    points from the line (opposite signs where it crosses); the crossing is at
-    ``inside + inside_side / (inside_side - image_side) (image - inside)``.
+    ``first`` and ``second`` (F,) are rows of the scene's walls or edges, as
+    ``kind`` says; every member's paths for every group, slot and receiver.
     """
-    crosses = inside_side * image_side < 0
-    with np.errstate(divide="ignore", invalid="ignore"):
-        fraction = np.where(crosses, inside_side / (inside_side - image_side), 0.0)
-    point = inside + fraction[..., None] * (image - inside)
-    along = _dot(point - start, direction)
-    return point, crosses & (along >= 0) & (along <= length)
-
-
-def _wall_geometry(simulator: Simulator, rows):
-    """Start, unit direction, unit normal (..., 2) and length (...) of walls ``rows``, shaped for (F, G, M, K)."""
-    return (simulator.wall_start[rows][:, None, None, None, :], simulator.wall_direction[rows][:, None, None, None, :],
-            simulator.wall_normal[rows][:, None, None, None, :], simulator.wall_length[rows][:, None, None, None])
-
-
-def _wall_wall(simulator: Simulator, placement: Placement, first, second, source, strength) -> Paths:
-    """T -> wall ``first`` -> wall ``second`` -> R: the image of T in both, ``|T_ab - R|``."""
-    a_start, a_direction, a_normal, a_length = _wall_geometry(simulator, first)
-    b_start, b_direction, b_normal, b_length = _wall_geometry(simulator, second)
-    t = placement.tx[None, :, :, None, :]
-    r = placement.rx[None, :, None, :, :]
-    image_a, t_side = _mirror(t, a_start, a_normal)
-    image_ab, image_a_side = _mirror(image_a, b_start, b_normal)
-    r_side = _dot(r - b_start, b_normal)
-    # The last bounce, on wall b: where R -> T_ab crosses it (T_a and R on one side of it).
-    last, on_b = _crossing(r, r_side, image_ab, -image_a_side, b_start, b_direction, b_length)
-    # The first, on wall a: where that point -> T_a crosses it (the point and T on one side of it).
-    last_side = _dot(last - a_start, a_normal)
-    first_point, on_a = _crossing(last, last_side, image_a, -t_side, a_start, a_direction, a_length)
-    delta = image_ab - r
-    unknown = np.full((len(source),) + placement.tx.shape, np.nan)
-    return Paths(source=source, strength=strength, origin=MULTIPATH, horizontal=np.hypot(delta[..., 0], delta[..., 1]),
-                 exists=on_a & on_b & (image_a_side * r_side > 0), out_point=first_point, in_point=last,
-                 legs=[(t, first_point), (first_point, last), (last, r)], truth_position=unknown, truth_normal=unknown)
-
-
-def _wall_edge(simulator: Simulator, placement: Placement, wall, edge, source, strength) -> Paths:
-    """T -> wall -> edge P -> R: ``|T_a - P| + |P - R|``, the bounce where T_a -> P crosses the wall."""
-    start, direction, normal, length = _wall_geometry(simulator, wall)
-    p = simulator.scene.edges[edge][:, None, None, None, :]
-    t = placement.tx[None, :, :, None, :]
-    r = placement.rx[None, :, None, :, :]
-    image, t_side = _mirror(t, start, normal)
-    p_side = _dot(p - start, normal)
-    bounce, on_wall = _crossing(p, p_side, image, -t_side, start, direction, length)
-    out, back = p - image, p - r
-    horizontal = np.hypot(out[..., 0], out[..., 1]) + np.hypot(back[..., 0], back[..., 1])
-    unknown = np.full((len(source),) + placement.tx.shape, np.nan)
-    return Paths(source=source, strength=strength, origin=MULTIPATH, horizontal=horizontal,
-                 exists=np.broadcast_to(on_wall, horizontal.shape), out_point=bounce, in_point=p,
-                 legs=[(t, bounce), (bounce, p), (p, r)], truth_position=unknown, truth_normal=unknown)
-
-
-def _edge_wall(simulator: Simulator, placement: Placement, edge, wall, source, strength) -> Paths:
-    """T -> edge P -> wall -> R: ``|T - P| + |P - R_b|``, the bounce where P -> R_b crosses the wall."""
-    start, direction, normal, length = _wall_geometry(simulator, wall)
-    p = simulator.scene.edges[edge][:, None, None, None, :]
-    t = placement.tx[None, :, :, None, :]
-    r = placement.rx[None, :, None, :, :]
-    image, r_side = _mirror(r, start, normal)
-    p_side = _dot(p - start, normal)
-    bounce, on_wall = _crossing(p, p_side, image, -r_side, start, direction, length)
-    out, back = p - t, p - image
-    horizontal = np.hypot(out[..., 0], out[..., 1]) + np.hypot(back[..., 0], back[..., 1])
-    unknown = np.full((len(source),) + placement.tx.shape, np.nan)
-    return Paths(source=source, strength=strength, origin=MULTIPATH, horizontal=horizontal,
-                 exists=np.broadcast_to(on_wall, horizontal.shape), out_point=p, in_point=bounce,
-                 legs=[(t, p), (p, bounce), (bounce, r)], truth_position=unknown, truth_normal=unknown)
+    tx, rx = placement.tx, placement.rx
+    groups, slots = tx.shape[:2]
+    member, group, slot = (index.reshape(-1) for index in np.indices((len(first), groups, slots)))
+    # Through the module: a kernel imported by name stays the wrapper that compiles at first use.
+    horizontal, exists, first_point, last_point = image_method.double_bounces(
+        np.full(member.size, kind), first[member], second[member], group, slot,
+        simulator.wall_start, simulator.wall_direction, simulator.wall_normal, simulator.wall_length,
+        np.ascontiguousarray(simulator.scene.edges), tx, rx, 0.0)
+    shape = (len(first),) + tx.shape[:2] + rx.shape[1:2]
+    first_point, last_point = first_point.reshape(shape + (2,)), last_point.reshape(shape + (2,))
+    t = tx[None, :, :, None, :]
+    r = rx[None, :, None, :, :]
+    unknown = np.full((len(first),) + tx.shape, np.nan)
+    return Paths(source=source, strength=strength, origin=MULTIPATH, horizontal=horizontal.reshape(shape),
+                 exists=exists.reshape(shape), out_point=first_point, in_point=last_point,
+                 legs=[(t, first_point), (first_point, last_point), (last_point, r)], truth_position=unknown,
+                 truth_normal=unknown)
 
 
 def _dot(u, v):

@@ -62,6 +62,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sonar_ring import image_method
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import Layout, config_path, read_config, speed_of_sound
 
@@ -90,10 +91,6 @@ DEFAULT_REFLECTIVITY = {"plane": 1.0, "corner": 1.0, "edge": 0.3}
 
 DEFAULT_THRESHOLD = 10.0 ** (-30.0 / 20.0)
 """Detection threshold, relative to ``A_max``: -30 dB (Barshan & Kuc, section II)."""
-
-_TIME_EPS = 1e-9
-"""Fraction of a leg's length at either end where crossing a wall is not a
-blockage: legs start and end *on* the reflecting walls."""
 
 
 class SceneError(ValueError):
@@ -628,37 +625,6 @@ def _angle_off_axis(direction, axis):
     return np.arctan2(_cross(axis, direction), _dot(axis, direction))
 
 
-def _blocked(starts, ends, walls):
-    """Whether each leg ``starts[i] -> ends[i]`` crosses any wall.
-
-    Parameters
-    ----------
-    starts, ends : ndarray, shape (n, 2)
-        Leg end points, m.
-    walls : ndarray, shape (W, 2, 2)
-        Wall segments, m.
-
-    Returns
-    -------
-    ndarray of bool, shape (n,)
-        True where a wall crosses the leg strictly between its ends; touching a
-        wall at a leg's end (the leg's own reflection point) does not count, nor
-        does running along a wall (parallel).
-    """
-    p = starts[:, None, :]
-    r = ends[:, None, :] - p
-    a = walls[None, :, 0]
-    s = walls[None, :, 1] - a
-    denominator = _cross(r, s)
-    ap = a - p
-    with np.errstate(divide="ignore", invalid="ignore"):
-        along_leg = _cross(ap, s) / denominator
-        along_wall = _cross(ap, r) / denominator
-    hit = ((denominator != 0) & (along_leg > _TIME_EPS) & (along_leg < 1 - _TIME_EPS)
-           & (along_wall >= 0) & (along_wall <= 1))
-    return hit.any(axis=1)
-
-
 @dataclass
 class Paths:
     """Echo paths of one family (a reflector kind, or an effect's), broadcast over (F, G, M, K).
@@ -783,6 +749,37 @@ class Heard:
         return Heard(*(np.concatenate([getattr(p, f.name) for p in parts]) for f in fields(Heard)))
 
 
+def place(layout: Layout, pose) -> Placement:
+    """A layout's transducers in a world frame (a scene's, a map's) with the sensor at ``pose``.
+
+    Parameters
+    ----------
+    layout : Layout
+    pose : array_like, shape (3,)
+        Sensor pose ``(x, y, yaw)`` in that frame, m and rad.
+
+    Raises
+    ------
+    ValueError
+        If ``pose`` is not three finite numbers.
+    """
+    pose = np.asarray(pose, dtype=float)
+    if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+        raise ValueError(f"place: pose must be finite (x, y, yaw), got {pose!r}")
+    cos_yaw, sin_yaw = math.cos(pose[2]), math.sin(pose[2])
+    rotation = np.array([[cos_yaw, -sin_yaw], [sin_yaw, cos_yaw]])
+    tx_yaw = layout.transmitter_yaw[layout.group_transmitters] + pose[2]
+    rx_yaw = layout.receiver_yaw[layout.groups] + pose[2]
+    return Placement(
+        pose=pose,
+        rotation=rotation,
+        tx=layout.transmitters[layout.group_transmitters][..., :2] @ rotation.T + pose[:2],
+        rx=layout.receivers[layout.groups][..., :2] @ rotation.T + pose[:2],
+        tx_axis=np.stack([np.cos(tx_yaw), np.sin(tx_yaw)], axis=-1)[:, :, None, :],
+        rx_axis=np.stack([np.cos(rx_yaw), np.sin(rx_yaw)], axis=-1)[:, None, :, :],
+    )
+
+
 class Simulator:
     """Forward model of one sensor layout in one scene.
 
@@ -821,19 +818,11 @@ class Simulator:
         self.half_angle = transducer_half_angle(layout, self.speed)
         self.period = 1.0 / layout.frequency
         self.max_path = 2.0 * layout.max_range
-        # Sensor-frame transducers per (group, transmitter slot) and (group, receiver column).
-        self._tx = layout.transmitters[layout.group_transmitters]  # (G, M, 3)
-        self._tx_yaw = layout.transmitter_yaw[layout.group_transmitters]  # (G, M)
-        self._rx = layout.receivers[layout.groups]  # (G, K, 3)
-        self._rx_yaw = layout.receiver_yaw[layout.groups]  # (G, K)
         self._dz = layout.height_offset()  # (G, M, K)
         self._triad = layout.kind == "triad"
         s = scene
-        self.wall_start = s.walls[:, 0]
-        wall_vector = s.walls[:, 1] - s.walls[:, 0]
-        self.wall_length = np.hypot(wall_vector[:, 0], wall_vector[:, 1])
-        self.wall_direction = wall_vector / self.wall_length[:, None]
-        self.wall_normal = np.stack([-self.wall_direction[:, 1], self.wall_direction[:, 0]], axis=-1)
+        frames = image_method.wall_frames(np.ascontiguousarray(s.walls))
+        self.wall_start, self.wall_direction, self.wall_normal, self.wall_length = frames
         # Reflector index of each row of the walls / corners / edges tables (both in file order).
         self._reflectors = {code: np.flatnonzero(s.reflector_class == code) for code in (PLANE, CORNER, EDGE)}
 
@@ -948,28 +937,14 @@ class Simulator:
         return self.echo_rows(measured, placement, noise, rng, time, self.speed)
 
     def place(self, pose) -> Placement:
-        """The sensor's transducers in the world at ``pose`` (x, y, yaw; m, rad).
+        """The sensor's transducers in the world at ``pose`` (x, y, yaw; m, rad): :func:`place`.
 
         Raises
         ------
         ValueError
             If ``pose`` is not three finite numbers.
         """
-        pose = np.asarray(pose, dtype=float)
-        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
-            raise ValueError(f"Simulator.ping: pose must be finite (x, y, yaw), got {pose!r}")
-        cos_yaw, sin_yaw = math.cos(pose[2]), math.sin(pose[2])
-        rotation = np.array([[cos_yaw, -sin_yaw], [sin_yaw, cos_yaw]])
-        tx_yaw = self._tx_yaw + pose[2]
-        rx_yaw = self._rx_yaw + pose[2]
-        return Placement(
-            pose=pose,
-            rotation=rotation,
-            tx=self._tx[..., :2] @ rotation.T + pose[:2],
-            rx=self._rx[..., :2] @ rotation.T + pose[:2],
-            tx_axis=np.stack([np.cos(tx_yaw), np.sin(tx_yaw)], axis=-1)[:, :, None, :],
-            rx_axis=np.stack([np.cos(rx_yaw), np.sin(rx_yaw)], axis=-1)[:, None, :, :],
-        )
+        return place(self.layout, pose)
 
     def reflections(self, placement: Placement, max_path: float | None = None) -> Heard:
         """What the scene's walls, corners and edges return to the sensor at ``placement`` (no noise).
@@ -1010,7 +985,9 @@ class Simulator:
         if self.scene.walls.size and index[0].size:
             starts = np.concatenate([np.broadcast_to(start, shape + (2,))[index] for start, _ in paths.legs])
             ends = np.concatenate([np.broadcast_to(end, shape + (2,))[index] for _, end in paths.legs])
-            blocked = _blocked(starts, ends, self.scene.walls).reshape(len(paths.legs), -1).any(axis=0)
+            # Through the module: a kernel imported by name stays the wrapper that compiles at first use.
+            blocked = image_method.blocked_legs(starts, ends, self.scene.walls)
+            blocked = blocked.reshape(len(paths.legs), -1).any(axis=0)
             index = tuple(i[~blocked] for i in index)
         f, g, m, k = index
         # Barshan & Kuc eqs 3-4: the product of the transmit and receive Gaussian gains.
@@ -1061,7 +1038,7 @@ class Simulator:
         K = self.layout.receivers_per_group
         pose = placement.pose
         # One row per (source, group, transmitter slot); receivers are its columns.
-        n_slots = self._tx.shape[1]
+        n_slots = self.layout.group_transmitters.shape[1]
         key = (c.source * self.layout.n_groups + c.group) * n_slots + c.slot
         row_key, row = np.unique(key, return_inverse=True)
         N = row_key.size

@@ -38,10 +38,11 @@ colcon --log-base log build --base-paths "$root" --build-base build --install-ba
   --cmake-args -DPython3_EXECUTABLE="$venv/bin/python" -DBUILD_TESTING=OFF -Wno-dev \
   > "$root/log/colcon-build.txt" 2>&1 || { cat log/colcon-build.txt; echo "bootstrap: colcon build failed"; exit 1; }
 # numba compiles the core's kernels at their first use and caches the machine code
-# beside the installed modules: do it here (about 20 s after a change), not in the
+# beside the installed modules: do it here (under a minute after a change), not in the
 # first test or the first ping.  An unchanged build keeps the cache.
 (set +u && source "$root/tools/env.sh" && cd / && python -c \
-  "from sonar_ring import confidence, echoes, localise, mapping, pipeline, ring_consistency
-for module in (echoes, localise, confidence, ring_consistency, pipeline, mapping): module.load_kernels()") \
+  "from sonar_ring import confidence, echoes, explain, image_method, localise, mapping, pipeline, ring_consistency
+for module in (echoes, localise, confidence, ring_consistency, pipeline, mapping, image_method, explain):
+    module.load_kernels()") \
   || { echo "bootstrap: loading the compiled kernels failed"; exit 1; }
 echo "bootstrap: built into install/ (source tools/env.sh to use it)"

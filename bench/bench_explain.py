@@ -1,0 +1,149 @@
+"""Cost per ping of explaining echoes by the map (`sonar_ring.explain`): prediction, match and the impossible test.
+
+Regenerate ``bench/results/explain.md`` (about two minutes):
+
+    source tools/env.sh && python bench/bench_explain.py   # from the repository root
+
+The 48-pair ring drives one lap of the room (`config/scenes/room.yaml`) in the
+realistic world (every effect on, 1 us of TOF noise, seed 0); every 4th ping is
+explained against a map of the room's 10 walls, its 7 edges and 4 corners and 30
+more points (seeded), 51 entries, all in view.  Per ping: :func:`predict` with
+the rows' measured paths, :func:`match`, and :func:`impossible` for one point
+hypothesis per row, at the true pose with the tolerance of each case (1 us of
+TOF, the pose's standard deviations, 0.35 % of the speed of sound).  Times are
+the thread's CPU time per ping (less sensitive than the wall clock to other jobs
+on a shared machine), median and 99th percentile over the pings and
+``--repeats`` passes; the unpruned row computes every pair of entries for every
+channel instead (the same result).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+
+from sonar_ring import explain
+from sonar_ring.benchmark.environment import machine, revision, today
+from sonar_ring.geometry import load_layout
+from sonar_ring.realism import REALISTIC, World
+from sonar_ring.simulate import Noise, load_scene, place
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULT = ROOT / "bench" / "results" / "explain.md"
+STEP = 4
+"""Every STEP-th ping of the lap is explained."""
+EXTRA_POINTS = 30
+SIGMA_SPEED = 0.0035
+"""The realistic world's air is 2 K warmer than assumed: paths 0.35 % long, which the tolerance must know."""
+CASES = {  # name: pose standard deviations x and y (m), yaw (rad)
+    "exact pose": (0.0, 0.0),
+    "1 cm, 0.25 deg (SLAM)": (0.01, math.radians(0.25)),
+    "2 cm, 0.5 deg": (0.02, math.radians(0.5)),
+}
+
+
+def room_map(scene, rng):
+    """The room's walls, and its edges, corners and EXTRA_POINTS more points (none inside the pillar)."""
+    extra = []
+    while len(extra) < EXTRA_POINTS:
+        x, y = rng.uniform(0.2, 5.8), rng.uniform(0.2, 4.3)
+        if not (3.3 < x < 3.9 and 1.9 < y < 2.5):
+            extra.append((x, y))
+    return scene.walls, np.vstack([scene.edges, scene.corner_point, extra])
+
+
+def hypotheses(layout, placement, ping):
+    """One point hypothesis per echo row: along its group's facing, half its shortest path away, (N, K, 2)."""
+    centre = placement.rx[ping.group].mean(axis=1)
+    facing = layout.plan.facing[ping.group] @ placement.rotation.T
+    distance = 0.5 * np.nanmin(ping.tof, axis=1) * ping.speed_of_sound
+    return np.repeat((centre + distance[:, None] * facing)[:, None, :], layout.receivers_per_group, axis=1)
+
+
+def measure(pings, poses, walls, points, layout, tolerance, prune):
+    """CPU seconds per ping of predict, match and impossible (arrays over the pings), and paths predicted."""
+    stages = {"predict": [], "match": [], "impossible": []}
+    paths = []
+    for ping, pose in zip(pings, poses, strict=True):
+        placement = place(layout, pose)
+        measured = ping.tof * ping.speed_of_sound
+        points_of_rows = hypotheses(layout, placement, ping)
+        start = time.thread_time()
+        prediction = explain.predict(walls, points, placement, layout, ping.group, ping.transmitter, tolerance,
+                                     paths=measured, prune=prune)
+        predicted = time.thread_time()
+        explain.match(prediction, layout, ping.group, ping.transmitter, measured, tolerance)
+        matched = time.thread_time()
+        explain.impossible(points_of_rows, placement, layout, ping.group, ping.transmitter, walls, 0.01)
+        done = time.thread_time()
+        stages["predict"].append(predicted - start)
+        stages["match"].append(matched - predicted)
+        stages["impossible"].append(done - matched)
+        paths.append(len(prediction))
+    return {name: np.array(values) for name, values in stages.items()}, np.array(paths)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--repeats", type=int, default=3, help="passes over the pings per case (default 3)")
+    parser.add_argument("--output", type=Path, default=RESULT, help="Markdown file to write")
+    args = parser.parse_args()
+    host = machine()
+    scene, layout = load_scene("room"), load_layout("browne_ring")
+    walls, points = room_map(scene, np.random.default_rng(0))
+    world = World(scene, layout, REALISTIC, noise=Noise(tof=1e-6, amplitude=0.02), seed=0)
+    times, poses = scene.trajectory.poses(layout.ping_rate)
+    pings = [world.ping(pose, t) for t, pose in zip(times, poses, strict=True)][::STEP]
+    poses = poses[::STEP]
+    rows = np.array([p.n_echoes for p in pings])
+    explain.load_kernels()
+    sigma_path = 1e-6 * scene.speed_of_sound
+    table = []
+    for name, (sigma_xy, sigma_yaw) in CASES.items():
+        tolerance = explain.Tolerance(sigma_path=sigma_path, sigma_speed=SIGMA_SPEED,
+                                      pose_covariance=np.diag([sigma_xy ** 2, sigma_xy ** 2, sigma_yaw ** 2]))
+        for prune in (True, False):
+            runs = [measure(pings, poses, walls, points, layout, tolerance, prune) for _ in range(args.repeats)]
+            stages = {stage: np.concatenate([run[0][stage] for run in runs]) for stage in runs[0][0]}
+            total = sum(stages.values())
+            table.append(dict(case=name, prune=prune, median=np.median(total), p99=np.percentile(total, 99),
+                              paths=np.median(runs[0][1]),
+                              **{stage: np.median(values) for stage, values in stages.items()}))
+            print(f"{name:40s} prune={prune!s:5s} median {1e3 * table[-1]['median']:.3f} ms "
+                  f"p99 {1e3 * table[-1]['p99']:.3f} ms", flush=True)
+    lines = [
+        "# Explaining echoes by the map -- `sonar_ring.explain`, cost per ping",
+        "",
+        "Regenerate: `python bench/bench_explain.py` (from the repository root, after `source tools/env.sh`)",
+        "",
+        f"Machine: {host}; single process.  Revision {revision(ROOT)}, {today()}.",
+        "",
+        f"Browne's 48-pair ring, one lap of the room in the realistic world, {len(pings)} pings (every {STEP}th) with "
+        f"{np.median(rows):.0f} echo rows per ping (median; {rows.min()}-{rows.max()}); a map of {len(walls)} walls "
+        f"and {len(points)} points, all within range.  Per ping: `predict` (given the rows' paths), `match`, and "
+        "`impossible` for one point hypothesis per row, at the true pose; the tolerance: 1 us of TOF, the pose's "
+        f"standard deviations, {100 * SIGMA_SPEED:.2f} % of the speed of sound.  Thread CPU time, {args.repeats} "
+        "passes.  Unpruned: every pair of entries for every channel (the same paths).",
+        "",
+        "| tolerance | pruned | median ms | p99 ms | predict | match | impossible | paths kept |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for row in table:
+        lines.append(f"| {row['case']} | {'yes' if row['prune'] else 'no'} | {1e3 * row['median']:.3f} | "
+                     f"{1e3 * row['p99']:.3f} | {1e3 * row['predict']:.3f} | {1e3 * row['match']:.3f} | "
+                     f"{1e3 * row['impossible']:.3f} | {row['paths']:.0f} |")
+    pruned = {row["case"]: row["median"] for row in table if row["prune"]}
+    unpruned = {row["case"]: row["median"] for row in table if not row["prune"]}
+    lines += ["", "Unpruned / pruned, median: " + ", ".join(f"{name} {unpruned[name] / pruned[name]:.1f}x"
+                                                          for name in pruned) + "."]
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,541 @@
+"""Echoes the map explains before they become landmarks: multipath, and reflectors that cannot be there.
+
+A room returns more than its reflectors' echoes: sound bounces twice (wall then
+wall, wall then an edge, an edge then a wall), and a single-bounce model sees a
+reflector where there is none, mirrored behind a wall.  The map already holds
+the walls and points that make those paths, so it can predict them and keep the
+echoes they explain out of the map.  Per ping, at the sensor's estimated pose in
+the map frame (:func:`sonar_ring.simulate.place`), the mapper calls:
+
+* :func:`predict` -- the paths the map's walls (segments: their seen extents)
+  and points (corners, edges, undecided: all may diffract) send to the receivers
+  of the ping's echo rows: every double bounce, by the image method of
+  :mod:`sonar_ring.image_method` (the realistic world's own code), and every
+  entry's own single-bounce echo; each path exists geometrically, fits the
+  receive window, reaches the receiver within its acceptance angle, leaves a
+  directional transmitter within it and crosses no mapped wall.  Given the
+  rows' measured paths it keeps only the paths that can match one of them;
+* :func:`match` -- a row is :data:`MULTIPATH` when a predicted double bounce of
+  its group and transmitter is within the gate of the paths ``c * tof`` of every
+  receiver that heard it, and no mapped reflector's own echo is: an echo as long
+  as a mapped reflector's own (a pole on the line of sight to a wall: the
+  wall's echo passing it) may be that reflector's, and its landmark is where the
+  map already has one -- it is left to the mapper;
+* :func:`impossible` -- a landmark hypothesis whose straight legs from the
+  transmitter or to its receivers cross a mapped wall is not a reflector there
+  (:func:`reflection_points` gives where the legs end).
+
+What the map cannot predict is not excluded here: walls it has not seen, or has
+seen shorter than they are, leave their multipath unexplained.  That is for the
+mapper's persistence test.
+
+Model
+-----
+Two walls whose segments come within ``junction`` of each other meet in a
+corner: their double bounce is the corner's own echo, a landmark, never
+multipath (the realistic world leaves out its corners' pairs the same way).  A
+point within ``junction`` of a wall's segment is that wall's end or corner: its
+paths by that wall are its own echo.  A wall does not pair with itself.  Points
+diffract: a map's corner is predicted as a point too, not as the double bounce
+of its walls.
+
+Tolerance (:class:`Tolerance`)
+------------------------------
+The measured paths ``m_k = c * tof_k`` of the receivers ``k`` that heard a row
+are compared with a predicted path's ``d_k`` through the Mahalanobis distance
+``r = sqrt(e^T C^-1 e)``, ``e = m - d``, with
+
+    C_kl = sigma_path^2 delta_kl + J_k Sigma J_l^T + sigma_speed^2 d_k d_l + 8 sigma_map^2
+
+* ``sigma_path``: each receiver's own path noise (``c * sigma_tof``);
+* ``Sigma``: the covariance of the pose ``(x, y, yaw)`` and ``J_k = dd_k/d(x, y, yaw)``.
+  By Fermat's principle the bounce points do not move to first order, so
+  ``dh/dT = e_T = (T - A) / |T - A|`` and ``dh/dR = e_R = (R - B) / |R - B|`` (``A``
+  the first reflection, ``B`` the last), and ``dd = h / d dh`` (3-D path ``d``,
+  horizontal ``h``): ``J = h / d [e_T + e_R, e_T . (T - S)^perp + e_R . (R - S)^perp]``
+  with ``S`` the pose's position and ``v^perp = (-v_y, v_x)``.  A pose error moves
+  every receiver's path alike: the term is correlated, so a row must still
+  match the predicted differences between its receivers within ``sigma_path``;
+* ``sigma_speed``: the relative error of the speed of sound, which scales all paths;
+* ``sigma_map``: the position error of a map entry; each of a path's two
+  reflectors moved by it changes every receiver's path by up to twice as much.
+
+A path matches a row when ``r <= gate``.  Under Gaussian errors a true match
+fails a gate of 4 with probability 6e-5 (one receiver heard the row), 3.4e-4
+(two) or 1.1e-3 (three).
+
+The same uncertainty widens what :func:`predict` keeps: a transducer's position
+in the map is uncertain by ``sigma_position = sqrt(max eig Sigma_xy) + rho
+sigma_yaw`` (``rho`` the transducers' largest distance from ``S``), so a bounce may
+lie ``gate (sigma_position + sigma_map)`` beyond a segment's ends, a path may
+arrive ``gate (sigma_yaw + (2 sigma_position + sigma_map) / distance)`` outside
+the acceptance angle, and a wall blocks a leg only where it crosses it farther
+than ``gate (sigma_position + sigma_map)`` from the leg's reflecting ends and
+from the wall's own ends (:func:`impossible` likewise, by its ``margin``).  All
+are 0 for an exact pose and map.
+
+Pruning (``prune=True``)
+------------------------
+Before it computes a path, :func:`predict` keeps only the entries and pairs that
+can give one for the channel; every test follows from the path's existence, so
+none drops a path that exists (the tests compare pruned and unpruned
+predictions on random poses), and each has a slack of 1e-9 against rounding:
+
+* **range**: every reflection of a path within the window ``D`` lies within
+  ``D / 2 + rho`` of ``S`` (``|S - A| <= |T - A| + rho`` and ``|S - A| <= rho + |A - B| +
+  |B - R|``; summed, ``2 |S - A| <= D + 2 rho``): entries farther away are dropped;
+* **beam**: the last reflection lies in a receiver's acceptance cone, widened by
+  the margin above at the entry's least distance from a transducer (at least its
+  distance from ``S`` less ``rho``): a wall is kept for a receiver when part of its
+  segment is inside the cone, a point when it is inside; a directional
+  transmitter's cone likewise keeps the first entries;
+* **mirror**: unfolding the last bounce, the first reflection lies on the line
+  from the receiver's image in the last wall through the last bounce: inside the
+  cone from that image through the part of the wall in the beam.  Only points
+  inside it and walls that cross it are kept as first entries;
+* **facing**: every bounce is strict: the first wall has part of the last wall
+  on the transmitter's side, the last wall part of the first wall, or the point,
+  on the receiver's side;
+* **rows**: given the measured paths, a pair's lengths are compared with the
+  rows of its channel before its bounces are placed, with the largest variance
+  any pose error could give (``|J_xy| <= 2``, ``|J_yaw| <= 2 rho``); for a path whose
+  first reflection is the same for every receiver (a point first, or a wall
+  then a point) the differences between receivers too, with a bound on how a
+  pose error changes them (:func:`sonar_ring.image_method.map_paths`); then, with
+  its derivative, by the Mahalanobis distance itself, before its legs are tested
+  for blocking.  Each is a necessary condition of a match: the Mahalanobis
+  distance bounds that of any one receiver or difference.
+
+What depends on the transmitter alone (its images in the walls, its distance to
+the points, the first bounce of every wall -> point path) is computed once per
+ping for all the groups it serves.  ``prune=False`` pairs every entry with every
+other for every channel (the reference the tests and the benchmark compare with).
+
+Frames and units: the map frame (``map`` or ``odom``), metres, radians, seconds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sonar_ring import image_method
+from sonar_ring.compiled import kernel
+from sonar_ring.geometry import Layout
+from sonar_ring.landmarks import PLANE, Landmarks, make_landmarks
+from sonar_ring.simulate import Placement
+
+NONE, MULTIPATH = 0, 1
+"""Labels of an echo row (:attr:`Explanation.label`): not explained, or a predicted double bounce."""
+
+LABEL_NAMES = ("none", "multipath")
+"""Name of each label, indexable by the label."""
+
+JUNCTION = 0.1
+"""m: walls this close meet in a corner; a point this close to a wall is its end or corner (module docstring)."""
+
+
+@dataclass(frozen=True)
+class Tolerance:
+    """How far a measured echo may be from a predicted path (module docstring, "Tolerance").
+
+    Attributes
+    ----------
+    sigma_path : float
+        Standard deviation of one receiver's measured path ``c * tof``, m (> 0).
+    pose_covariance : ndarray, shape (3, 3)
+        Covariance of the sensor pose ``(x, y, yaw)`` in the map frame, m^2,
+        m rad, rad^2; zero for an exact pose.  NaN: nothing is explained.
+    sigma_speed : float
+        Relative standard deviation of the speed of sound (0.0035: 0.35 %).
+    sigma_map : float
+        Standard deviation of a map entry's position, m.
+    gate : float
+        Largest Mahalanobis distance of a match (> 0).
+    """
+
+    sigma_path: float
+    pose_covariance: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
+    sigma_speed: float = 0.0
+    sigma_map: float = 0.0
+    gate: float = 4.0
+
+    def __post_init__(self):
+        covariance = np.asarray(self.pose_covariance, dtype=float)
+        if covariance.shape != (3, 3):
+            raise ValueError(f"Tolerance: pose_covariance must have shape (3, 3), got {covariance.shape}")
+        object.__setattr__(self, "pose_covariance", covariance)
+        for name, low_open in (("sigma_path", True), ("sigma_speed", False), ("sigma_map", False), ("gate", True)):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and math.isfinite(value) and (value > 0 or not low_open)
+                    and value >= 0):
+                bound = "> 0" if low_open else ">= 0"
+                raise ValueError(f"Tolerance: field '{name}' must be a finite number {bound}, got {value!r}")
+
+    @property
+    def yaw_sigma(self) -> float:
+        """Standard deviation of the pose's yaw, rad (NaN for a covariance that is not one)."""
+        variance = float(self.pose_covariance[2, 2])
+        return math.sqrt(variance) if variance >= 0 else math.nan
+
+    @property
+    def xy_sigma(self) -> float:
+        """Standard deviation of the pose's position along its worst direction, m (the larger eigenvalue's root)."""
+        (xx, xy), (_, yy) = self.pose_covariance[:2, :2].tolist()
+        largest = 0.5 * (xx + yy) + math.sqrt(0.25 * (xx - yy) ** 2 + xy ** 2)
+        return math.sqrt(largest) if largest >= 0 else math.nan
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """The paths the map sends to one ping's receivers, Q of them, K receivers each.
+
+    Double bounces, and each entry's own single-bounce echo; sorted by channel
+    ``group * M + slot`` (M transmitter slots per group).
+
+    Attributes
+    ----------
+    group, slot : ndarray of int, shape (Q,)
+        Receiver group and transmitter slot of each path.
+    kind : ndarray of int, shape (Q,)
+        A double bounce, :data:`~sonar_ring.image_method.WALL_WALL`,
+        ``WALL_POINT`` or ``POINT_WALL``, or a single one, ``WALL`` or ``POINT``
+        (:data:`~sonar_ring.image_method.KIND_NAMES`).
+    first, second : ndarray of int, shape (Q,)
+        The first and the second reflector: rows of the ``walls`` or ``points``
+        given to :func:`predict`, as ``kind`` says (the same twice for a single bounce).
+    path : ndarray, shape (Q, K)
+        3-D path length transmitter -> first -> second -> receiver k, m; NaN where
+        receiver k gets no such path.
+    jacobian : ndarray, shape (Q, K, 3)
+        Derivative of ``path`` by the pose ``(x, y, yaw)``, m/m and m/rad.
+    first_point, last_point : ndarray, shape (Q, K, 2)
+        Where the path first meets a reflector and where it last leaves one, map frame, m.
+    channel_start : ndarray of int, shape (G * M + 1,)
+        Paths of channel c are rows ``channel_start[c]:channel_start[c + 1]``.
+    """
+
+    group: np.ndarray
+    slot: np.ndarray
+    kind: np.ndarray
+    first: np.ndarray
+    second: np.ndarray
+    path: np.ndarray
+    jacobian: np.ndarray
+    first_point: np.ndarray
+    last_point: np.ndarray
+    channel_start: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.kind.shape[0])
+
+
+@dataclass(frozen=True)
+class Explanation:
+    """What :func:`match` says of each of N echo rows.
+
+    Attributes
+    ----------
+    label : ndarray of uint8, shape (N,)
+        :data:`MULTIPATH` or :data:`NONE`.
+    best : ndarray of int, shape (N,)
+        Row of the :class:`Prediction` of the double bounce closest to the echo
+        (its kind, reflectors and bounce points), -1 where no double bounce
+        reaches every receiver that heard it.
+    residual : ndarray, shape (N,)
+        Mahalanobis distance of the echo from that path; inf where ``best`` is
+        -1, NaN where no receiver heard the row.
+    direct : ndarray of int, shape (N,)
+        Likewise the closest single bounce: a mapped reflector's own echo.
+    direct_residual : ndarray, shape (N,)
+        Its Mahalanobis distance.
+    """
+
+    label: np.ndarray
+    best: np.ndarray
+    residual: np.ndarray
+    direct: np.ndarray
+    direct_residual: np.ndarray
+
+
+# --------------------------------------------------------------------------- public functions
+
+
+def predict(walls, points, placement: Placement, layout: Layout, group, transmitter, tolerance: Tolerance, *,
+            paths=None, window: float | None = None, junction: float = JUNCTION, prune: bool = True) -> Prediction:
+    """The paths of the map, double and single bounces, for the channels of one ping's echo rows.
+
+    Parameters
+    ----------
+    walls : array_like, shape (W, 2, 2)
+        The map's walls as segments (their seen extents), map frame, m.  Rows
+        with a non-finite value or no length are left out.
+    points : array_like, shape (P, 2)
+        The map's points (corners, edges, undecided), m.  Non-finite rows are left out.
+    placement : Placement
+        The sensor's transducers in the map frame at the ping's estimated pose
+        (:func:`sonar_ring.simulate.place`).
+    layout : Layout
+        The sensor (heights, acceptance angle, emitter kind).
+    group, transmitter : array_like of int, shape (N,)
+        Receiver group and transmitter of each echo row; every channel they
+        name is predicted once.
+    tolerance : Tolerance
+        Widens the existence, beam and blocking tests by the pose's and the
+        map's uncertainty (module docstring).
+    paths : array_like, shape (N, K), optional
+        The rows' measured paths ``c * tof``, m (NaN: not heard).  Given, only
+        the paths that can match a row of their channel (:func:`match`) are
+        kept -- what can matter for this ping -- and only they are tested for
+        beams and blocking.  Not given, every path.
+    window : float, optional
+        Longest path the receivers report, m; default ``2 * layout.max_range``.
+    junction : float
+        m: see :data:`JUNCTION`.
+    prune : bool
+        False to pair every entry with every other for every channel.
+
+    Raises
+    ------
+    ValueError
+        On arrays of the wrong shape, groups or transmitters the layout does not
+        have, or a placement of another layout.
+    """
+    walls, points = _map_arrays(walls, points, "predict")
+    group, slot = _channels(layout, group, transmitter, "predict")
+    _check_placement(placement, layout, "predict")
+    row_paths = np.empty((group.size, layout.receivers_per_group)) if paths is None else _row_paths(
+        paths, group.size, layout, "predict")
+    window = 2.0 * layout.max_range if window is None else float(window)
+    start, direction, normal, length = image_method.wall_frames(walls)
+    excluded_pair, excluded_point = image_method.junctions(walls, points, junction)
+    (kind, first, second, path_group, path_slot, path, jacobian, first_point, last_point,
+     channel_start) = image_method.map_paths(
+        start, direction, normal, length, walls, points, excluded_pair, excluded_point, placement.tx, placement.rx,
+        placement.tx_axis, placement.rx_axis, layout.plan.height_offset, layout.group_transmitters,
+        group * layout.group_transmitters.shape[1] + slot, row_paths, placement.pose, window, layout.beam_half_angle,
+        tolerance.pose_covariance, tolerance.xy_sigma, tolerance.yaw_sigma, tolerance.sigma_path, tolerance.sigma_speed,
+        tolerance.sigma_map, tolerance.gate, layout.isotropic_emitter, prune, paths is not None)
+    return Prediction(group=path_group, slot=path_slot, kind=kind, first=first, second=second, path=path,
+                      jacobian=jacobian, first_point=first_point, last_point=last_point, channel_start=channel_start)
+
+
+def match(prediction: Prediction, layout: Layout, group, transmitter, paths, tolerance: Tolerance) -> Explanation:
+    """Which echo rows a predicted double bounce explains, and no mapped reflector's own echo does.
+
+    Parameters
+    ----------
+    prediction : Prediction
+        :func:`predict`'s paths for these rows' channels.
+    layout : Layout
+    group, transmitter : array_like of int, shape (N,)
+        Receiver group and transmitter of each row.
+    paths : array_like, shape (N, K)
+        Measured path lengths ``c * tof``, m; NaN where a receiver heard nothing.
+    tolerance : Tolerance
+
+    Returns
+    -------
+    Explanation
+        A row is :data:`MULTIPATH` when its closest double bounce is within the
+        tolerance's gate and its closest single bounce is not.  A row every
+        receiver of which heard nothing, or whose paths are not finite, is not
+        explained.
+
+    Raises
+    ------
+    ValueError
+        On arrays of the wrong shape, or groups and transmitters the layout does not have.
+    """
+    group, slot = _channels(layout, group, transmitter, "match")
+    paths = _row_paths(paths, group.size, layout, "match")
+    if prediction.channel_start.shape != (layout.n_groups * layout.group_transmitters.shape[1] + 1,):
+        raise ValueError("match: the prediction is of another layout")
+    channel = group * layout.group_transmitters.shape[1] + slot
+    best, direct, residual, direct_residual = image_method.match_rows(
+        channel, paths, prediction.channel_start, prediction.kind, prediction.path, prediction.jacobian,
+        tolerance.pose_covariance, tolerance.sigma_path, tolerance.sigma_speed, tolerance.sigma_map, tolerance.gate)
+    # An echo that a mapped reflector's own echo explains as well may be that reflector's: not multipath.
+    label = np.where((residual <= tolerance.gate) & ~(direct_residual <= tolerance.gate), MULTIPATH, NONE)
+    return Explanation(label=label.astype(np.uint8), best=best, residual=residual, direct=direct,
+                       direct_residual=direct_residual)
+
+
+def impossible(points, placement: Placement, layout: Layout, group, transmitter, walls, margin) -> np.ndarray:
+    """Which landmark hypotheses cannot be reflectors: a straight leg of theirs crosses a mapped wall.
+
+    Parameters
+    ----------
+    points : array_like, shape (L, K, 2)
+        Where each hypothesis reflects the sound to each receiver of its group,
+        map frame, m (:func:`reflection_points`): the vertex of a corner, edge or
+        undecided point for every receiver, a plane's reflection point on its
+        wall for each.  NaN for a receiver to leave out.
+    placement : Placement
+        The transducers in the map frame (:func:`sonar_ring.simulate.place`).
+    layout : Layout
+    group, transmitter : array_like of int, shape (L,)
+        Receiver group and transmitter of the echo each hypothesis came from.
+    walls : array_like, shape (W, 2, 2)
+        The map's wall segments, m; non-finite rows are left out.
+    margin : float or array_like, shape (L,)
+        m: a wall crossing a leg within this of the hypothesis' end does not
+        count -- the wall the hypothesis lies on (a plane's own wall, the walls
+        a corner or a wall's end joins), placed apart from it by noise.  About
+        ``gate`` times the hypothesis' and the map's position uncertainty.
+
+    Returns
+    -------
+    ndarray of bool, shape (L,)
+        True where a leg from the transmitter to a reflection point, or from one
+        to its receiver, crosses a mapped wall strictly between its ends.  A
+        hypothesis seen through a gap between mapped walls (a doorway) is not
+        impossible.  Non-finite points are never impossible.
+
+    Raises
+    ------
+    ValueError
+        On arrays of the wrong shape, groups or transmitters the layout does not
+        have, or a negative margin.
+    """
+    group, slot = _channels(layout, group, transmitter, "impossible")
+    points = np.ascontiguousarray(points, dtype=float)
+    if points.shape != (group.size, layout.receivers_per_group, 2):
+        raise ValueError(f"impossible: points must have shape ({group.size}, {layout.receivers_per_group}, 2) "
+                         f"(hypotheses, receivers, xy), got {points.shape}")
+    margin = np.asarray(margin, dtype=float)
+    if margin.shape not in ((), (group.size,)) or (margin.size and margin.min() < 0):
+        raise ValueError(f"impossible: margin must be a number >= 0 or one per hypothesis ({group.size},), "
+                         f"got {margin!r}")
+    _check_placement(placement, layout, "impossible")
+    walls, _ = _map_arrays(walls, np.empty((0, 2)), "impossible")
+    margin = np.full(group.size, float(margin)) if margin.ndim == 0 else np.ascontiguousarray(margin)
+    return image_method.reflections_blocked(points, group, slot, placement.tx, placement.rx, walls, margin)
+
+
+def reflection_points(landmarks: Landmarks, placement: Placement, layout: Layout, transmitter) -> np.ndarray:
+    """Where each landmark hypothesis reflects the sound to each receiver of its group, for :func:`impossible`.
+
+    Parameters
+    ----------
+    landmarks : Landmarks
+        Hypotheses in the map frame (L of them), each with the ``group`` of its echo.
+    placement : Placement
+        The transducers in the map frame.
+    layout : Layout
+    transmitter : array_like of int, shape (L,)
+        Transmitter of the echo each landmark came from.
+
+    Returns
+    -------
+    ndarray, shape (L, K, 2)
+        A plane's reflection points on the line through its ``position`` with
+        its ``normal`` (the image of the transmitter in it, seen from each
+        receiver); any other class's ``position`` for every receiver.  NaN where
+        a receiver is not on the plane's transmitter side, or the normal is zero.
+    """
+    group, slot = _channels(layout, landmarks.group.astype(np.int64), transmitter, "reflection_points")
+    _check_placement(placement, layout, "reflection_points")
+    position = np.ascontiguousarray(landmarks.position, dtype=float)
+    on_plane = image_method.plane_reflections(position, np.ascontiguousarray(landmarks.normal, dtype=float), group,
+                                              slot, placement.tx, placement.rx)
+    plane = (landmarks.landmark_class == PLANE)[:, None, None]
+    return np.where(plane, on_plane, position[:, None, :])
+
+
+def load_kernels() -> None:
+    """Load the compiled kernels now instead of at the first ping the mapper explains.
+
+    Runs each with the argument types of production (and those of
+    :mod:`sonar_ring.image_method`'s kernels it uses).
+    """
+    from sonar_ring.geometry import load_layout
+    from sonar_ring.simulate import place
+
+    image_method.load_kernels()
+    layout = load_layout("browne_ring")
+    placement = place(layout, [0.5, 0.5, 0.0])
+    walls = np.array([[[0.0, 0.0], [2.0, 0.0]], [[2.0, 0.0], [2.0, 2.0]]])
+    points = np.array([[1.0, 1.5]])
+    rows = np.zeros(1, dtype=np.int64)
+    tolerance = Tolerance(sigma_path=1e-3)
+    paths = np.ones((1, layout.receivers_per_group))
+    prediction = predict(walls, points, placement, layout, rows, rows, tolerance, paths=paths)
+    match(prediction, layout, rows, rows, paths, tolerance)
+    plane = make_landmarks([PLANE], [[1.0, 0.0]], normal=[[0.0, 1.0]])
+    impossible(reflection_points(plane, placement, layout, rows), placement, layout, rows, rows, walls, 0.01)
+
+
+# --------------------------------------------------------------------------- checks and set-up
+
+
+def _map_arrays(walls, points, caller: str):
+    """The map's walls (W, 2, 2) and points (P, 2) as contiguous float arrays, their shapes checked."""
+    walls = np.ascontiguousarray(walls, dtype=float)
+    points = np.ascontiguousarray(points, dtype=float)
+    if walls.ndim != 3 or walls.shape[1:] != (2, 2):
+        raise ValueError(f"{caller}: walls must have shape (W, 2, 2) (segments of two points), got {walls.shape}")
+    if points.ndim != 2 or points.shape[1] != 2:
+        raise ValueError(f"{caller}: points must have shape (P, 2), got {points.shape}")
+    return walls, points
+
+
+def _channels(layout: Layout, group, transmitter, caller: str):
+    """Each row's group and transmitter slot (int64), checked against the layout."""
+    group = np.asarray(group)
+    transmitter = np.asarray(transmitter)
+    if group.ndim != 1 or transmitter.shape != group.shape:
+        raise ValueError(f"{caller}: group and transmitter must be 1-D and of one length, got shapes "
+                         f"{group.shape} and {transmitter.shape}")
+    if group.size and not (group.dtype.kind in "iu" and transmitter.dtype.kind in "iu"):
+        raise ValueError(f"{caller}: group and transmitter must be integers, got {group.dtype} and "
+                         f"{transmitter.dtype}")
+    group = group.astype(np.int64, copy=False)
+    slot, bad = _slots(group, transmitter.astype(np.int64, copy=False), layout.group_transmitters)
+    if bad >= 0:
+        if not 0 <= group[bad] < layout.n_groups:
+            raise ValueError(f"{caller}: group must be in 0..{layout.n_groups - 1}, got {group[bad]}")
+        raise ValueError(f"{caller}: transmitter {transmitter[bad]} is not one of group {group[bad]}'s "
+                         f"{layout.group_transmitters[group[bad]].tolist()}")
+    return group, slot
+
+
+def _check_placement(placement: Placement, layout: Layout, caller: str) -> None:
+    slots, receivers = layout.group_transmitters.shape[1], layout.receivers_per_group
+    if placement.tx.shape != (layout.n_groups, slots, 2) or placement.rx.shape != (layout.n_groups, receivers, 2):
+        raise ValueError(f"{caller}: the placement is of another layout (tx {placement.tx.shape}, "
+                         f"rx {placement.rx.shape}; layout {layout.name!r} has ({layout.n_groups}, {slots}, 2) "
+                         f"and ({layout.n_groups}, {receivers}, 2))")
+
+
+def _row_paths(paths, rows: int, layout: Layout, caller: str) -> np.ndarray:
+    """The rows' measured paths as a contiguous (N, K) float array."""
+    paths = np.ascontiguousarray(paths, dtype=float)
+    if paths.shape != (rows, layout.receivers_per_group):
+        raise ValueError(f"{caller}: paths must have shape ({rows}, {layout.receivers_per_group}) "
+                         f"(rows, receivers), got {paths.shape}")
+    return paths
+
+
+# --------------------------------------------------------------------------- kernels
+
+
+@kernel
+def _slots(group, transmitter, group_transmitters):
+    """The slot of each row's transmitter in its group's ``group_transmitters`` row, and the first row without.
+
+    A row has no slot when its group or its transmitter is unknown (-1 there); the first such row is -1 when
+    every row has one.
+    """
+    slot = np.full(group.shape[0], -1, dtype=np.int64)
+    bad = -1
+    for n in range(group.shape[0]):
+        if 0 <= group[n] < group_transmitters.shape[0]:
+            for m in range(group_transmitters.shape[1]):
+                if group_transmitters[group[n], m] == transmitter[n] and slot[n] < 0:
+                    slot[n] = m
+        if slot[n] < 0 and bad < 0:
+            bad = n
+    return slot, bad
