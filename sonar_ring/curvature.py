@@ -204,10 +204,7 @@ def point_models(layout: Layout, landmarks: Landmarks) -> PointModels:
     position = np.array(landmarks.position, dtype=float)
     landmark_class = np.asarray(landmarks.landmark_class)
     is_edge = landmark_class == EDGE
-    image = 2.0 * position - tx
-    reach = np.linalg.norm(position - tx, axis=-1)[:, None]
-    paths = np.where(is_edge[:, None], reach + np.linalg.norm(position[:, None, :] - rx, axis=-1),
-                     np.linalg.norm(image[:, None, :] - rx, axis=-1))
+    paths = localise.reflector_paths(tx, rx, position, is_edge)
     corner = localise.corner(tx, rx[:, 0], rx[:, 1], paths[:, 0], paths[:, 1])
     edge = localise.edge(tx, rx[:, 0], rx[:, 1], paths[:, 0], paths[:, 1])
     is_point = landmarks.valid & np.isin(landmark_class, (UNKNOWN, CORNER, EDGE))

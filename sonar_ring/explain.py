@@ -124,8 +124,10 @@ import numpy as np
 from sonar_ring import image_method
 from sonar_ring.compiled import kernel
 from sonar_ring.geometry import Layout
-from sonar_ring.landmarks import PLANE, Landmarks, make_landmarks
-from sonar_ring.simulate import Placement
+from sonar_ring.landmarks import EDGE, PLANE, Landmarks, make_landmarks
+from sonar_ring.localise import reflector_paths
+from sonar_ring.mapping import transform_landmarks
+from sonar_ring.simulate import Placement, place
 
 NONE, MULTIPATH = 0, 1
 """Labels of an echo row (:attr:`Explanation.label`): not explained, or a predicted double bounce."""
@@ -445,6 +447,124 @@ def reflection_points(landmarks: Landmarks, placement: Placement, layout: Layout
     return np.where(plane, on_plane, position[:, None, :])
 
 
+@dataclass(frozen=True)
+class EchoTests:
+    """The mapper's tests of a ping's landmarks against its map (:func:`explain_landmarks`); its parameters.
+
+    Attributes
+    ----------
+    sigma_path : float
+        One receiver's path noise ``c * sigma_tof``, m (1 us: 0.343 mm).
+    sigma_speed : float
+        Relative error of the speed of sound the nodes assume (2 K: 0.35 %).
+    sigma_map : float
+        Position error of a map entry, m.
+    gate : float
+        Mahalanobis distance of a match (:class:`Tolerance`).
+    """
+
+    sigma_path: float = 343e-6
+    sigma_speed: float = 0.0035
+    sigma_map: float = 0.005
+    gate: float = 4.0
+
+    def __post_init__(self):
+        Tolerance(self.sigma_path, sigma_speed=self.sigma_speed, sigma_map=self.sigma_map, gate=self.gate)
+
+
+@dataclass(frozen=True)
+class Explained:
+    """What :func:`explain_landmarks` says of L landmarks of one ping.
+
+    Attributes
+    ----------
+    multipath : ndarray of bool, shape (L,)
+        Its echo matches a double bounce of the map's entries (and no entry's own echo).
+    impossible : ndarray of bool, shape (L,)
+        Not multipath, but a leg of its path crosses a mapped wall.
+    """
+
+    multipath: np.ndarray
+    impossible: np.ndarray
+
+    @property
+    def any(self) -> np.ndarray:
+        """Explained either way, (L,)."""
+        return self.multipath | self.impossible
+
+
+def landmark_paths(landmarks: Landmarks, placement: Placement, layout: Layout) -> np.ndarray:
+    """The 3-D paths ``c * tof`` each landmark implies for every receiver of its group, (L, K), m.
+
+    ``landmarks`` in the frame of ``placement`` (of the sensor at its pose).
+    The horizontal paths of the landmark's own model
+    (:func:`sonar_ring.localise.reflector_paths`: for the pair that placed it,
+    the ones it was solved from; a plane, a corner or an undecided point by its
+    virtual image, an edge by itself) with each receiver's height offset.
+    """
+    group = np.asarray(landmarks.group, dtype=np.int64)
+    horizontal = reflector_paths(placement.tx[group, 0], placement.rx[group], landmarks.position,
+                                 landmarks.landmark_class == EDGE)
+    return np.sqrt(horizontal ** 2 + layout.plan.height_offset[group, 0, :] ** 2)
+
+
+def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_covariance, known: Landmarks,
+                      tests: EchoTests) -> Explained:
+    """Which of one ping's landmarks the map explains, as multipath or as impossible.
+
+    The echo of each landmark is the paths it implies (:func:`landmark_paths`);
+    the map's walls (their seen extents) and points make the paths
+    :func:`predict` gives at the sensor's pose, with the pose's covariance in
+    the tolerance; :func:`match` labels multipath, :func:`impossible` the rest
+    whose legs cross a mapped wall (margin: ``gate`` times the landmark's and
+    the map's position error).  A layout whose groups have several
+    transmitters (whose landmark does not say which one sent) is not tested.
+
+    Parameters
+    ----------
+    landmarks : Landmarks
+        L labelled landmarks of one ping, sensor frame.
+    layout : Layout
+    sensor_pose : array_like, shape (3,)
+        The sensor's estimated pose ``(x, y, yaw)`` in the map's frame.
+    sensor_covariance : array_like, shape (3, 3)
+        Its covariance.
+    known : Landmarks
+        The map's entries in its frame (walls as PLANE with their ``segment``; points).
+    tests : EchoTests
+
+    Returns
+    -------
+    Explained
+    """
+    count = len(landmarks)
+    nothing = Explained(np.zeros(count, bool), np.zeros(count, bool))
+    wall = known.landmark_class == PLANE
+    if count == 0 or len(known) == 0 or layout.group_transmitters.shape[1] != 1:
+        return nothing
+    placement = place(layout, sensor_pose)
+    in_map = transform_landmarks(landmarks, sensor_pose)
+    usable = np.asarray(landmarks.valid, dtype=bool) & np.isfinite(in_map.position).all(axis=1)
+    rows = np.flatnonzero(usable)
+    if rows.size == 0:
+        return nothing
+    in_map = in_map.select(rows)
+    tolerance = Tolerance(tests.sigma_path, sensor_covariance, tests.sigma_speed, tests.sigma_map, tests.gate)
+    group = in_map.group.astype(np.int64)
+    transmitter = np.zeros(rows.size, np.int64)
+    walls, points = np.asarray(known.segment)[wall], np.asarray(known.position)[~wall]
+    paths = landmark_paths(in_map, placement, layout)
+    prediction = predict(walls, points, placement, layout, group, transmitter, tolerance, paths=paths)
+    multipath = match(prediction, layout, group, transmitter, paths, tolerance).label == MULTIPATH
+    spread = np.sqrt(np.maximum(np.linalg.eigvalsh(np.asarray(in_map.covariance, dtype=float))[:, -1], 0.0))
+    margin = tests.gate * np.hypot(spread, tests.sigma_map)
+    blocked = impossible(reflection_points(in_map, placement, layout, transmitter), placement, layout, group,
+                         transmitter, walls, np.where(np.isfinite(margin), margin, 0.0)) & ~multipath
+    out = Explained(np.zeros(count, bool), np.zeros(count, bool))
+    out.multipath[rows], out.impossible[rows] = multipath, blocked
+    return out
+
+
 def load_kernels() -> None:
     """Load the compiled kernels now instead of at the first ping the mapper explains.
 
@@ -452,7 +572,6 @@ def load_kernels() -> None:
     :mod:`sonar_ring.image_method`'s kernels it uses).
     """
     from sonar_ring.geometry import load_layout
-    from sonar_ring.simulate import place
 
     image_method.load_kernels()
     layout = load_layout("browne_ring")

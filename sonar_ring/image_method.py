@@ -1024,13 +1024,15 @@ def reflections_blocked(points, group, slot, tx, rx, walls, margin):
     walls : ndarray, shape (W, 2, 2)
         m.
     margin : ndarray, shape (L,)
-        m: crossings within this of the reflection point, or of a wall's ends, do not count.
+        m: a wall the point lies less than this behind (across the wall's line:
+        a point uncertain by ``margin`` may be on it), or crossed within this of
+        its ends, does not count.
 
     Returns
     -------
     ndarray of bool, shape (L,)
-        Some leg transmitter -> point or point -> receiver crosses a wall
-        strictly between its ends, beyond ``margin`` of the point.
+        Some leg transmitter -> point or receiver -> point crosses a wall
+        strictly between its ends, with the point more than ``margin`` behind it.
     """
     length = _lengths(walls)
     blocked = np.zeros(points.shape[0], dtype=np.bool_)
@@ -1042,11 +1044,34 @@ def reflections_blocked(points, group, slot, tx, rx, walls, margin):
                 continue
             # A corner's, an edge's or an undecided point's legs from the transmitter are one for all receivers.
             same = k > 0 and x == points[n, k - 1, 0] and y == points[n, k - 1, 1]
-            blocked[n] = ((not same and _shortened_leg_blocked(tx[g, m, 0], tx[g, m, 1], x, y, 0.0, margin[n], walls,
-                                                               length, margin[n]))
-                          or _shortened_leg_blocked(x, y, rx[g, k, 0], rx[g, k, 1], margin[n], 0.0, walls, length,
-                                                    margin[n]))
+            blocked[n] = ((not same and _behind_wall(tx[g, m, 0], tx[g, m, 1], x, y, walls, length, margin[n]))
+                          or _behind_wall(rx[g, k, 0], rx[g, k, 1], x, y, walls, length, margin[n]))
     return blocked
+
+
+@kernel
+def _behind_wall(x0, y0, x1, y1, walls, length, margin):
+    """Whether the leg from ``(x0, y0)`` to the point ``(x1, y1)`` crosses a wall the point lies ``margin`` behind.
+
+    The crossing must lie strictly inside the leg and at least ``margin`` from the wall's ends; the point's
+    distance from the wall's line, across it, more than ``margin`` (m).
+    """
+    rx, ry = x1 - x0, y1 - y0
+    for w in range(walls.shape[0]):
+        ax, ay = walls[w, 0, 0], walls[w, 0, 1]
+        sx, sy = walls[w, 1, 0] - ax, walls[w, 1, 1] - ay
+        denominator = rx * sy - ry * sx
+        if denominator == 0:
+            continue
+        apx, apy = ax - x0, ay - y0
+        along_leg = (apx * sy - apy * sx) / denominator
+        along_wall = (apx * ry - apy * rx) / denominator
+        trim = margin / length[w]
+        behind = abs(sx * (y1 - ay) - sy * (x1 - ax)) / length[w]
+        if (along_leg > LEG_END_FRACTION and along_leg < 1.0 and along_wall >= trim and along_wall <= 1.0 - trim
+                and behind > margin):
+            return True
+    return False
 
 
 @kernel

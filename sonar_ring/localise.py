@@ -395,6 +395,36 @@ def load_kernels() -> None:
                                np.ones(len(SOLVERS), dtype=np.uint8))
 
 
+def reflector_paths(tx, rx, position, is_edge) -> np.ndarray:
+    """The horizontal paths ``T -> reflector -> R_k`` a landmark implies: the forward model its estimate inverts.
+
+    A plane's foot point, a corner or an undecided point ``G`` (virtual-image
+    models: the image ``T' = 2G - T``) gives ``|2G - T - R_k|``; an edge at
+    ``P`` gives ``|P - T| + |P - R_k|``.  For the pair that placed it, the two
+    paths are the ones it was solved from.
+
+    Parameters
+    ----------
+    tx : array_like, shape (L, 2)
+        Each landmark's transmitter, m.
+    rx : array_like, shape (L, K, 2)
+        The receivers whose paths are wanted, m.
+    position : array_like, shape (L, 2)
+        ``G`` or ``P``, same frame, m.
+    is_edge : array_like of bool, shape (L,)
+        The edge model (else the virtual image's).
+
+    Returns
+    -------
+    ndarray, shape (L, K)
+        Horizontal paths, m.
+    """
+    tx, rx, position = (np.asarray(a, dtype=float) for a in (tx, rx, position))
+    image = np.linalg.norm((2.0 * position - tx)[:, None, :] - rx, axis=-1)
+    edge = np.linalg.norm(position - tx, axis=-1)[:, None] + np.linalg.norm(position[:, None, :] - rx, axis=-1)
+    return np.where(np.asarray(is_edge, dtype=bool)[:, None], edge, image)
+
+
 # --------------------------------------------------------------------------- the vertical correction and the bearing
 
 def horizontal_path(d, dz) -> ScalarEstimate:

@@ -11,14 +11,26 @@ the odometry covers its stamp, and maps it:
 * ``slam`` off: the pose is the odometry's, the map a
   :class:`~sonar_ring.mapping.LandmarkMap` in ``odom``.
 
+Before a ping's landmarks reach the map, the map explains what it can
+(``echo_tests``, :func:`sonar_ring.explain.explain_landmarks`, at the pose
+estimate with its uncertainty, against the published map): a landmark whose
+echo is a double bounce of mapped entries (``multipath explained``) or whose
+path crosses a mapped wall (``impossible``) is matched to the map but never
+mapped, and an entry that such echoes explain away is removed.  Only
+persistent entries are published
+(:meth:`~sonar_ring.mapping.LandmarkMap.persistent`; with SLAM only they enter
+the graph): an echo that never repeats is never mapped.
+
 What it leaves out is counted on ``health`` (anything with ``problem(reason,
 detail, count)`` and ``note(reason, count)``: the node's
 :class:`~sonar_ring.ros.diagnostics.NodeHealth`, ``process``'s tally):
 ``pose_too_old``, ``no_odometry``, ``sightings not_finite`` and
-``sightings degenerate`` (problems), ``sightings ambiguous``, ``sightings dropped``,
+``sightings degenerate`` (problems), ``multipath explained``, ``impossible``,
+``explained away``, ``sightings ambiguous``, ``sightings dropped``,
 ``sightings evicted`` (notes); with SLAM also ``odometry_jump`` (a new map
 segment starts) and ``no_landmarks`` (a stretch of travel without a confirmed
-landmark) as problems.  Nothing raises on bad data.
+landmark) as problems.  :meth:`MapBuilder.not_persistent` says how many
+entries are held back.  Nothing raises on bad data.
 """
 
 from __future__ import annotations
@@ -29,10 +41,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sonar_ring.curvature import point_models
+from sonar_ring.explain import EchoTests, explain_landmarks
 from sonar_ring.geometry import Layout
 from sonar_ring.landmarks import Landmarks
 from sonar_ring.mapping import LandmarkMap, MapCounts, transform_landmarks
-from sonar_ring.poses import PoseHistory, compose
+from sonar_ring.poses import PoseHistory, compose, pose_covariance_at
 from sonar_ring.slam import LandmarkSlam, SlamSettings
 
 PENDING_LIMIT = 32
@@ -40,7 +53,7 @@ PENDING_LIMIT = 32
 
 SIGHTING_PROBLEMS = ("not_finite", "degenerate")
 """Sightings the map refused as bad data (:class:`~sonar_ring.mapping.MapCounts` fields)."""
-SIGHTING_NOTES = ("ambiguous", "dropped", "evicted")
+SIGHTING_NOTES = ("ambiguous", "dropped", "evicted", "explained_away")
 """Sightings the map left out by design."""
 
 
@@ -69,7 +82,14 @@ class MapperSettings:
         Odometry poses kept (None: all, for a whole bag).
     layout : Layout or None
         The sensor: on a single-emitter ring each point sighting's two models
-        (:func:`sonar_ring.curvature.point_models`) tell edges from corners over motion.
+        (:func:`sonar_ring.curvature.point_models`) tell edges from corners over motion;
+        the echo tests need it.
+    echo_tests : EchoTests or None
+        Explain each ping's landmarks by the map before mapping them, and (without
+        SLAM) publish only persistent entries; None: neither (every entry seen
+        ``min_observations`` times is published, as before this round).
+    min_support_pings, min_support_travel : int, float
+        What makes an entry persistent (:class:`~sonar_ring.mapping.LandmarkMap`).
     """
 
     slam: bool = True
@@ -85,6 +105,9 @@ class MapperSettings:
     slam_settings: SlamSettings = field(default_factory=SlamSettings)
     pose_history: int | None = 500
     layout: Layout | None = None
+    echo_tests: EchoTests | None = field(default_factory=EchoTests)
+    min_support_pings: int = 5
+    min_support_travel: float = 0.05
 
 
 class MapBuilder:
@@ -102,7 +125,8 @@ class MapBuilder:
         self.health = health
         self.history = PoseHistory(settings.pose_history)
         self._pending: deque = deque()
-        front = dict(max_points=settings.max_points, max_walls=settings.max_walls, gate=settings.gate)
+        front = dict(max_points=settings.max_points, max_walls=settings.max_walls, gate=settings.gate,
+                     min_support_pings=settings.min_support_pings, min_support_travel=settings.min_support_travel)
         self.slam = LandmarkSlam(settings.slam_settings, front) if settings.slam else None
         self._odom_map = None if settings.slam else LandmarkMap(**front)
         self._counts = MapCounts()
@@ -112,6 +136,8 @@ class MapBuilder:
         """The robot's pose in the map's frame ``(x, y, yaw)`` at the latest ping mapped, None before the first."""
         self.latest_stamp = None
         """Stamp (ns) of the latest ping mapped."""
+        self.explained = {"multipath": np.empty((0, 2)), "impossible": np.empty((0, 2))}
+        """The latest ping's landmarks the map explained, by how: positions (P, 2) in the map's frame."""
 
     @property
     def frame(self) -> str:
@@ -175,13 +201,14 @@ class MapBuilder:
         offset = np.asarray(self.settings.sensor_offset, dtype=float)
         layout = self.settings.layout
         models = point_models(layout, landmarks) if layout is not None else None
+        explained = self._explain(landmarks, odometry, offset)
         if self.slam is None:
             sensor = compose(odometry, offset)
             self.landmark_map.update(transform_landmarks(landmarks, sensor), sensor,
-                                     None if models is None else models.transformed(sensor))
+                                     None if models is None else models.transformed(sensor), explained)
             self.robot_pose = odometry
         else:
-            report = self.slam.add_ping(landmarks, odometry, stamp * 1e-9, offset, models)
+            report = self.slam.add_ping(landmarks, odometry, stamp * 1e-9, offset, models, explained)
             self.robot_pose = report.pose
             if report.fault:
                 self.health.problem(report.fault.replace(" ", "_"), f"{report.fault}: a new map segment starts")
@@ -192,6 +219,24 @@ class MapBuilder:
         self._count_sightings()
         self.latest_stamp = stamp
         self.changed = True
+
+    def _explain(self, landmarks: Landmarks, odometry: np.ndarray, offset: np.ndarray) -> np.ndarray | None:
+        """Which landmarks the published map explains (module docstring), counted; None without the tests."""
+        tests, layout = self.settings.echo_tests, self.settings.layout
+        if tests is None or layout is None or not len(landmarks):
+            return None
+        if self.slam is None:
+            robot, covariance = odometry, np.zeros((3, 3))
+        else:
+            robot, covariance = self.slam.pose_at(odometry)
+        sensor = compose(robot, offset)
+        explained = explain_landmarks(landmarks, layout, sensor, pose_covariance_at(robot, covariance, offset),
+                                      self.snapshot(), tests)
+        in_map = transform_landmarks(landmarks, sensor).position
+        self.explained = {"multipath": in_map[explained.multipath], "impossible": in_map[explained.impossible]}
+        self.health.note("multipath explained", int(np.count_nonzero(explained.multipath)))
+        self.health.note("impossible", int(np.count_nonzero(explained.impossible)))
+        return explained.any
 
     def _count_sightings(self) -> None:
         """What the map refused or left out since the last ping, on ``health``."""
@@ -212,16 +257,28 @@ class MapBuilder:
         return self.slam.front if self.slam is not None else self._odom_map
 
     def snapshot(self) -> Landmarks:
-        """The map in :attr:`frame`, entries seen ``min_observations`` times (with SLAM: those in its graph)."""
+        """The map in :attr:`frame`, entries seen ``min_observations`` times.
+
+        With SLAM: those in its graph; with the echo tests: the persistent ones.
+        """
         if self.slam is not None:
             return self.slam.snapshot(self.settings.min_observations)
-        return self.landmark_map.snapshot(min_observations=self.settings.min_observations)
+        return self.landmark_map.snapshot(self.settings.min_observations, persistent=self._persistent_only)
 
     def points(self) -> np.ndarray:
         """Costmap points of :meth:`snapshot`, (P, 2), in :attr:`frame`."""
         if self.slam is not None:
             return self.slam.points(self.settings.min_observations)
-        return self.landmark_map.points(min_observations=self.settings.min_observations)
+        return self.landmark_map.points(self.settings.min_observations, persistent=self._persistent_only)
+
+    @property
+    def _persistent_only(self) -> bool:
+        return self.settings.echo_tests is not None
+
+    def not_persistent(self) -> int:
+        """Entries of the map held back from :meth:`snapshot` because they do not (yet) persist."""
+        entries = self.landmark_map.entries()
+        return int(np.count_nonzero(~self.landmark_map.persistent(entries.uid)))
 
     def map_to_odom(self) -> np.ndarray:
         """``map -> odom`` ``(x, y, yaw)`` (SLAM's estimate; identity without SLAM)."""

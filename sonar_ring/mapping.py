@@ -119,7 +119,7 @@ The pose is taken as exact: the map is consistent in ``odom`` as far as odometry
 from __future__ import annotations
 
 import copy
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -135,6 +135,8 @@ CHI2_2DOF_9999 = 18.421
 
 _AMBIGUOUS = -2
 """Association result of a sighting that is neither fused nor allowed to start an entry."""
+_EXPLAINED = -3
+"""Association result of a sighting the caller explained: neither fused nor starting an entry."""
 
 _MIN_RANGE = 1e-3
 """Sightings closer than this to the sensor (m) define no line of sight."""
@@ -501,7 +503,7 @@ class MapCounts:
     """What :meth:`LandmarkMap.update` did with its input, summed since construction.
 
     For the sightings of accepted pings,
-    ``sightings == invalid + not_finite + degenerate + ambiguous + fused + created + dropped``.
+    ``sightings == invalid + not_finite + degenerate + explained + ambiguous + fused + created + dropped``.
 
     Attributes
     ----------
@@ -521,6 +523,12 @@ class MapCounts:
     degenerate : int
         Landmarks with a covariance that is not positive definite, an unknown
         class code, a zero plane normal or a position at the sensor.
+    explained : int
+        Sightings the caller explained (multipath, impossible: ``explained`` of
+        :meth:`LandmarkMap.update`): counted against the entry they match, never fused,
+        never an entry of their own.
+    explained_away : int
+        Entries removed because the map came to explain their sightings (:meth:`LandmarkMap.update`).
     ambiguous : int
         Sightings outside every entry's gate but inside some entry's
         ``new_entry_gate``: neither fused nor allowed to start an entry.
@@ -546,6 +554,8 @@ class MapCounts:
     invalid: int = 0
     not_finite: int = 0
     degenerate: int = 0
+    explained: int = 0
+    explained_away: int = 0
     ambiguous: int = 0
     fused: int = 0
     created: int = 0
@@ -587,6 +597,8 @@ class Sightings:
         Sensor position ``S``, m.
     models : PointModels or None
         Both point models' positions of each sighting (:mod:`sonar_ring.curvature`), same frame.
+    explained : ndarray of bool, shape (N,)
+        Sightings the caller explained as multipath or impossible.
     """
 
     rows: np.ndarray
@@ -601,6 +613,7 @@ class Sightings:
     group: np.ndarray
     sensor: np.ndarray
     models: PointModels | None
+    explained: np.ndarray
     offered: int
     invalid: int
     not_finite: int
@@ -660,11 +673,14 @@ class Placed:
     renamed : dict of int to int
         Entries of this update that live on under another uid: an UNKNOWN point that became a wall, a
         wall absorbed by another (old uid to new).
+    removed : ndarray of int
+        Entries this update removed: explained away (:attr:`MapCounts.explained_away`) or evicted.
     """
 
     rows: np.ndarray
     uid: np.ndarray
     renamed: dict
+    removed: np.ndarray = field(default_factory=lambda: np.empty(0, np.int64))
 
 
 @kernel
@@ -756,6 +772,38 @@ def _screen_rows(landmark_class, valid, position, covariance, segment, normal, s
     return keep, kept_covariance, information, line_normal, distances, counts
 
 
+def _add_support(table, capacity: int) -> None:
+    """A table's support columns: what makes an entry persistent, and what the map explains of it.
+
+    ``pings`` the pings that saw it, ``origin`` the sensor position of its first
+    sighting and ``travel`` the farthest the sensor was from there at a later
+    one (m); ``explained`` the pings with an explained sighting matching it, and
+    ``unexplained`` those that fused one after the first of them.
+    """
+    table.pings = np.zeros(capacity, np.int64)
+    table.origin = np.zeros((capacity, 2))
+    table.travel = np.zeros(capacity)
+    table.explained = np.zeros(capacity, np.int64)
+    table.unexplained = np.zeros(capacity, np.int64)
+
+
+def _start_support(table, slots, sensor) -> None:
+    table.pings[slots] = 1
+    table.origin[slots] = sensor
+    table.travel[slots] = 0.0
+    table.explained[slots] = 0
+    table.unexplained[slots] = 0
+
+
+def _absorb_support(table, keep: int, other: int) -> None:
+    """Entry ``keep`` takes over entry ``other``'s support (same table)."""
+    table.pings[keep] += table.pings[other]
+    table.travel[keep] = max(table.travel[keep], table.travel[other],
+                             float(np.hypot(*(table.origin[keep] - table.origin[other]))))
+    table.explained[keep] += table.explained[other]
+    table.unexplained[keep] += table.unexplained[other]
+
+
 class _Points:
     """Fixed-capacity table of point entries; row r is in use where ``active[r]``."""
 
@@ -783,6 +831,7 @@ class _Points:
         self.latest = np.zeros((capacity, 2))  # latest sighting, for the candidate search
         self.observations = np.zeros(capacity, np.int64)
         self.last_seen = np.zeros(capacity, np.int64)
+        _add_support(self, capacity)
         self.group = np.zeros(capacity, np.uint16)
         self.confidence_sum = np.zeros(capacity)
         self.confidence_count = np.zeros(capacity)
@@ -818,6 +867,7 @@ class _Walls:
         self.extent = np.zeros((capacity, 2))
         self.observations = np.zeros(capacity, np.int64)
         self.last_seen = np.zeros(capacity, np.int64)
+        _add_support(self, capacity)
         self.group = np.zeros(capacity, np.uint16)
         self.confidence_sum = np.zeros(capacity)
         self.confidence_count = np.zeros(capacity)
@@ -989,6 +1039,12 @@ class LandmarkMap:
     curvature_threshold : float
         ``|chi2_corner - chi2_edge|`` needed to tell a fixed point an edge or a
         corner (:mod:`sonar_ring.curvature`; 13.8 is 1000:1), with ``min_separation``.
+    min_support_pings : int
+        Pings an entry must be seen in to be persistent (:meth:`persistent`).
+    min_support_travel : float
+        How far the sensor must have moved between its first sighting and a later
+        one, m: an echo that repeats only while the robot stands still (a person
+        standing by it, noise locked to the ping) is not enough.
 
     Raises
     ------
@@ -1001,20 +1057,23 @@ class LandmarkMap:
                  map_sigma: float = 0.001, gate: float = CHI2_2DOF_99, new_entry_gate: float = CHI2_2DOF_9999,
                  decision_threshold: float = CHI2_2DOF_99, min_separation: float = 25.0, min_baseline: float = 0.1,
                  search_radius: float = 0.5, wall_point_spacing: float = 0.05,
-                 curvature_threshold: float = CURVATURE_THRESHOLD):
-        for name, value in (("max_points", max_points), ("max_walls", max_walls)):
+                 curvature_threshold: float = CURVATURE_THRESHOLD, min_support_pings: int = 5,
+                 min_support_travel: float = 0.05):
+        for name, value in (("max_points", max_points), ("max_walls", max_walls),
+                            ("min_support_pings", min_support_pings)):
             if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
                 raise ValueError(f"LandmarkMap: {name} must be an integer >= 1, got {value!r}")
         numbers = {"sighting_sigma": sighting_sigma, "map_sigma": map_sigma, "gate": gate,
                    "new_entry_gate": new_entry_gate, "decision_threshold": decision_threshold,
                    "min_separation": min_separation, "min_baseline": min_baseline, "search_radius": search_radius,
-                   "wall_point_spacing": wall_point_spacing, "curvature_threshold": curvature_threshold}
+                   "wall_point_spacing": wall_point_spacing, "curvature_threshold": curvature_threshold,
+                   "min_support_travel": min_support_travel}
         for name, value in numbers.items():
             if isinstance(value, bool) or not isinstance(value, int | float | np.number) or not np.isfinite(value):
                 raise ValueError(f"LandmarkMap: {name} must be a finite number, got {value!r}")
-            if value < 0 or (value == 0 and not name.endswith("sigma")):
-                raise ValueError(f"LandmarkMap: {name} must be {'>= 0' if name.endswith('sigma') else '> 0'}, "
-                                 f"got {value!r}")
+            may_be_zero = name.endswith("sigma") or name == "min_support_travel"
+            if value < 0 or (value == 0 and not may_be_zero):
+                raise ValueError(f"LandmarkMap: {name} must be {'>= 0' if may_be_zero else '> 0'}, got {value!r}")
         if new_entry_gate < gate:
             raise ValueError(f"LandmarkMap: new_entry_gate ({new_entry_gate}) must be at least gate ({gate})")
         self.max_points = int(max_points)
@@ -1029,12 +1088,15 @@ class LandmarkMap:
         self.search_radius = float(search_radius)
         self.wall_point_spacing = float(wall_point_spacing)
         self.curvature_threshold = float(curvature_threshold)
+        self.min_support_pings = int(min_support_pings)
+        self.min_support_travel = float(min_support_travel)
         self._points = _Points(self.max_points)
         self._walls = _Walls(self.max_walls)
         self._counts = MapCounts()
         self._ping = 0
         self._next_uid = 0
         self._renamed: dict[int, int] = {}  # this update's entries that became (or merged into) another
+        self._removed: list[int] = []  # this update's entries explained away or evicted
 
     def __len__(self) -> int:
         """Number of map entries (points and walls)."""
@@ -1047,7 +1109,8 @@ class LandmarkMap:
 
     # ------------------------------------------------------------------ update
 
-    def update(self, landmarks: Landmarks, sensor_pose, models: PointModels | None = None) -> Placed:
+    def update(self, landmarks: Landmarks, sensor_pose, models: PointModels | None = None,
+               explained=None) -> Placed:
         """Add one ping's landmarks, already in ``odom``: :meth:`screen`, then :meth:`add`; where each went.
 
         Parameters
@@ -1062,6 +1125,12 @@ class LandmarkMap:
         models : PointModels, optional
             Both point models of each landmark, in ``odom`` (:func:`sonar_ring.curvature.point_models`):
             the evidence that tells an edge from a corner.
+        explained : array_like of bool, shape (L,), optional
+            Landmarks the caller explained (multipath, impossible: :mod:`sonar_ring.explain`).
+            Each is matched to the map like any other but never fused and never
+            starts an entry; an entry that comes to be matched by explained
+            sightings only is removed (explained away: a ghost mapped before the
+            map could explain it, :meth:`_explain_away`).
 
         Raises
         ------
@@ -1069,9 +1138,10 @@ class LandmarkMap:
             If ``landmarks`` is not a :class:`Landmarks` with consistent shapes or
             ``sensor_pose`` is not three numbers.  Bad data is counted, never raised.
         """
-        return self.add(self.screen(landmarks, sensor_pose, models))
+        return self.add(self.screen(landmarks, sensor_pose, models, explained))
 
-    def screen(self, landmarks: Landmarks, sensor_pose, models: PointModels | None = None) -> Sightings | None:
+    def screen(self, landmarks: Landmarks, sensor_pose, models: PointModels | None = None,
+               explained=None) -> Sightings | None:
         """The usable landmarks of one ping as sightings, the others counted by kind; None for a bad pose.
 
         Uses the map's settings, never its entries, so any map with the same
@@ -1083,7 +1153,11 @@ class LandmarkMap:
         pose = _pose(sensor_pose, "LandmarkMap.screen")
         if not (np.all(np.isfinite(pose)) and np.all(np.abs(pose[:2]) <= MAX_COORDINATE)):
             return None
-        return self._screen(landmarks, pose[:2], models)
+        explained = np.zeros(len(landmarks), bool) if explained is None else np.asarray(explained, dtype=bool)
+        if explained.shape != (len(landmarks),):
+            raise ValueError(f"LandmarkMap.screen: explained must have shape ({len(landmarks)},), "
+                             f"got {explained.shape}")
+        return self._screen(landmarks, pose[:2], models, explained)
 
     def add(self, sightings: Sightings | None) -> Placed:
         """Associate and fuse one ping's sightings (:meth:`screen`); None counts a rejected ping.
@@ -1091,6 +1165,7 @@ class LandmarkMap:
         Returns where each usable sighting went (:class:`Placed`).
         """
         self._renamed = {}
+        self._removed = []
         if sightings is None:
             self._counts.rejected_pings += 1
             return Placed(np.empty(0, np.int64), np.empty(0, np.int64), {})
@@ -1103,7 +1178,9 @@ class LandmarkMap:
         if sightings.landmark_class.size == 0:
             return Placed(sightings.rows, np.empty(0, np.int64), {})
         target = self._associate(sightings)
-        self._mark_seen(target)
+        if sightings.explained.any():
+            target = self._explain_away(target, sightings.explained)
+        self._mark_seen(target, sightings.sensor)
         self._counts.ambiguous += int(np.count_nonzero(target == _AMBIGUOUS))
         target, leader, new_walls = self._start_entries(sightings, target)
         self._counts.dropped += int(np.count_nonzero(target == -1))
@@ -1114,7 +1191,38 @@ class LandmarkMap:
         grown_walls = self._fuse_walls(sightings, np.flatnonzero(fusing & is_wall), target)
         made_walls = self._resolve(touched_points)
         self._merge_walls(np.unique(np.concatenate([new_walls, grown_walls, made_walls])))
-        return Placed(sightings.rows, self._uids_of(target), dict(self._renamed))
+        return Placed(sightings.rows, self._uids_of(target), dict(self._renamed),
+                      np.asarray(self._removed, dtype=np.int64))
+
+    def _explain_away(self, target, explained):
+        """Count explained sightings against the entries they match; remove the entries they explain away.
+
+        An entry is explained away once ``min_support_pings`` pings matched it
+        only with explained sightings, at least as many as fused one after the
+        first of them: a ghost mapped before the map could explain it goes as
+        soon as the map does, a reflector whose echo a prediction sometimes
+        mimics stays.  Returns the targets with the explained sightings' set to
+        ``_EXPLAINED`` (neither fused nor started).
+        """
+        self._counts.explained += int(np.count_nonzero(explained))
+        hit = np.unique(target[explained & (target >= 0)])
+        fused = np.unique(target[~explained & (target >= 0)])
+        hit = hit[~np.isin(hit, fused)]  # a ping that also fused a sighting into it does not explain it
+        for table, slots in ((self._points, hit[hit < self.max_points]),
+                             (self._walls, hit[hit >= self.max_points] - self.max_points)):
+            table.explained[slots] += 1
+            ghosts = slots[(table.explained[slots] >= self.min_support_pings)
+                           & (table.explained[slots] >= table.unexplained[slots])]
+            table.active[ghosts] = False
+            self._removed.extend(table.uid[ghosts].tolist())
+            self._counts.explained_away += ghosts.size
+        target = target.copy()
+        target[explained] = _EXPLAINED
+        gone = (target >= 0) & ~np.where(target >= self.max_points,
+                                         self._walls.active[np.clip(target - self.max_points, 0, None)],
+                                         self._points.active[np.clip(target, 0, self.max_points - 1)])
+        target[gone] = -1  # its match was explained away in this ping: it starts afresh
+        return target
 
     def _uids_of(self, target) -> np.ndarray:
         """The entry uid each sighting ended in (its target slot's, through this update's renames); -1 for none."""
@@ -1133,7 +1241,8 @@ class LandmarkMap:
         self._next_uid += count
         return uids
 
-    def _screen(self, landmarks: Landmarks, sensor: np.ndarray, models: PointModels | None) -> Sightings:
+    def _screen(self, landmarks: Landmarks, sensor: np.ndarray, models: PointModels | None,
+                explained: np.ndarray) -> Sightings:
         """The usable landmarks, with the unusable ones counted by kind (and their point models, if given)."""
         # Copies: landmarks decoded from a message are read-only views, another type to numba.
         position = np.array(landmarks.position, dtype=float)
@@ -1155,6 +1264,7 @@ class LandmarkMap:
             group=np.asarray(landmarks.group)[keep].astype(np.uint16),
             sensor=sensor,
             models=None if models is None else models.select(keep),
+            explained=explained[keep],
             offered=len(landmarks),
             invalid=int(counts[0]),
             not_finite=int(counts[1]),
@@ -1225,9 +1335,14 @@ class LandmarkMap:
             target[row[first]] = candidate[first]
         return target
 
-    def _mark_seen(self, target) -> None:
-        self._points.last_seen[target[(target >= 0) & (target < self.max_points)]] = self._ping
-        self._walls.last_seen[target[target >= self.max_points] - self.max_points] = self._ping
+    def _mark_seen(self, target, sensor) -> None:
+        """The ping's matched entries: seen now, their support grown (a ping counts once per entry)."""
+        for table, slots in ((self._points, np.unique(target[(target >= 0) & (target < self.max_points)])),
+                             (self._walls, np.unique(target[target >= self.max_points] - self.max_points))):
+            table.last_seen[slots] = self._ping
+            table.pings[slots] += 1
+            table.unexplained[slots] += table.explained[slots] > 0
+            table.travel[slots] = np.maximum(table.travel[slots], np.hypot(*(sensor - table.origin[slots]).T))
 
     # ------------------------------------------------------------------ new entries
 
@@ -1274,6 +1389,7 @@ class LandmarkMap:
             old = np.flatnonzero(table.active & (table.last_seen < self._ping))
             victims = old[np.lexsort((table.observations[old], table.last_seen[old]))][:count - free.size]
             table.active[victims] = False
+            self._removed.extend(table.uid[victims].tolist())
             self._counts.evicted += victims.size
             free = np.sort(np.concatenate([free, victims]))
         return free[:count]
@@ -1310,6 +1426,7 @@ class LandmarkMap:
         p.latest[slots] = position
         p.observations[slots] = 1
         p.last_seen[slots] = self._ping
+        _start_support(p, slots, s.sensor)
         p.group[slots] = s.group[rows]
         p.confidence_sum[slots] = np.where(classified, s.confidence[rows], 0.0)
         p.confidence_count[slots] = classified
@@ -1340,6 +1457,7 @@ class LandmarkMap:
         w.extent[slots, 0], w.extent[slots, 1] = along.min(axis=1), along.max(axis=1)
         w.observations[slots] = 1
         w.last_seen[slots] = self._ping
+        _start_support(w, slots, s.sensor)
         w.group[slots] = s.group[rows]
         w.confidence_sum[slots] = s.confidence[rows]
         w.confidence_count[slots] = 1.0
@@ -1519,6 +1637,8 @@ class LandmarkMap:
         w.extent[walls] = np.sort(p.extent[slots] * _dot(tangent, p.across[slots])[:, None], axis=1)
         w.observations[walls] = p.observations[slots]
         w.last_seen[walls] = p.last_seen[slots]
+        for column in ("pings", "origin", "travel", "explained", "unexplained"):
+            getattr(w, column)[walls] = getattr(p, column)[slots]
         w.group[walls] = p.group[slots]
         w.confidence_sum[walls] = p.confidence_sum[slots]
         w.confidence_count[walls] = p.confidence_count[slots]
@@ -1573,6 +1693,7 @@ class LandmarkMap:
         w.extent[keep] = min(w.extent[keep, 0], along.min()), max(w.extent[keep, 1], along.max())
         w.observations[keep] += w.observations[other]
         w.last_seen[keep] = max(w.last_seen[keep], w.last_seen[other])
+        _absorb_support(w, keep, other)
         w.confidence_sum[keep] += w.confidence_sum[other]
         w.confidence_count[keep] += w.confidence_count[other]
         w.active[other] = False
@@ -1656,7 +1777,27 @@ class LandmarkMap:
 
     # ------------------------------------------------------------------ output
 
-    def snapshot(self, min_observations: int = 1, only=None) -> Landmarks:
+    def persistent(self, uids) -> np.ndarray:
+        """Which entries ``uids`` (K,) persist; (K,) bool (False for an entry not in the map).
+
+        Persistent: seen in ``min_support_pings`` pings, the sensor ``min_support_travel`` from its first
+        sighting's position at a later one.
+        An echo that never repeats (clutter, noise) is never persistent; a real
+        reflector seen briefly while passing (5 pings over 5 cm: a sixth of a
+        second at 0.3 m/s) is.
+        """
+        persistent = np.zeros(len(uids), bool)
+        for table in (self._points, self._walls):
+            slots = self._slots(table, uids)
+            found = slots >= 0
+            persistent[found] = self._supported(table)[slots[found]]
+        return persistent
+
+    def _supported(self, table) -> np.ndarray:
+        """Which rows of ``table`` have the support of a persistent entry (:meth:`persistent`)."""
+        return (table.pings >= self.min_support_pings) & (table.travel >= self.min_support_travel)
+
+    def snapshot(self, min_observations: int = 1, only=None, persistent: bool = False) -> Landmarks:
         """The map as landmarks in ``odom``: walls first, then points, each in table order.
 
         Parameters
@@ -1665,6 +1806,8 @@ class LandmarkMap:
             Leave out entries with fewer sightings (1 keeps everything).
         only : array_like of int, optional
             Only these entries (uids, :meth:`entries`).
+        persistent : bool
+            Only the persistent entries (:meth:`persistent`).
 
         Returns
         -------
@@ -1681,7 +1824,7 @@ class LandmarkMap:
             confidence of the classified sightings (0 if none); ``group`` is the first
             sighting's; ``echo`` 0; all valid.
         """
-        walls, points = self._chosen(min_observations, only)
+        walls, points = self._chosen(min_observations, only, persistent)
         w, p = self._walls, self._points
         normal, tangent = w.normal[walls], w.tangent[walls]
         offset_variance = self._wall_covariance(walls)[:, 1, 1]
@@ -1707,17 +1850,19 @@ class LandmarkMap:
             reason=np.zeros(count, np.uint8),
         )
 
-    def _chosen(self, min_observations: int, only) -> tuple[np.ndarray, np.ndarray]:
-        """Slots of the walls and points seen ``min_observations`` times, among ``only`` (uids) if given."""
+    def _chosen(self, min_observations: int, only, persistent: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Slots of the walls and points seen ``min_observations`` times, among ``only`` (uids), persistent if asked."""
         chosen = []
         for table in (self._walls, self._points):
             keep = table.active & (table.observations >= min_observations)
+            if persistent:
+                keep &= self._supported(table)
             if only is not None:
                 keep &= np.isin(table.uid, np.asarray(only, dtype=np.int64))
             chosen.append(np.flatnonzero(keep))
         return chosen[0], chosen[1]
 
-    def points(self, min_observations: int = 1, only=None) -> np.ndarray:
+    def points(self, min_observations: int = 1, only=None, persistent: bool = False) -> np.ndarray:
         """Landmark points for a costmap, shape (P, 2), ``odom``, m.
 
         Every wall is sampled from end to end at equal steps no longer than
@@ -1731,8 +1876,10 @@ class LandmarkMap:
             Leave out entries with fewer sightings.
         only : array_like of int, optional
             Only these entries (uids, :meth:`entries`).
+        persistent : bool
+            Only the persistent entries (:meth:`persistent`).
         """
-        walls, points = self._chosen(min_observations, only)
+        walls, points = self._chosen(min_observations, only, persistent)
         w, p = self._walls, self._points
         ends = w.end_points(walls)
         length = w.extent[walls, 1] - w.extent[walls, 0]

@@ -20,6 +20,17 @@ def compose(pose, step) -> np.ndarray:
     return np.array([pose[0] + c * step[0] - s * step[1], pose[1] + s * step[0] + c * step[1], pose[2] + step[2]])
 
 
+def pose_covariance_at(pose, covariance, step) -> np.ndarray:
+    """Covariance (3, 3) of ``compose(pose, step)`` for a ``pose`` with ``covariance`` (3, 3) and an exact ``step``.
+
+    The lever ``R(yaw) step_xy`` turns with the yaw: ``J = [[1, 0, -l_y], [0, 1, l_x], [0, 0, 1]]``.
+    """
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    lever_x, lever_y = c * step[0] - s * step[1], s * step[0] + c * step[1]
+    jacobian = np.array([[1.0, 0.0, -lever_y], [0.0, 1.0, lever_x], [0.0, 0.0, 1.0]])
+    return jacobian @ np.asarray(covariance, dtype=float) @ jacobian.T
+
+
 def relative_pose(start, end) -> tuple[float, float, float]:
     """``end`` in the frame of ``start`` (both in one frame): forward, sideways (m) and turn (rad, wrapped)."""
     c, s = math.cos(start[2]), math.sin(start[2])

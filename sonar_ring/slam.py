@@ -24,9 +24,13 @@ takes the classifier's landmarks (sensor frame) and the robot's odometry pose
    go back into the front end.
 
 Only **confirmed** entries enter the graph: an entry must persist
-(:meth:`LandmarkSlam.persistent`): seen in at least ``min_support_pings`` pings
-from sensor positions at least ``min_support_travel`` apart.  A one-ping
-phantom never is; a reflector seen from a few poses is.  An undecided point
+(:meth:`~sonar_ring.mapping.LandmarkMap.persistent`: seen in the front end's
+``min_support_pings`` pings, the sensor ``min_support_travel`` from where it
+first saw it).  A one-ping phantom never is; a reflector seen from a few poses
+is.  Sightings the mapper explained (multipath, impossible:
+:mod:`sonar_ring.explain`) are matched by the front end but never measured;
+an entry it explains away leaves the graph's output (its variable, unconnected
+from then on, is marginalised with the keyframes of its time).  An undecided point
 must not pull the pose towards the wrong model:
 
 * an UNKNOWN *sighting* is placed with the corner model (Browne s7), which
@@ -94,10 +98,6 @@ class SlamSettings:
         Distance between the wheels, m: a turn on the spot rolls them ``track_width / 2 * |turn|``.
     sighting_sigma : float
         Unmodelled error of one sighting, m (added to its covariance in the graph).
-    min_support_pings : int
-        Pings an entry must be seen in before it enters the graph.
-    min_support_travel : float
-        How far apart (m) the sensor positions of those sightings must be at least.
     undecided_baseline : float
         Sideways travel (m) across an UNKNOWN point's line of sight up to which its sightings are factors.
     undecided_bearing_sigma : float
@@ -125,8 +125,6 @@ class SlamSettings:
     odometry_heading_bias: float = 0.01
     track_width: float = 0.4
     sighting_sigma: float = 0.002
-    min_support_pings: int = 5
-    min_support_travel: float = 0.05
     undecided_baseline: float = 0.05
     undecided_bearing_sigma: float = 0.1
     wall_end_reach: float = 0.2
@@ -170,16 +168,6 @@ class _Confirmed:
 
     key: int
     kind: str
-
-
-@dataclass
-class _Support:
-    """How an entry was seen: pings, the first sensor position and the farthest one from it."""
-
-    pings: int = 0
-    first: np.ndarray | None = None
-    spread: float = 0.0
-    last_ping: int = -1
 
 
 @dataclass
@@ -296,7 +284,6 @@ class LandmarkSlam:
         self._smoother = gtsam.IncrementalFixedLagSmoother(self.settings.smoother_lag, parameters)
         self.front = LandmarkMap(**self._front_end)
         self._confirmed: dict[int, _Confirmed] = {}
-        self._support: dict[int, _Support] = {}
         self._window = _Window()
         self._keyframe = -1  # index of the latest keyframe
         self._keyframe_odometry = None  # its odometry pose
@@ -314,12 +301,15 @@ class LandmarkSlam:
     # ------------------------------------------------------------------ per ping
 
     def add_ping(self, landmarks: Landmarks, odometry, time: float, sensor_offset=(0.0, 0.0, 0.0),
-                 models: PointModels | None = None) -> SlamReport:
+                 models: PointModels | None = None, explained=None) -> SlamReport:
         """Add one ping's landmarks (sensor frame) taken with the robot at ``odometry`` (``odom``) at ``time`` s.
 
         ``models`` are both point models of each landmark (sensor frame,
         :func:`sonar_ring.curvature.point_models`): the front end's evidence
-        for edge or corner, and a decided point's measurement.
+        for edge or corner, and a decided point's measurement.  ``explained``
+        (L,) marks the landmarks the caller explained against :meth:`snapshot`
+        at :meth:`pose_at` (:mod:`sonar_ring.explain`); a ping that starts a
+        new segment ignores it (the map it was explained by is gone).
 
         Returns what it did (:class:`SlamReport`).  Never raises on bad data:
         the front end counts unusable landmarks; a non-finite pose skips the ping.
@@ -351,8 +341,10 @@ class LandmarkSlam:
         models_in_map = None
         if models is not None:
             models_in_map = models.transformed(sensor).widened(extra)
-        placed = self.front.update(widened, sensor, models_in_map)
+        placed = self.front.update(widened, sensor, models_in_map, None if fault else explained)
         self._follow_renames(placed.renamed)
+        for uid in placed.removed.tolist():
+            self._confirmed.pop(uid, None)
         stored = placed.uid >= 0
         rows, uids = placed.rows[stored], placed.uid[stored]
         confirmed = np.array([uid in self._confirmed for uid in uids.tolist()], dtype=bool)
@@ -360,8 +352,7 @@ class LandmarkSlam:
         report.tentative = int(uids.size - report.associated)
         if report.associated:
             self._last_seen_time = time
-        self._remember(landmarks.select(rows), None if models is None else models.select(rows), uids, step, offset,
-                       sensor)
+        self._remember(landmarks.select(rows), None if models is None else models.select(rows), uids, step, offset)
         return report
 
     def _check_odometry(self, odometry: np.ndarray, time: float) -> str:
@@ -412,8 +403,8 @@ class LandmarkSlam:
         covariance[2, 2] = heading
         return covariance
 
-    def _remember(self, landmarks: Landmarks, models: PointModels | None, uids, step, offset, sensor) -> None:
-        """Keep each sighting as a measurement of its entry in the keyframe's robot frame; count its support.
+    def _remember(self, landmarks: Landmarks, models: PointModels | None, uids, step, offset) -> None:
+        """Keep each sighting as a measurement of its entry in the keyframe's robot frame.
 
         A wall's measurement is the foot of the perpendicular from the keyframe's origin onto the wall's
         line, from the sighting's foot point ``G`` (on the line, perpendicular to the line of sight from the
@@ -421,12 +412,6 @@ class LandmarkSlam:
         under its entry's decided model (an EDGE's edge model, a CORNER's corner model), else the
         sighting's own keeping only its range (module docstring).
         """
-        for uid in np.unique(uids).tolist():
-            support = self._support.setdefault(uid, _Support())
-            support.pings += 1
-            if support.first is None:
-                support.first = sensor[:2].copy()
-            support.spread = max(support.spread, float(np.hypot(*(sensor[:2] - support.first))))
         entries = self.front.entries()
         classes = dict(zip(entries.uid.tolist(), entries.landmark_class.tolist(), strict=True))
         entry_class = np.array([classes.get(uid, UNKNOWN) for uid in uids.tolist()], dtype=np.uint8)
@@ -469,19 +454,7 @@ class LandmarkSlam:
             record = self._confirmed.pop(old, None)
             if record is not None and new not in self._confirmed and (record.kind == WALL) == (new in walls):
                 self._confirmed[new] = record
-            if old in self._support:
-                merged = self._support.pop(old)
-                kept = self._support.setdefault(new, merged)
-                if kept is not merged:
-                    kept.pings += merged.pings
-                    kept.spread = max(kept.spread, merged.spread)
             self._window.rename(old, new)
-
-    def persistent(self, uid: int) -> bool:
-        """Whether entry ``uid`` has been seen in enough pings from poses far enough apart to be a reflector."""
-        support = self._support.get(uid)
-        s = self.settings
-        return support is not None and support.pings >= s.min_support_pings and support.spread >= s.min_support_travel
 
     # ------------------------------------------------------------------ keyframes
 
@@ -550,7 +523,7 @@ class LandmarkSlam:
                 continue
             kind = WALL if wall else POINT
             if uid not in self._confirmed:
-                if not self.persistent(uid):
+                if not self.front.persistent([uid])[0]:
                     continue
                 self._confirm(uid, kind, entries, index, values)
             record = self._confirmed[uid]
@@ -615,7 +588,18 @@ class LandmarkSlam:
         """The robot's latest pose in ``map`` ``(x, y, yaw)`` and its covariance (3, 3), in ``map``."""
         if self._last_odometry is None:
             return np.zeros(3), np.zeros((3, 3))
-        step = relative_pose(self._keyframe_odometry, self._last_odometry)
+        return self.pose_at(self._last_odometry)
+
+    def pose_at(self, odometry) -> tuple[np.ndarray, np.ndarray]:
+        """The robot's pose in ``map`` and its covariance (3, 3) at the odometry pose ``odometry`` (``odom``).
+
+        Predicted from the latest keyframe's estimate and the odometry since; before the first ping,
+        ``odometry`` itself (``map`` starts equal to ``odom``) with no uncertainty.
+        """
+        odometry = np.asarray(odometry, dtype=float)
+        if self._keyframe < 0:
+            return odometry.copy(), np.zeros((3, 3))
+        step = relative_pose(self._keyframe_odometry, odometry)
         pose = compose(self._keyframe_pose, step)
         return pose, self._keyframe_covariance_in_map() + self._odometry_covariance(step, pose[2])
 

@@ -70,7 +70,8 @@ def test_quick_map_study_writes_its_section_and_readme_table(tmp_path):
         assert re.search(r"\| \d+\.\d of \d+\.\d \|", row) and "ms |" in row, row
     assert "sonar-ring bench --map" in section and "2 seeds" in section
     summary = readme.read_text()
-    assert "old" not in summary and "| realistic | odom-frame map |" in summary and "| realistic | SLAM |" in summary
+    assert "old" not in summary and "| realistic | odom-frame map |" in summary
+    assert "| realistic | SLAM + echo tests |" in summary
     assert main(["bench", "--map", "--seed", "1", "--out", str(tmp_path)]) == 1  # the study's seeds are fixed
 
 

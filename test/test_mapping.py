@@ -272,6 +272,73 @@ def test_sightings_of_one_reflector_in_one_ping_start_one_entry():
     assert (counts.created, counts.fused) == (2, 3)
 
 
+GHOST_POINT = np.array([2.5, 2.0])  # behind the wall: where a double bounce would put a reflector
+
+
+def test_an_explained_sighting_never_starts_an_entry():
+    rng = np.random.default_rng(21)
+    landmark_map = LandmarkMap()
+    for x in np.arange(0.0, 1.5, STEP):
+        landmarks = sightings(rng, np.array([x, 0.0]), [CORNER_POINT, GHOST_POINT], [CORNER, UNKNOWN])
+        placed = landmark_map.update(landmarks, [x, 0.0, 0.0], explained=[False, True])
+        assert placed.uid[1] == -1
+    snapshot = landmark_map.snapshot()
+    assert_array_equal(snapshot.landmark_class, [CORNER])
+    counts = landmark_map.counts
+    assert counts.explained == len(np.arange(0.0, 1.5, STEP)) and counts.explained_away == 0
+    assert counts.sightings == (counts.invalid + counts.not_finite + counts.degenerate + counts.explained
+                                + counts.ambiguous + counts.fused + counts.created + counts.dropped)
+
+
+def test_a_ghost_mapped_before_the_map_could_explain_it_is_explained_away():
+    rng = np.random.default_rng(22)
+    landmark_map = LandmarkMap()
+    xs = np.arange(0.0, 3.0, STEP)
+    for k, x in enumerate(xs):
+        landmarks = sightings(rng, np.array([x, 0.0]), [CORNER_POINT, GHOST_POINT], [CORNER, UNKNOWN])
+        # the first half of the drive the map cannot explain the ghost's echo; then it can
+        ghost_explained = k >= xs.size // 2
+        placed = landmark_map.update(landmarks, [x, 0.0, 0.0], explained=[False, ghost_explained])
+        if k == xs.size // 2 - 1:
+            ghost = placed.uid[1]
+            assert landmark_map.persistent([ghost])[0]
+        if k == xs.size // 2 + landmark_map.min_support_pings - 1:
+            assert ghost in placed.removed.tolist()  # after min_support_pings explained pings, gone
+    assert landmark_map.counts.explained_away == 1
+    snapshot = landmark_map.snapshot()
+    assert_array_equal(snapshot.landmark_class, [CORNER])
+
+
+def test_a_reflector_whose_echo_is_sometimes_explained_stays():
+    rng = np.random.default_rng(23)
+    landmark_map = LandmarkMap()
+    for k, x in enumerate(np.arange(0.0, 3.0, STEP)):
+        landmarks = sightings(rng, np.array([x, 0.0]), [CORNER_POINT], [CORNER])
+        landmark_map.update(landmarks, [x, 0.0, 0.0], explained=[k % 3 == 2])  # one ping in three
+    assert_array_equal(landmark_map.snapshot().landmark_class, [CORNER])
+    assert landmark_map.counts.explained_away == 0
+
+
+def test_only_an_echo_that_persists_over_pings_and_poses_is_persistent():
+    rng = np.random.default_rng(24)
+    landmark_map = LandmarkMap(min_support_pings=5, min_support_travel=0.05)
+    sensor = np.zeros(2)
+    # once: never persistent; standing still, however often: not either
+    landmark_map.update(sightings(rng, sensor, [GHOST_POINT], [UNKNOWN]), [0.0, 0.0, 0.0])
+    for _ in range(20):
+        landmark_map.update(sightings(rng, sensor, [CORNER_POINT], [CORNER]), [0.0, 0.0, 0.0])
+    uids = landmark_map.entries().uid
+    assert not landmark_map.persistent(uids).any()
+    assert len(landmark_map.snapshot(persistent=True)) == 0
+    # a reflector seen in five pings while the robot drives 12 cm (a rare one: 0.4 s at 0.3 m/s): persistent
+    for x in (0.03, 0.06, 0.09, 0.12):
+        landmark_map.update(sightings(rng, np.array([x, 0.0]), [CORNER_POINT], [CORNER]), [x, 0.0, 0.0])
+    persistent = landmark_map.snapshot(persistent=True)
+    assert_array_equal(persistent.landmark_class, [CORNER])
+    assert_allclose(persistent.position[0], CORNER_POINT, atol=0.02)
+    assert len(landmark_map.snapshot()) == 2  # the one-off echo is still held, not published
+
+
 def test_classified_sightings_name_unknown_points():
     rng = np.random.default_rng(7)
     landmark_map = LandmarkMap()
@@ -428,8 +495,14 @@ def test_error_handling():
     broken = replace(good, covariance=np.eye(2))
     with pytest.raises(ValueError, match="covariance"):
         landmark_map.update(broken, [0, 0, 0])
+    with pytest.raises(ValueError, match="explained"):
+        landmark_map.update(good, [0, 0, 0], explained=[True, False])
     with pytest.raises(ValueError, match="max_points"):
         LandmarkMap(max_points=0)
+    with pytest.raises(ValueError, match="min_support_pings"):
+        LandmarkMap(min_support_pings=0)
+    with pytest.raises(ValueError, match="min_support_travel"):
+        LandmarkMap(min_support_travel=-0.1)
     with pytest.raises(ValueError, match="gate"):
         LandmarkMap(gate=-1.0)
     with pytest.raises(ValueError, match="new_entry_gate"):

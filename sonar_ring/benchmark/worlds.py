@@ -28,6 +28,7 @@ import numpy as np
 from sonar_ring import pipeline
 from sonar_ring.benchmark.environment import machine, revision, today
 from sonar_ring.echoes import screen_ping
+from sonar_ring.explain import EchoTests
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import Landmarks
 from sonar_ring.map_builder import MapBuilder, MapperSettings
@@ -103,8 +104,10 @@ class _Counts:
         """Expected losses are not a mapper's fault: not kept."""
 
 
-def mapped(recorded: Recorded, layout, slam: bool) -> Outcome:
-    """The mapper's core (:class:`~sonar_ring.map_builder.MapBuilder`) on a run: with SLAM, or in ``odom``.
+def mapped(recorded: Recorded, layout, slam: bool, echo_tests: bool = True) -> Outcome:
+    """The mapper's core (:class:`~sonar_ring.map_builder.MapBuilder`) on a run: with SLAM or in ``odom``, echo tests.
+
+    With its echo tests (multipath, impossible, persistence) or without.
 
     Each ping goes in at its stamp with the odometry of its stamp (``odom``
     starts at the true first pose, and with SLAM ``map`` at ``odom``'s, so
@@ -112,7 +115,8 @@ def mapped(recorded: Recorded, layout, slam: bool) -> Outcome:
     the odometry.
     """
     settings = pipeline.Settings(sigma_speed=pipeline.ROBOT_SIGMA_SPEED)
-    builder = MapBuilder(MapperSettings(slam=slam, pose_history=None, layout=layout), _Counts())
+    tests = EchoTests() if echo_tests else None
+    builder = MapBuilder(MapperSettings(slam=slam, pose_history=None, layout=layout, echo_tests=tests), _Counts())
     label_ms, map_ms, estimate = [], [], []
     for k, (echoes, pose) in enumerate(zip(recorded.echoes, recorded.odometry, strict=True)):
         stamp = int(round(1e9 * (1.0 + k / layout.ping_rate)))
@@ -130,11 +134,13 @@ def mapped(recorded: Recorded, layout, slam: bool) -> Outcome:
 
 
 MAPPERS: dict[str, Callable[[Recorded, object], Outcome]] = {
-    "odom-frame map": lambda recorded, layout: mapped(recorded, layout, slam=False),
-    "SLAM": lambda recorded, layout: mapped(recorded, layout, slam=True),
+    "odom-frame map": lambda recorded, layout: mapped(recorded, layout, slam=False, echo_tests=False),
+    "odom-frame map + echo tests": lambda recorded, layout: mapped(recorded, layout, slam=False),
+    "SLAM + echo tests": lambda recorded, layout: mapped(recorded, layout, slam=True),
 }
-"""The mappers compared, on the same runs: the mapper node with ``slam: false`` (the odometry taken as exact,
-as before this round) and with SLAM (the default)."""
+"""The mappers compared, on the same runs: the mapper node with ``slam: false, echo_tests: false`` (the
+odometry taken as exact, every echo mapped: as before this round), with the echo tests (``slam: false``), and
+as it ships (SLAM and the echo tests)."""
 
 
 def simulate_run(world: str, seed: int, laps: int, pings: int | None = None) -> Recorded:

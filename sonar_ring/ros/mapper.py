@@ -35,6 +35,8 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
+from sonar_ring import explain
+from sonar_ring.explain import EchoTests
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import Landmarks
 from sonar_ring.map_builder import MapBuilder, MapperSettings
@@ -44,7 +46,7 @@ from sonar_ring.poses import yaw_of
 from sonar_ring.ros.convert import AnyHeader, MessageError, landmarks_from_msg, serialize_landmarks
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, stamp_ns
-from sonar_ring.ros.markers import covariance_ellipses, landmark_markers, serialize_markers
+from sonar_ring.ros.markers import covariance_ellipses, explained_markers, landmark_markers, serialize_markers
 from sonar_ring.ros.node import LATCHED, SonarNode
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.run import spin
@@ -73,10 +75,6 @@ SLAM_PARAMS = [
           read_only=True),
     Param(SLAM_PREFIX + "odometry_scale", SlamSettings.odometry_scale, "odometry distance scale error, fraction",
           low=0.0, high=0.5, read_only=True),
-    Param(SLAM_PREFIX + "min_support_pings", SlamSettings.min_support_pings,
-          "pings a landmark must be seen in before it is mapped", low=1, high=1000, read_only=True),
-    Param(SLAM_PREFIX + "min_support_travel", SlamSettings.min_support_travel,
-          "spread of the sensor positions it must be seen from, m", low=0.0, high=10.0, read_only=True),
     Param(SLAM_PREFIX + "max_speed", SlamSettings.max_speed, "faster odometry is a fault (a jump), m/s", low=0.1,
           high=100.0, read_only=True),
     Param(SLAM_PREFIX + "max_turn_rate", SlamSettings.max_turn_rate, "faster odometry turns are a fault, rad/s",
@@ -86,6 +84,20 @@ SLAM_PARAMS = [
     Param(SLAM_PREFIX + "smoother_lag", SlamSettings.smoother_lag,
           "seconds of keyframes the smoother keeps (older ones are marginalised: memory stays flat)", low=1.0,
           high=3600.0, read_only=True),
+]
+
+ECHO_TESTS_PREFIX = "echo_tests."
+"""The echo tests' parameters: ``echo_tests.<field>`` of :class:`~sonar_ring.explain.EchoTests` (read-only)."""
+
+ECHO_TESTS_PARAMS = [
+    Param(ECHO_TESTS_PREFIX + "sigma_path", EchoTests.sigma_path, "one receiver's path noise c * sigma_tof, m",
+          low=1e-6, high=0.1, read_only=True),
+    Param(ECHO_TESTS_PREFIX + "sigma_speed", EchoTests.sigma_speed,
+          "relative error of the speed of sound the nodes assume", low=0.0, high=0.1, read_only=True),
+    Param(ECHO_TESTS_PREFIX + "sigma_map", EchoTests.sigma_map, "position error of a map entry, m", low=0.0,
+          high=1.0, read_only=True),
+    Param(ECHO_TESTS_PREFIX + "gate", EchoTests.gate, "Mahalanobis distance of a match to a predicted path",
+          low=0.5, high=20.0, read_only=True),
 ]
 
 PARAMS = [
@@ -109,21 +121,34 @@ PARAMS = [
     Param("max_walls", 500, "map capacity for walls", low=1, high=100000, read_only=True),
     Param("gate", 9.21, "Mahalanobis gate d^2 for association (9.21: 99 % for 2 dof)", low=0.5, high=100.0,
           read_only=True),
+    Param("echo_tests", True, "explain each ping's landmarks by the map (multipath, impossible) before mapping them "
+          "and publish only entries that persist; false: map every echo", read_only=True),
+    Param("min_support_pings", MapperSettings.min_support_pings,
+          "pings a landmark must be seen in to persist (be published; with SLAM, enter the graph)", low=1,
+          high=1000, read_only=True),
+    Param("min_support_travel", MapperSettings.min_support_travel,
+          "how far the sensor must have moved from where it first saw a landmark for it to persist, m", low=0.0,
+          high=10.0, read_only=True),
     EXPECTED_FRAME,
     FUTURE_TOLERANCE,
     *SLAM_PARAMS,
+    *ECHO_TESTS_PARAMS,
 ]
 
 
 def mapper_settings(values: dict) -> MapperSettings:
     """The core's settings from the mapper's parameter values (:data:`PARAMS`)."""
     slam = SlamSettings(**{p.name.removeprefix(SLAM_PREFIX): values[p.name] for p in SLAM_PARAMS})
+    tests = EchoTests(**{p.name.removeprefix(ECHO_TESTS_PREFIX): values[p.name] for p in ECHO_TESTS_PARAMS})
     return MapperSettings(slam=values["slam"], use_odometry=values["use_odometry"],
                           layout=load_layout(values["layout"]),
                           fixed_pose=tuple(values["fixed_pose"]), sensor_offset=tuple(values["sensor_offset"]),
                           map_frame=values["map_frame"], odom_frame=values["odom_frame"],
                           max_points=values["max_points"], max_walls=values["max_walls"], gate=values["gate"],
-                          min_observations=values["min_observations"], slam_settings=slam)
+                          min_observations=values["min_observations"], slam_settings=slam,
+                          echo_tests=tests if values["echo_tests"] else None,
+                          min_support_pings=values["min_support_pings"],
+                          min_support_travel=values["min_support_travel"])
 
 
 def odometry_pose(msg: Odometry) -> tuple[float, float, float]:
@@ -138,7 +163,8 @@ def map_messages(builder: MapBuilder, header: Header) -> tuple[bytes, bytes, byt
     ``header`` names the map's frame and the stamp.
     """
     snapshot = builder.snapshot()
-    markers = [*landmark_markers(snapshot, "map", lifetime=0.0), covariance_ellipses(snapshot, "map")]
+    markers = [*landmark_markers(snapshot, "map", lifetime=0.0), covariance_ellipses(snapshot, "map"),
+               *explained_markers(builder.explained, "map")]
     return (serialize_landmarks(snapshot, header), serialize_markers(markers, header),
             serialize_message(point_cloud(builder.points(), header)))
 
@@ -182,7 +208,10 @@ class Mapper(SonarNode):
         self.params = declare(self, PARAMS)
         self.health = NodeHealth(self, hardware_id="map")
         self.builder = MapBuilder(mapper_settings(self.params), self.health)
-        load_kernels()  # now, or the first ping would wait ~0.5 s for them
+        self.health.extra_values = lambda: {"not persistent (entries held back)": str(self.builder.not_persistent())}
+        load_kernels()  # now, or the first ping would wait for them
+        if self.params["echo_tests"]:
+            explain.load_kernels()
         self._map_landmarks = self.create_publisher(LandmarkArray, "map/landmarks", LATCHED)
         self._map_markers = self.create_publisher(MarkerArray, "map/markers", LATCHED)
         self._map_points = self.create_publisher(PointCloud2, "map/points", LATCHED)

@@ -183,6 +183,20 @@ def landmark_markers(landmarks: Landmarks, namespace: str, lifetime: float, poin
     return markers
 
 
+EXPLAINED_COLOURS = {"multipath": (0.8, 0.2, 0.8, 0.8), "impossible": (0.5, 0.1, 0.1, 0.8)}
+"""RGBA of the landmarks the map explained, by how."""
+
+
+def explained_markers(explained: dict, namespace: str, point_size: float = 0.04) -> list[MarkerParts]:
+    """One POINTS marker per way the map explains a landmark (``namespace/explained/<how>``).
+
+    ``explained`` maps each name of :data:`EXPLAINED_COLOURS` to positions (P, 2), m.
+    """
+    return [MarkerParts(f"{namespace}/explained/{how}", Marker.POINTS, (point_size, point_size, 0.0), colour,
+                        np.asarray(explained[how], dtype=float).reshape(-1, 2), _NO_COLOURS)
+            for how, colour in EXPLAINED_COLOURS.items()]
+
+
 def covariance_ellipses(landmarks: Landmarks, namespace: str, sigma: float = 2.0, sides: int = 16) -> MarkerParts:
     """A LINE_LIST of ``sigma``-sigma position ellipses, one per point landmark."""
     chosen = landmarks.select(landmarks.valid & (landmarks.landmark_class != PLANE)

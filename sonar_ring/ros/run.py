@@ -44,6 +44,10 @@ def spin(*node_classes, args=None, setup: Callable[[list], None] | None = None) 
         executor.spin()
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
+    except SystemError as error:
+        # Ctrl-C inside a compiled kernel: numba's dispatcher reports the pending KeyboardInterrupt this way.
+        if not isinstance(error.__cause__ or error.__context__, KeyboardInterrupt):
+            raise
     except CONFIG_ERRORS as error:
         get_logger(starting).fatal(f"cannot start: {error}")
         raise SystemExit(1) from None
