@@ -23,6 +23,7 @@ from sonar_ring.ros.graph import NODES, compose
 from sonar_ring.ros.localiser import Localiser
 from sonar_ring.ros.mapper import Mapper
 from sonar_ring.ros.params import ParameterError
+from sonar_ring.ros.run import _interrupted
 from sonar_ring.simulate import load_scene
 
 pytestmark = pytest.mark.ros
@@ -156,6 +157,24 @@ def test_graph_as_separate_processes_publishes_and_exits_cleanly(ros):
             process.send_signal(signal.SIGINT)
         codes = [process.wait(timeout=20) for process in processes]
     assert codes == [0, 0, 0, 0]
+
+
+def test_ctrl_c_inside_nested_compiled_kernels_is_an_interrupt():
+    # numba wraps the pending KeyboardInterrupt once per compiled call it passes through.
+    def wrapped(depth):
+        try:
+            if depth == 0:
+                raise KeyboardInterrupt
+            wrapped(depth - 1)
+        except BaseException as error:
+            raise SystemError("returned a result with an exception set") from error
+
+    for depth in (0, 3):
+        with pytest.raises(SystemError) as caught:
+            wrapped(depth)
+        assert _interrupted(caught.value)
+    assert not _interrupted(SystemError("a real fault"))
+    assert not _interrupted(SystemError("wrapped").with_traceback(None))
 
 
 def test_invalid_parameter_changes_are_refused_and_the_old_value_kept(ros):

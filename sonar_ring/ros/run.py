@@ -18,6 +18,22 @@ CONFIG_ERRORS = (LayoutError, SceneError, DeviceError, ParameterError)
 """What a node refuses to start with: a bad layout, scene, device address or parameter."""
 
 
+def _interrupted(error: BaseException) -> bool:
+    """Whether ``error`` is Ctrl-C arriving inside a compiled kernel.
+
+    numba's dispatcher reports the pending KeyboardInterrupt as a SystemError,
+    once for every compiled call it passes through (a kernel loading another),
+    so the interrupt may sit several causes deep.
+    """
+    seen = set()
+    while error is not None and id(error) not in seen:
+        if isinstance(error, KeyboardInterrupt):
+            return True
+        seen.add(id(error))
+        error = error.__cause__ or error.__context__
+    return False
+
+
 def spin(*node_classes, args=None, setup: Callable[[list], None] | None = None) -> None:
     """Create the nodes and spin them in one executor (:class:`DirectExecutor`) until Ctrl-C or shutdown.
 
@@ -45,8 +61,7 @@ def spin(*node_classes, args=None, setup: Callable[[list], None] | None = None) 
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except SystemError as error:
-        # Ctrl-C inside a compiled kernel: numba's dispatcher reports the pending KeyboardInterrupt this way.
-        if not isinstance(error.__cause__ or error.__context__, KeyboardInterrupt):
+        if not _interrupted(error):
             raise
     except CONFIG_ERRORS as error:
         get_logger(starting).fatal(f"cannot start: {error}")
