@@ -166,7 +166,7 @@ def with_arc_spread(position, centre, covariance) -> np.ndarray:
     return covariance + spread[:, None, None] * along[:, :, None] * along[:, None, :]
 
 
-def point_models(layout: Layout, landmarks: Landmarks) -> PointModels:
+def point_models(layout: Layout, landmarks: Landmarks, rows=None) -> PointModels:
     """Both models' positions of each point sighting of a single-emitter ring, from the paths it implies.
 
     An UNKNOWN or CORNER landmark was placed by the virtual-image model: its
@@ -186,17 +186,32 @@ def point_models(layout: Layout, landmarks: Landmarks) -> PointModels:
         The sensor; other kinds than a ring give no models (all invalid).
     landmarks : Landmarks
         L labelled landmarks of one ping, sensor frame.
+    rows : array_like of bool, shape (L,), optional
+        Only these landmarks (the others get no models); default all.
 
     Returns
     -------
     PointModels
     """
     count = len(landmarks)
-    nothing = np.full((count, 2), np.nan)
+    models = PointModels(np.full((count, 2), np.nan), np.full((count, 2), np.nan), np.full((count, 2, 2), np.nan),
+                         np.full((count, 2, 2), np.nan), np.zeros(count), np.zeros(count, bool))
+    chosen = np.asarray(landmarks.valid, dtype=bool) & np.isin(landmarks.landmark_class, (UNKNOWN, CORNER, EDGE))
+    if rows is not None:
+        chosen &= np.asarray(rows, dtype=bool)
+    index = np.flatnonzero(chosen)
+    if layout.kind != "ring" or index.size == 0:
+        return models
+    found = _ring_point_models(layout, landmarks.select(index))
+    for name in ("corner", "edge", "corner_covariance", "edge_covariance", "separation_noise", "valid"):
+        getattr(models, name)[index] = getattr(found, name)
+    return models
+
+
+def _ring_point_models(layout: Layout, landmarks: Landmarks) -> PointModels:
+    """:func:`point_models` of point landmarks of a ring, every one valid in its input."""
+    count = len(landmarks)
     no_covariance = np.full((count, 2, 2), np.nan)
-    if layout.kind != "ring" or count == 0:
-        return PointModels(nothing, nothing.copy(), no_covariance, no_covariance.copy(), np.zeros(count),
-                           np.zeros(count, bool))
     group = np.asarray(landmarks.group, dtype=np.int64)
     plan = layout.plan
     tx = plan.transmitters[group, 0]  # (L, 2): the ring's single emitter
@@ -207,8 +222,7 @@ def point_models(layout: Layout, landmarks: Landmarks) -> PointModels:
     paths = localise.reflector_paths(tx, rx, position, is_edge)
     corner = localise.corner(tx, rx[:, 0], rx[:, 1], paths[:, 0], paths[:, 1])
     edge = localise.edge(tx, rx[:, 0], rx[:, 1], paths[:, 0], paths[:, 1])
-    is_point = landmarks.valid & np.isin(landmark_class, (UNKNOWN, CORNER, EDGE))
-    valid = is_point & corner.valid & edge.valid
+    valid = corner.valid & edge.valid
     gap = np.where(valid[:, None], edge.position - corner.position, 0.0)
     covariance = np.array(landmarks.covariance, dtype=float)
     measured = covariance - gap[:, :, None] * gap[:, None, :]

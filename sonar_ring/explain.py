@@ -124,7 +124,8 @@ import numpy as np
 from sonar_ring import image_method
 from sonar_ring.compiled import kernel
 from sonar_ring.geometry import Layout
-from sonar_ring.landmarks import EDGE, PLANE, Landmarks, make_landmarks
+from sonar_ring.image_method import POINT, POINT_WALL, WALL_POINT
+from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, Landmarks, make_landmarks
 from sonar_ring.localise import reflector_paths
 from sonar_ring.mapping import transform_landmarks
 from sonar_ring.simulate import Placement, place
@@ -324,7 +325,8 @@ def predict(walls, points, placement: Placement, layout: Layout, group, transmit
                       jacobian=jacobian, first_point=first_point, last_point=last_point, channel_start=channel_start)
 
 
-def match(prediction: Prediction, layout: Layout, group, transmitter, paths, tolerance: Tolerance) -> Explanation:
+def match(prediction: Prediction, layout: Layout, group, transmitter, paths, tolerance: Tolerance, *,
+          direct_wins: bool = True) -> Explanation:
     """Which echo rows a predicted double bounce explains, and no mapped reflector's own echo does.
 
     Parameters
@@ -337,12 +339,14 @@ def match(prediction: Prediction, layout: Layout, group, transmitter, paths, tol
     paths : array_like, shape (N, K)
         Measured path lengths ``c * tof``, m; NaN where a receiver heard nothing.
     tolerance : Tolerance
+    direct_wins : bool
+        Whether a row a mapped entry's own echo also explains is left unexplained.
 
     Returns
     -------
     Explanation
         A row is :data:`MULTIPATH` when its closest double bounce is within the
-        tolerance's gate and its closest single bounce is not.  A row every
+        tolerance's gate and (``direct_wins``) its closest single bounce is not.  A row every
         receiver of which heard nothing, or whose paths are not finite, is not
         explained.
 
@@ -360,7 +364,8 @@ def match(prediction: Prediction, layout: Layout, group, transmitter, paths, tol
         channel, paths, prediction.channel_start, prediction.kind, prediction.path, prediction.jacobian,
         tolerance.pose_covariance, tolerance.sigma_path, tolerance.sigma_speed, tolerance.sigma_map, tolerance.gate)
     # An echo that a mapped reflector's own echo explains as well may be that reflector's: not multipath.
-    label = np.where((residual <= tolerance.gate) & ~(direct_residual <= tolerance.gate), MULTIPATH, NONE)
+    label = np.where((residual <= tolerance.gate) & ~(direct_wins & (direct_residual <= tolerance.gate)), MULTIPATH,
+                     NONE)
     return Explanation(label=label.astype(np.uint8), best=best, residual=residual, direct=direct,
                        direct_residual=direct_residual)
 
@@ -461,12 +466,24 @@ class EchoTests:
         Position error of a map entry, m.
     gate : float
         Mahalanobis distance of a match (:class:`Tolerance`).
+    wall_reach : float
+        m: a mapped wall is taken to reach the nearest corner, edge or fixed point
+        on its line (within ``wall_tolerance``) beyond an end of its seen extent,
+        up to this far (:func:`walls_to_their_ends`).
+    wall_tolerance : float
+        m: how close to a wall's line such a point must lie.
+    refresh_pings : int
+        Pings between two refreshes of the map the tests use (its walls grown, its points):
+        the map changes slowly, the preparation costs about a millisecond.
     """
 
     sigma_path: float = 343e-6
     sigma_speed: float = 0.0035
     sigma_map: float = 0.005
     gate: float = 4.0
+    wall_reach: float = 2.0
+    wall_tolerance: float = 0.05
+    refresh_pings: int = 10
 
     def __post_init__(self):
         Tolerance(self.sigma_path, sigma_speed=self.sigma_speed, sigma_map=self.sigma_map, gate=self.gate)
@@ -493,6 +510,82 @@ class Explained:
         return self.multipath | self.impossible
 
 
+def walls_to_their_ends(segments, points, reach: float, tolerance: float, snap: float = 0.2) -> np.ndarray:
+    """Walls grown along their lines to where they end: a corner with another wall, or a fixed point; (W, 2, 2), m.
+
+    A wall is mapped over the part the sensor saw specular echoes from -- the
+    robot's path along it, bounded by the beams -- but a double bounce may
+    reflect anywhere on it.  A wall ends where it meets another wall or at an
+    edge (a jamb, a pillar):
+
+    * an end with one of ``points`` on the wall's line (within ``tolerance``)
+      within ``snap`` of it, either side, ends there (the seen extent is
+      bearing-limited: it overshoots or stops short of a jamb by centimetres);
+    * else, two walls at more than 30 degrees whose lines cross beyond an end of
+      each (or within ``tolerance`` inside it), within ``reach`` of both ends,
+      meet there: both grow to the crossing;
+    * else, an end grows to the nearest of ``points`` on its line beyond it,
+      within ``reach``.
+
+    A doorway stays open (its jambs stop the walls either side); a wall end that
+    meets nothing keeps its seen extent.
+
+    Parameters
+    ----------
+    segments : array_like, shape (W, 2, 2)
+        The walls' seen extents, m.
+    points : array_like, shape (P, 2)
+        Fixed points: corners, edges, fixed points undecided between the two, m.
+    reach, tolerance, snap : float
+        m.
+    """
+    grown = np.array(segments, dtype=float).reshape(-1, 2, 2)
+    points = np.asarray(points, dtype=float).reshape(-1, 2)
+    if not len(grown):
+        return grown
+    start = grown[:, 0].copy()
+    length = np.linalg.norm(grown[:, 1] - start, axis=-1)
+    tangent = (grown[:, 1] - start) / np.where(length > 0, length, 1.0)[:, None]
+    # Beyond-end gap of a position along each wall: < 0 before the start, > length after the end.
+    target = np.full((len(grown), 2), np.nan)  # per end: the position along the wall it ends at
+    if len(points):
+        offset = points[None, :, :] - start[:, None, :]  # (W, P, 2)
+        along = np.einsum("wpi,wi->wp", offset, tangent)
+        across = np.abs(offset[..., 0] * tangent[:, None, 1] - offset[..., 1] * tangent[:, None, 0])
+        on_line = (across <= tolerance) & (length[:, None] > 0)
+        for end, gap in ((0, -along), (1, along - length[:, None])):  # > 0 beyond the end
+            near = np.where(on_line & (np.abs(gap) <= snap), np.abs(gap), np.inf)
+            nearest = np.argmin(near, axis=1)
+            found = np.isfinite(near[np.arange(len(grown)), nearest])
+            target[found, end] = along[found, nearest[found]]
+    best = np.where(np.isnan(target), np.inf, -np.inf)  # per end: how far a crossing grows it, m
+    cross = tangent[:, None, 0] * tangent[None, :, 1] - tangent[:, None, 1] * tangent[None, :, 0]  # sin of the angle
+    steep = (np.abs(cross) > 0.5) & (length[:, None] > 0) & (length[None, :] > 0)
+    i, j = np.nonzero(steep)
+    if i.size:
+        offset = start[j] - start[i]
+        along_i = (offset[:, 0] * tangent[j, 1] - offset[:, 1] * tangent[j, 0]) / cross[i, j]
+        along_j = (offset[:, 0] * tangent[i, 1] - offset[:, 1] * tangent[i, 0]) / cross[i, j]
+        gap_i = np.maximum(-along_i, along_i - length[i])
+        gap_j = np.maximum(-along_j, along_j - length[j])
+        meet = (gap_i >= -tolerance) & (gap_i <= reach) & (gap_j >= -tolerance) & (gap_j <= reach)
+        for wall, position, gap in zip(i[meet], along_i[meet], np.maximum(gap_i[meet], 0.0), strict=True):
+            end = int(position > 0.5 * length[wall])
+            if gap < best[wall, end]:
+                best[wall, end], target[wall, end] = gap, position
+    if len(points):
+        for end, gap in ((0, -along), (1, along - length[:, None])):
+            gap = np.where(on_line & (gap > 0.0) & (gap <= reach), gap, np.inf)
+            nearest = np.argmin(gap, axis=1)
+            distance = gap[np.arange(len(grown)), nearest]
+            free = np.isnan(target[:, end]) & np.isfinite(distance)
+            target[free, end] = along[free, nearest[free]]
+    for end in (0, 1):
+        found = np.isfinite(target[:, end])
+        grown[found, end] = start[found] + target[found, end, None] * tangent[found]
+    return grown
+
+
 def landmark_paths(landmarks: Landmarks, placement: Placement, layout: Layout) -> np.ndarray:
     """The 3-D paths ``c * tof`` each landmark implies for every receiver of its group, (L, K), m.
 
@@ -508,15 +601,54 @@ def landmark_paths(landmarks: Landmarks, placement: Placement, layout: Layout) -
     return np.sqrt(horizontal ** 2 + layout.plan.height_offset[group, 0, :] ** 2)
 
 
-def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_covariance, known: Landmarks,
+@dataclass(frozen=True)
+class KnownMap:
+    """A map as the echo tests use it (:func:`known_map`): W walls, P points.
+
+    Attributes
+    ----------
+    seen : ndarray, shape (W, 2, 2)
+        The walls' seen extents, m (what blocks a landmark: :func:`impossible`).
+    walls : ndarray, shape (W, 2, 2)
+        The walls grown to where they end (:func:`walls_to_their_ends`; what reflects a double bounce), m.
+    points : ndarray, shape (P, 2)
+        Corners, edges, fixed points, m.
+    wall_support, point_support : ndarray, shape (W,), (P,)
+        Each entry's observations.
+    """
+
+    seen: np.ndarray
+    walls: np.ndarray
+    points: np.ndarray
+    wall_support: np.ndarray
+    point_support: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.seen) + len(self.points)
+
+
+def known_map(entries: Landmarks, tests: EchoTests) -> KnownMap:
+    """The map ``entries`` (walls as PLANE with their ``segment``; points) prepared for :func:`explain_landmarks`."""
+    wall = entries.landmark_class == PLANE
+    points = np.asarray(entries.position, dtype=float)[~wall]
+    fixed = np.isin(entries.landmark_class[~wall], (CORNER, EDGE, CORNER_OR_EDGE))
+    seen = np.asarray(entries.segment, dtype=float)[wall]
+    observations = np.asarray(entries.observations, dtype=float)
+    return KnownMap(seen, walls_to_their_ends(seen, points[fixed], tests.wall_reach, tests.wall_tolerance), points,
+                    observations[wall], observations[~wall])
+
+
+def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_covariance, known: KnownMap,
                       tests: EchoTests) -> Explained:
     """Which of one ping's landmarks the map explains, as multipath or as impossible.
 
     The echo of each landmark is the paths it implies (:func:`landmark_paths`);
-    the map's walls (their seen extents) and points make the paths
+    the map's walls (grown to where they end) and points make the paths
     :func:`predict` gives at the sensor's pose, with the pose's covariance in
-    the tolerance; :func:`match` labels multipath, :func:`impossible` the rest
-    whose legs cross a mapped wall (margin: ``gate`` times the landmark's and
+    the tolerance; :func:`match` labels multipath (an entry's own echo does
+    not save it if the entry was seen less than the double bounce's:
+    :func:`_multipath_of_the_less_seen`), :func:`impossible` the rest whose
+    legs cross a wall's seen extent (margin: ``gate`` times the landmark's and
     the map's position error).  A layout whose groups have several
     transmitters (whose landmark does not say which one sent) is not tested.
 
@@ -529,8 +661,8 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
         The sensor's estimated pose ``(x, y, yaw)`` in the map's frame.
     sensor_covariance : array_like, shape (3, 3)
         Its covariance.
-    known : Landmarks
-        The map's entries in its frame (walls as PLANE with their ``segment``; points).
+    known : KnownMap
+        The map, in its frame (:func:`known_map`).
     tests : EchoTests
 
     Returns
@@ -539,7 +671,6 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     """
     count = len(landmarks)
     nothing = Explained(np.zeros(count, bool), np.zeros(count, bool))
-    wall = known.landmark_class == PLANE
     if count == 0 or len(known) == 0 or layout.group_transmitters.shape[1] != 1:
         return nothing
     placement = place(layout, sensor_pose)
@@ -552,16 +683,52 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     tolerance = Tolerance(tests.sigma_path, sensor_covariance, tests.sigma_speed, tests.sigma_map, tests.gate)
     group = in_map.group.astype(np.int64)
     transmitter = np.zeros(rows.size, np.int64)
-    walls, points = np.asarray(known.segment)[wall], np.asarray(known.position)[~wall]
     paths = landmark_paths(in_map, placement, layout)
-    prediction = predict(walls, points, placement, layout, group, transmitter, tolerance, paths=paths)
-    multipath = match(prediction, layout, group, transmitter, paths, tolerance).label == MULTIPATH
+    prediction = predict(known.walls, known.points, placement, layout, group, transmitter, tolerance, paths=paths)
+    explanation = match(prediction, layout, group, transmitter, paths, tolerance, direct_wins=False)
+    multipath = _multipath_of_the_less_seen(prediction, explanation, tests.gate, known.wall_support,
+                                            known.point_support)
     spread = np.sqrt(np.maximum(np.linalg.eigvalsh(np.asarray(in_map.covariance, dtype=float))[:, -1], 0.0))
     margin = tests.gate * np.hypot(spread, tests.sigma_map)
     blocked = impossible(reflection_points(in_map, placement, layout, transmitter), placement, layout, group,
-                         transmitter, walls, np.where(np.isfinite(margin), margin, 0.0)) & ~multipath
+                         transmitter, known.seen, np.where(np.isfinite(margin), margin, 0.0)) & ~multipath
     out = Explained(np.zeros(count, bool), np.zeros(count, bool))
     out.multipath[rows], out.impossible[rows] = multipath, blocked
+    return out
+
+
+def _multipath_of_the_less_seen(prediction: Prediction, explanation: Explanation, gate: float, wall_support,
+                                point_support) -> np.ndarray:
+    """Which rows are multipath, where an echo matches both a double bounce and a mapped entry's own echo.
+
+    An echo that a double bounce of entries ``A`` and ``B`` explains and the
+    single bounce of entry ``X`` explains too is ``X``'s (a pole on the line of
+    sight to a wall: the wall's echo passing it) -- unless ``X`` was seen less
+    often than both ``A`` and ``B``: a ghost mapped before the map could explain
+    it has its own echo in the map, and the better-seen entries explain it.
+    ``wall_support``, ``point_support``: the observations of the walls and the
+    points :func:`predict` was given, (W,), (P,).
+    """
+    double = explanation.residual <= gate
+    direct = explanation.direct_residual <= gate
+    both = np.flatnonzero(double & direct)
+    if not both.size:
+        return double
+    def seen(kind, row, second):
+        """Observations of the first (or ``second``) reflector of prediction rows of ``kind``."""
+        is_point = np.isin(kind, (POINT, WALL_POINT) if second else (POINT, POINT_WALL))
+        out = np.empty(row.size)
+        out[is_point] = point_support[row[is_point]]
+        out[~is_point] = wall_support[row[~is_point]]
+        return out
+
+    best, own = explanation.best[both], explanation.direct[both]
+    kind = prediction.kind[best]
+    first = seen(kind, prediction.first[best], second=False)
+    second = seen(kind, prediction.second[best], second=True)
+    itself = seen(prediction.kind[own], prediction.first[own], second=False)
+    out = double & ~direct
+    out[both] = itself < np.minimum(first, second)
     return out
 
 

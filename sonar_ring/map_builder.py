@@ -41,7 +41,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sonar_ring.curvature import point_models
-from sonar_ring.explain import EchoTests, explain_landmarks
+from sonar_ring.explain import EchoTests, explain_landmarks, known_map
 from sonar_ring.geometry import Layout
 from sonar_ring.landmarks import Landmarks
 from sonar_ring.mapping import LandmarkMap, MapCounts, transform_landmarks
@@ -137,6 +137,7 @@ class MapBuilder:
         self.latest_stamp = None
         """Stamp (ns) of the latest ping mapped."""
         self.explained = {"multipath": np.empty((0, 2)), "impossible": np.empty((0, 2))}
+        self._known, self._known_age = None, 0  # the map the echo tests use, and the pings since it was made
         """The latest ping's landmarks the map explained, by how: positions (P, 2) in the map's frame."""
 
     @property
@@ -200,8 +201,9 @@ class MapBuilder:
             return
         offset = np.asarray(self.settings.sensor_offset, dtype=float)
         layout = self.settings.layout
-        models = point_models(layout, landmarks) if layout is not None else None
         explained = self._explain(landmarks, odometry, offset)
+        models = None if layout is None else point_models(layout, landmarks,
+                                                           None if explained is None else ~explained)
         if self.slam is None:
             sensor = compose(odometry, offset)
             self.landmark_map.update(transform_landmarks(landmarks, sensor), sensor,
@@ -229,9 +231,12 @@ class MapBuilder:
             robot, covariance = odometry, np.zeros((3, 3))
         else:
             robot, covariance = self.slam.pose_at(odometry)
+        if self._known is None or self._known_age >= tests.refresh_pings:
+            self._known, self._known_age = known_map(self.snapshot(), tests), 0
+        self._known_age += 1
         sensor = compose(robot, offset)
         explained = explain_landmarks(landmarks, layout, sensor, pose_covariance_at(robot, covariance, offset),
-                                      self.snapshot(), tests)
+                                      self._known, tests)
         in_map = transform_landmarks(landmarks, sensor).position
         self.explained = {"multipath": in_map[explained.multipath], "impossible": in_map[explained.impossible]}
         self.health.note("multipath explained", int(np.count_nonzero(explained.multipath)))
@@ -263,16 +268,17 @@ class MapBuilder:
         """
         if self.slam is not None:
             return self.slam.snapshot(self.settings.min_observations)
-        return self.landmark_map.snapshot(self.settings.min_observations, persistent=self._persistent_only)
+        return self.landmark_map.snapshot(self.settings.min_observations, persistent=self._tested,
+                                          decided=self._tested)
 
     def points(self) -> np.ndarray:
         """Costmap points of :meth:`snapshot`, (P, 2), in :attr:`frame`."""
         if self.slam is not None:
             return self.slam.points(self.settings.min_observations)
-        return self.landmark_map.points(self.settings.min_observations, persistent=self._persistent_only)
+        return self.landmark_map.points(self.settings.min_observations, persistent=self._tested, decided=self._tested)
 
     @property
-    def _persistent_only(self) -> bool:
+    def _tested(self) -> bool:
         return self.settings.echo_tests is not None
 
     def not_persistent(self) -> int:

@@ -645,9 +645,6 @@ class Entries:
         A wall's unit normal towards the side it was seen from; zero for points.
     observations : ndarray of int, shape (E,)
         Sightings fused.
-    baseline : ndarray, shape (E,)
-        An UNKNOWN point's spread of sensor positions across its first line of sight (what separates the
-        plane and corner hypotheses; 0 for walls and once decided), m.
     """
 
     uid: np.ndarray
@@ -656,7 +653,6 @@ class Entries:
     position: np.ndarray
     normal: np.ndarray
     observations: np.ndarray
-    baseline: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -1199,9 +1195,11 @@ class LandmarkMap:
 
         An entry is explained away once ``min_support_pings`` pings matched it
         only with explained sightings, at least as many as fused one after the
-        first of them: a ghost mapped before the map could explain it goes as
-        soon as the map does, a reflector whose echo a prediction sometimes
-        mimics stays.  Returns the targets with the explained sightings' set to
+        first of them and a third as many as ever fused one: a ghost mapped
+        before the map could explain it goes soon after the map can, a
+        reflector whose echo a prediction sometimes mimics stays, and one seen
+        for long is not undone by a few pings (a ghost wall that hides it for a
+        while).  Returns the targets with the explained sightings' set to
         ``_EXPLAINED`` (neither fused nor started).
         """
         self._counts.explained += int(np.count_nonzero(explained))
@@ -1211,8 +1209,9 @@ class LandmarkMap:
         for table, slots in ((self._points, hit[hit < self.max_points]),
                              (self._walls, hit[hit >= self.max_points] - self.max_points)):
             table.explained[slots] += 1
-            ghosts = slots[(table.explained[slots] >= self.min_support_pings)
-                           & (table.explained[slots] >= table.unexplained[slots])]
+            times = table.explained[slots]
+            ghosts = slots[(times >= self.min_support_pings) & (times >= table.unexplained[slots])
+                           & (3 * times >= table.pings[slots])]
             table.active[ghosts] = False
             self._removed.extend(table.uid[ghosts].tolist())
             self._counts.explained_away += ghosts.size
@@ -1383,11 +1382,16 @@ class LandmarkMap:
         return target, leader, wall_slots[wall_slots >= 0]
 
     def _allocate(self, table, count: int) -> np.ndarray:
-        """Up to ``count`` free rows of ``table``, evicting the least recently seen entries."""
+        """Up to ``count`` free rows of ``table``, evicting entries that do not persist, then the least recently seen.
+
+        An echo that never repeats fills the table as fast as the robot pings; a reflector that persists is
+        evicted only when nothing else is left.
+        """
         free = np.flatnonzero(~table.active)
         if free.size < count:
             old = np.flatnonzero(table.active & (table.last_seen < self._ping))
-            victims = old[np.lexsort((table.observations[old], table.last_seen[old]))][:count - free.size]
+            victims = old[np.lexsort((table.observations[old], table.last_seen[old],
+                                      self._supported(table)[old]))][:count - free.size]
             table.active[victims] = False
             self._removed.extend(table.uid[victims].tolist())
             self._counts.evicted += victims.size
@@ -1714,7 +1718,6 @@ class LandmarkMap:
             position=np.concatenate([w.anchor[walls], p.mean[points]]),
             normal=np.concatenate([w.normal[walls], np.zeros((points.size, 2))]),
             observations=np.concatenate([w.observations[walls], p.observations[points]]),
-            baseline=np.concatenate([np.zeros(walls.size), p.baseline[points, 1] - p.baseline[points, 0]]),
         )
 
     def _slots(self, table, uids) -> np.ndarray:
@@ -1797,7 +1800,8 @@ class LandmarkMap:
         """Which rows of ``table`` have the support of a persistent entry (:meth:`persistent`)."""
         return (table.pings >= self.min_support_pings) & (table.travel >= self.min_support_travel)
 
-    def snapshot(self, min_observations: int = 1, only=None, persistent: bool = False) -> Landmarks:
+    def snapshot(self, min_observations: int = 1, only=None, persistent: bool = False,
+                 decided: bool = False) -> Landmarks:
         """The map as landmarks in ``odom``: walls first, then points, each in table order.
 
         Parameters
@@ -1808,6 +1812,8 @@ class LandmarkMap:
             Only these entries (uids, :meth:`entries`).
         persistent : bool
             Only the persistent entries (:meth:`persistent`).
+        decided : bool
+            Leave out the UNKNOWN points (neither motion nor a ping has told what they are).
 
         Returns
         -------
@@ -1824,7 +1830,7 @@ class LandmarkMap:
             confidence of the classified sightings (0 if none); ``group`` is the first
             sighting's; ``echo`` 0; all valid.
         """
-        walls, points = self._chosen(min_observations, only, persistent)
+        walls, points = self._chosen(min_observations, only, persistent, decided)
         w, p = self._walls, self._points
         normal, tangent = w.normal[walls], w.tangent[walls]
         offset_variance = self._wall_covariance(walls)[:, 1, 1]
@@ -1850,19 +1856,22 @@ class LandmarkMap:
             reason=np.zeros(count, np.uint8),
         )
 
-    def _chosen(self, min_observations: int, only, persistent: bool) -> tuple[np.ndarray, np.ndarray]:
-        """Slots of the walls and points seen ``min_observations`` times, among ``only`` (uids), persistent if asked."""
+    def _chosen(self, min_observations: int, only, persistent: bool, decided: bool) -> tuple[np.ndarray, np.ndarray]:
+        """Slots of the walls and points chosen as :meth:`snapshot` says."""
         chosen = []
         for table in (self._walls, self._points):
             keep = table.active & (table.observations >= min_observations)
             if persistent:
                 keep &= self._supported(table)
+            if decided and table is self._points:
+                keep &= table.landmark_class != UNKNOWN
             if only is not None:
                 keep &= np.isin(table.uid, np.asarray(only, dtype=np.int64))
             chosen.append(np.flatnonzero(keep))
         return chosen[0], chosen[1]
 
-    def points(self, min_observations: int = 1, only=None, persistent: bool = False) -> np.ndarray:
+    def points(self, min_observations: int = 1, only=None, persistent: bool = False,
+               decided: bool = False) -> np.ndarray:
         """Landmark points for a costmap, shape (P, 2), ``odom``, m.
 
         Every wall is sampled from end to end at equal steps no longer than
@@ -1878,8 +1887,10 @@ class LandmarkMap:
             Only these entries (uids, :meth:`entries`).
         persistent : bool
             Only the persistent entries (:meth:`persistent`).
+        decided : bool
+            Leave out the UNKNOWN points.
         """
-        walls, points = self._chosen(min_observations, only, persistent)
+        walls, points = self._chosen(min_observations, only, persistent, decided)
         w, p = self._walls, self._points
         ends = w.end_points(walls)
         length = w.extent[walls, 1] - w.extent[walls, 0]

@@ -40,12 +40,9 @@ must not pull the pose towards the wrong model:
   (:mod:`sonar_ring.curvature`), a point's UNKNOWN sightings keep only their
   range (``undecided_bearing_sigma`` across the line of sight); once told, the
   sighting's position under the point's model counts whole;
-* an UNKNOWN *entry* -- still a plane seen head-on or a corner -- predicts the
-  same range under both models (to second order) while the sensor has moved
-  less than ``undecided_baseline`` across its line of sight; beyond that, until
-  motion decides it, it gives no factor.  A wall straight ahead or behind,
-  which motion along it cannot decide, thus still holds the position along
-  the travel.  Re-observing the first
+* an UNKNOWN *entry* -- a plane or a fixed point, motion has not told which,
+  or a ghost whose sightings fit neither -- never enters the graph (nor the
+  published map): only walls and fixed points do.  Re-observing the first
 lap's landmarks associates with them (the gates include the pose's
 uncertainty), which closes the loop without duplicating them.
 
@@ -98,8 +95,6 @@ class SlamSettings:
         Distance between the wheels, m: a turn on the spot rolls them ``track_width / 2 * |turn|``.
     sighting_sigma : float
         Unmodelled error of one sighting, m (added to its covariance in the graph).
-    undecided_baseline : float
-        Sideways travel (m) across an UNKNOWN point's line of sight up to which its sightings are factors.
     undecided_bearing_sigma : float
         Uncertainty across the line of sight (m) given to an UNKNOWN point's sightings.
     wall_end_reach, wall_end_tolerance : float
@@ -125,7 +120,6 @@ class SlamSettings:
     odometry_heading_bias: float = 0.01
     track_width: float = 0.4
     sighting_sigma: float = 0.002
-    undecided_baseline: float = 0.05
     undecided_bearing_sigma: float = 0.1
     wall_end_reach: float = 0.2
     wall_end_tolerance: float = 0.03
@@ -504,22 +498,19 @@ class LandmarkSlam:
     def _add_measurements(self, pose_key: int, graph, values) -> None:
         """One fused factor per entry seen since the keyframe ``pose_key``: confirmed and newly confirmed entries.
 
-        An UNKNOWN point's factor has its bearing made uninformative, and none once the sensor moved more
-        than ``undecided_baseline`` across its line of sight (module docstring).
+        Only a persistent wall or fixed point is confirmed (module docstring).
         """
         if not self._window.pings:
             return
         entries = self.front.entries()
         by_uid = {uid: index for index, uid in enumerate(entries.uid.tolist())}
         uids, is_wall, measurement, covariance = self._window.fused()
-        s = self.settings
         for uid, wall, position, spread in zip(uids.tolist(), is_wall.tolist(), measurement, covariance,
                                                strict=True):
             index = by_uid.get(uid)
             if index is None or bool(entries.is_wall[index]) != wall:
                 continue
-            undecided = entries.landmark_class[index] == UNKNOWN
-            if undecided and entries.baseline[index] > s.undecided_baseline:
+            if entries.landmark_class[index] == UNKNOWN:
                 continue
             kind = WALL if wall else POINT
             if uid not in self._confirmed:

@@ -183,4 +183,4 @@ def test_a_landmark_unseen_for_longer_than_the_lag_is_still_there_when_seen_agai
         report = slam.add_ping(found, truth[40 + k], time)
         time += 1 / RING.ping_rate
     assert confirmed <= set(slam.confirmed.tolist()) and report.associated > 0
-    assert len(slam.snapshot()) >= 3
+    assert len(confirmed) >= 2 and len(slam.snapshot()) >= len(confirmed)
