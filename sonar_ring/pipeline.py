@@ -138,7 +138,8 @@ def triad_eps_for(b1: float, b2: float, max_angle: float, wavelength: float, spe
 
 
 def _localise_triads(layout: Layout, echoes: EchoArrays, settings: Settings) -> Landmarks:
-    if echoes.phase_delay.shape[1] != 2:
+    # An empty ping decoded from a message carries no phase-delay columns at all: it has no landmarks.
+    if echoes.n_echoes and echoes.phase_delay.shape[1] != 2:
         raise ValueError("triad echoes need two phase delays per row")
     speed = float(round(echoes.speed_of_sound))
     wavelength = layout.wavelength(speed)
