@@ -7,7 +7,8 @@
   echo: Barshan & Kuc's amplitude rules where two transmitters fire, geometric
   consistency over overlapping groups on a single-emitter ring; without
   evidence the echo stays UNKNOWN and is placed with the corner model
-  (Browne s7).
+  (Browne s7).  A triad's ping has none (one emitter, receivers within 15 mm):
+  its landmarks are always UNKNOWN, and the map classifies what motion decides.
 
 Both return :class:`~sonar_ring.landmarks.Landmarks` in the sensor frame; the
 ``echo`` field ties a landmark to its echo row, so the two steps can run in
