@@ -7,7 +7,8 @@
   echo: Barshan & Kuc's amplitude rules where two transmitters fire, geometric
   consistency over overlapping groups on a single-emitter ring; without
   evidence the echo stays UNKNOWN and is placed with the corner model
-  (Browne s7).
+  (Browne s7).  A triad's ping has none (one emitter, receivers within 15 mm):
+  its landmarks are always UNKNOWN, and the map classifies what motion decides.
 
 Both return :class:`~sonar_ring.landmarks.Landmarks` in the sensor frame; the
 ``echo`` field ties a landmark to its echo row, so the two steps can run in
@@ -138,7 +139,8 @@ def triad_eps_for(b1: float, b2: float, max_angle: float, wavelength: float, spe
 
 
 def _localise_triads(layout: Layout, echoes: EchoArrays, settings: Settings) -> Landmarks:
-    if echoes.phase_delay.shape[1] != 2:
+    # An empty ping decoded from a message carries no phase-delay columns at all: it has no landmarks.
+    if echoes.n_echoes and echoes.phase_delay.shape[1] != 2:
         raise ValueError("triad echoes need two phase delays per row")
     speed = float(round(echoes.speed_of_sound))
     wavelength = layout.wavelength(speed)

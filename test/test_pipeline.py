@@ -126,11 +126,9 @@ def test_batched_pings_give_each_ping_its_own_result_exactly(layout_name, scene_
     poses = scene.sensor_pose[None, :] + np.linspace(0, 0.3, 9)[:, None] * np.array([1.0, 0.5, 0.2])
     pings = [p.echoes for p in Simulator(scene, layout).run(poses, np.arange(9) / 30.0, noise=Noise(tof=1e-7),
                                                                rng=np.random.default_rng(4))]
-    # an empty ping as a message decodes: no amplitude columns (and no phase-delay columns, except on a
-    # triad, whose pings screening refuses without them)
-    phase_columns = pings[3].phase_delay.shape[1] if layout.kind == "triad" else 0
+    # an empty ping as a message decodes: no amplitude and no phase-delay columns (a triad's too)
     pings[3] = EchoArrays(layout.name, pings[3].speed_of_sound, pings[3].group[:0], pings[3].transmitter[:0],
-                          pings[3].tof[:0], np.empty((0, 0), np.float32), np.empty((0, phase_columns)))
+                          pings[3].tof[:0], np.empty((0, 0), np.float32), np.empty((0, 0)))
     for index in (6, 7):  # a warmer stretch: stacked apart from the rest
         pings[index] = EchoArrays(**{**pings[index].__dict__, "speed_of_sound": 349.0})
     localiser = pipeline.Settings(models=("plane", "edge", "corner"), sigma_tof=3e-7)
@@ -166,6 +164,10 @@ def test_error_handling():
                           np.empty((1, 0)), np.empty((1, 0)))
     with pytest.raises(ValueError, match="two phase delays per row"):
         pipeline.localise_ping(triad, no_phase)
+    # an empty triad ping as a message decodes (no phase-delay columns) has no landmarks
+    empty_triad = EchoArrays(triad.name, 343.0, np.zeros(0, int), np.zeros(0, int), np.empty((0, 3)),
+                             np.empty((0, 0)), np.empty((0, 0)))
+    assert len(pipeline.classify_ping(triad, empty_triad, pipeline.localise_ping(triad, empty_triad))) == 0
     # bad data is flagged, never raised
     bad = EchoArrays(RING.name, 343.0, np.array([0, 1, 2]), np.zeros(3, int),
                      np.array([[np.nan, 5e-3], [-1e-3, 5e-3], [5e-3, 5e-3]]), np.empty((3, 0)), np.empty((3, 0)))
