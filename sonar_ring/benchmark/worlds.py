@@ -92,13 +92,14 @@ class Outcome:
     map_ms: np.ndarray = field(default_factory=lambda: np.empty(0))
 
 
-class _Counts:
+class Refusals:
     """What a mapper refused, by reason (the mapper's ``problem`` and ``note``)."""
 
     def __init__(self) -> None:
         self.problems: dict[str, int] = {}
 
     def problem(self, reason: str, detail: str = "", count: int = 1) -> None:
+        """Count ``count`` refusals of ``reason``."""
         if count:
             self.problems[reason] = self.problems.get(reason, 0) + count
 
@@ -118,7 +119,7 @@ def mapped(recorded: Recorded, layout, slam: bool, echo_tests: bool = True) -> O
     """
     settings = pipeline.Settings(sigma_speed=pipeline.ROBOT_SIGMA_SPEED)
     tests = EchoTests() if echo_tests else None
-    builder = MapBuilder(MapperSettings(slam=slam, pose_history=None, layout=layout, echo_tests=tests), _Counts())
+    builder = MapBuilder(MapperSettings(slam=slam, pose_history=None, layout=layout, echo_tests=tests), Refusals())
     label_ms, map_ms, estimate = [], [], []
     for k, (echoes, pose) in enumerate(zip(recorded.echoes, recorded.odometry, strict=True)):
         stamp = int(round(1e9 * (1.0 + k / layout.ping_rate)))
