@@ -332,15 +332,35 @@ def _add_bench(subparsers) -> None:
     p.add_argument("--quick", action="store_true",
                    help="small sizes: checks that the report is produced, in seconds; figures not for reading")
     p.add_argument("--seed", type=int, default=None, metavar="N", help="seed of every random stream (default: 0)")
-    p.add_argument("--map", action="store_true",
-                   help="instead: the maps of the room in the ideal world, with each realistic effect alone and in "
-                        "the realistic world, scored over 20 seeds of 3 laps (about half an hour on 2 cores); writes "
-                        "its section of DIR/BENCHMARKS.md and its table in DIR/README.md. With --quick: 2 seeds of "
-                        "200 pings in two worlds")
+    study = p.add_mutually_exclusive_group()
+    study.add_argument("--map", action="store_true",
+                       help="instead: the maps of the room in the ideal world, with each realistic effect alone and "
+                            "in the realistic world, scored over 20 seeds of 3 laps (about half an hour on 2 cores); "
+                            "writes its section of DIR/BENCHMARKS.md and its table in DIR/README.md. With --quick: 2 "
+                            "seeds of 200 pings in two worlds")
+    study.add_argument("--slam-cost", action="store_true",
+                       help="instead: what the mapper with SLAM costs, against issue #22's targets, on the room in the "
+                            "realistic world: its update per ping over 3 laps (median, p99, the echo tests' and the "
+                            "SLAM's shares), the resident memory of a 30-minute simulated run (growth after 5 minutes "
+                            "of warm-up; stopped after 60 min of wall time), and the speed of the whole `sonar-ring "
+                            "process` command on a recorded lap (median of 5 runs); writes its section of "
+                            "DIR/BENCHMARKS.md. Needs ROS 2 for the process part. With --quick: 150 pings, a "
+                            "6-second run, one process run of 60 pings")
     p.set_defaults(handler=_run_bench)
 
 
 def _run_bench(args) -> int:
+    if args.slam_cost:
+        from sonar_ring.benchmark import slam_cost
+
+        if args.seed is not None:
+            raise ValueError("--slam-cost simulates seed 0; --seed is for the other tables")
+        if args.quick:
+            slam_cost.run(args.out, pings=150, minutes=0.1, warmup=0.05, sample_every=30, bag_pings=60, runs=1,
+                          quick=True)
+        else:
+            slam_cost.run(args.out)
+        return 0
     if args.map:
         from sonar_ring.benchmark import worlds
 

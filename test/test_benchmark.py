@@ -3,7 +3,9 @@
 import importlib.util
 import re
 
-from sonar_ring.benchmark import worlds
+import pytest
+
+from sonar_ring.benchmark import slam_cost, worlds
 from sonar_ring.benchmark.measure import LSQ_NAME
 from sonar_ring.benchmark.methods import BEARING, RING_FAMILIES
 from sonar_ring.benchmark.report import PLOT_DIR, REPORT, TABLE_BEGIN, TABLE_END
@@ -16,11 +18,12 @@ def test_quick_report_has_every_row_the_targets_and_the_plots(tmp_path):
     readme = tmp_path / "README.md"
     readme.write_text(f"# Project\n\n{TABLE_BEGIN}\nan old table\n{TABLE_END}\n\n## Next section\n")
     kept = f"{worlds.SECTION_BEGIN}\n## Maps in a real robot's world\n\nthe map study's table\n{worlds.SECTION_END}"
-    (tmp_path / REPORT).write_text(f"# An old report\n\n{kept}\n")
+    cost = f"{slam_cost.SECTION_BEGIN}\n## Cost of the mapper with SLAM\n\nthe cost table\n{slam_cost.SECTION_END}"
+    (tmp_path / REPORT).write_text(f"# An old report\n\n{kept}\n\n{cost}\n")
     assert main(["bench", "--quick", "--out", str(tmp_path), "--seed", "3"]) == 0
 
     text = (tmp_path / REPORT).read_text()
-    assert "An old report" not in text and kept in text  # the map study's section survives a rerun
+    assert "An old report" not in text and kept in text and cost in text  # the studies' sections survive a rerun
     tables = text[text.index(TABLE_BEGIN):text.index(TABLE_END)]
     for family in (BEARING, *RING_FAMILIES):
         for method in family.methods:
@@ -105,3 +108,59 @@ def _graph_section_lines(graph):
     from sonar_ring.benchmark.report import _graph_section
 
     return _graph_section(SimpleNamespace(graph=graph, pipeline={"error": "not run"}))
+
+
+def test_quick_slam_cost_writes_its_section_beside_the_others(tmp_path):
+    kept = f"{worlds.SECTION_BEGIN}\n## Maps in a real robot's world\n\nthe map study's table\n{worlds.SECTION_END}"
+    (tmp_path / REPORT).write_text(f"# Benchmarks\n\n{kept}\n\n{slam_cost.SECTION_BEGIN}\nold figures\n"
+                                   f"{slam_cost.SECTION_END}\n")
+    assert main(["bench", "--slam-cost", "--quick", "--out", str(tmp_path)]) == 0
+    text = (tmp_path / REPORT).read_text()
+    assert kept in text and "old figures" not in text and text.count(slam_cost.SECTION_BEGIN) == 1
+    section = text[text.index(slam_cost.SECTION_BEGIN):text.index(slam_cost.SECTION_END)]
+    for stated in ("Regenerate with `sonar-ring bench --slam-cost --quick`", "sonar_ring at git", "cores",
+                   "load average at start", "not for reading"):
+        assert stated in section, stated
+
+    targets = {name: next(line for line in section.splitlines() if line.startswith("| " + name))
+               for name in ("mapper update per ping", "memory flat over a 0.1-minute run", "`sonar-ring process`")}
+    per_ping, memory, process = targets.values()
+    assert re.search(r"\| median \d+\.\d\d ms, p99 \d+\.\d\d ms over 150 pings \| \*\*(met|missed)\*\*", per_ping)
+    assert re.search(r"\| [+-]\d+\.\d % \(\d+\.\d MiB at 0\.\d min, \d+\.\d MiB at 0\.1 min; peak \+\d+\.\d %\) "
+                     r"\| \*\*(met|missed)\*\* \|$", memory), memory
+    if importlib.util.find_spec("rclpy") is None or importlib.util.find_spec("sonar_ring.msg") is None:
+        assert "needs ROS 2" in process and process.endswith("| not measured |")
+    else:  # make test runs in the built ROS 2 environment: the command must have run
+        assert re.search(r"\| ×\d+\.\d: 2\.0 s of data in \d+\.\d\d s \(median of 1 run of the whole command\) "
+                         r"\| \*\*(met|missed)\*\*", process), process
+
+    lap = next(line for line in section.splitlines() if line.startswith("| lap 1 | 150 |"))
+    assert lap.count(" ms") >= 12 and "not measured" not in lap, lap  # every part timed
+    readings = [line for line in section.splitlines() if re.match(r"\| \d+\.\d min \| \d+ \| \d+\.\d MiB \|", line)]
+    assert [int(line.split(" | ")[1]) for line in readings] == [0, 30, 60, 90, 120, 150, 180]
+
+    assert main(["bench", "--slam-cost", "--seed", "1", "--out", str(tmp_path)]) == 1  # the simulation's seed is fixed
+    with pytest.raises(SystemExit):
+        main(["bench", "--slam-cost", "--map", "--out", str(tmp_path)])  # one study at a time
+
+
+def test_memory_growth_is_judged_after_the_warm_up_and_says_when_the_run_stopped_early():
+    def reading(minute, mib):
+        return dict(minute=minute, rss=mib * 2**20)
+
+    run = dict(samples=[reading(0.0, 80), reading(2.5, 200), reading(5.0, 300), reading(20.0, 330),
+                        reading(30.0, 312)], stopped="")
+    found = slam_cost.growth(run, warmup=5.0)
+    assert found["base"]["minute"] == 5.0 and found["growth"] == pytest.approx(0.04)
+    assert found["peak_growth"] == pytest.approx(0.10)
+    target, figures, verdict = slam_cost._memory_target(run, 30.0, 5.0)
+    assert "≤ 5 % after warm-up (5 min)" in target and verdict == "**met**"
+    assert figures == "+4.0 % (300.0 MiB at 5.0 min, 312.0 MiB at 30.0 min; peak +10.0 %)"
+
+    stopped = dict(run, samples=run["samples"][:4], stopped="stopped at the wall-time budget (60 min) after 20.0 of 30 "
+                                                             "simulated minutes")
+    _, figures, verdict = slam_cost._memory_target(stopped, 30.0, 5.0)
+    assert figures.endswith("; stopped at the wall-time budget (60 min) after 20.0 of 30 simulated minutes")
+    assert verdict == "**missed** up to 20.0 min; not measured to 30 min"
+    early = dict(run, samples=run["samples"][:2], stopped="stopped at the wall-time budget")
+    assert slam_cost._memory_target(early, 30.0, 5.0)[1:] == ("stopped at the wall-time budget", "not measured")

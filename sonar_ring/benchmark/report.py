@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from sonar_ring.amplitude_rules import working_range
-from sonar_ring.benchmark import worlds
+from sonar_ring.benchmark import sections, slam_cost, worlds
 from sonar_ring.benchmark.classification import INCLINATIONS_DEG, RANGES_MM, SIGMA_REL
 from sonar_ring.benchmark.environment import machine, revision, today, versions
 from sonar_ring.benchmark.measure import (
@@ -500,11 +500,10 @@ def _method_notes(results: Results) -> list[str]:
 
 
 def render(results: Results, plots: list[Path], out_dir: Path, seconds: float, code: str,
-           map_section: list[str]) -> str:
+           kept: list[str]) -> str:
     """The Markdown of the report; ``code`` names the sonar_ring measured (:func:`revision`).
 
-    ``map_section`` is the section of ``sonar-ring bench --map`` (:func:`sonar_ring.benchmark.worlds.kept_section`),
-    which this run does not measure.
+    ``kept`` are the lines of the sections this run does not measure, as they stand (:func:`kept_sections`).
     """
     quick = (" This is a `--quick` run: small sizes, to check that the report is produced; its figures are not "
              "for reading.") if results.quick else ""
@@ -537,21 +536,17 @@ def render(results: Results, plots: list[Path], out_dir: Path, seconds: float, c
     lines += _classification_section(results)
     lines += _triad_section(results)
     lines += _graph_section(results)
-    lines += [*map_section, ""]
+    lines += [*kept, ""]
     lines += _method_notes(results)
     return "\n".join(lines)
 
 
-def _replace_between_markers(path: Path, table: list[str]) -> bool:
-    """Put ``table`` between the markers of the file at ``path``; False when the file or its markers are missing."""
-    if not path.is_file():
-        return False
-    text = path.read_text()
-    begin, end = text.find(TABLE_BEGIN), text.find(TABLE_END)
-    if begin < 0 or end < begin:
-        return False
-    path.write_text(text[:begin] + "\n".join([TABLE_BEGIN, *table, TABLE_END]) + text[end + len(TABLE_END):])
-    return True
+def kept_sections(report: Path) -> list[str]:
+    """The sections of ``sonar-ring bench --map`` and ``--slam-cost`` in ``report`` (or lines saying how to make them).
+
+    (:func:`sonar_ring.benchmark.worlds.kept_section`, :func:`sonar_ring.benchmark.slam_cost.kept_section`.)
+    """
+    return [*worlds.kept_section(report), "", *slam_cost.kept_section(report)]
 
 
 def run(out_dir: Path = Path("."), quick: bool = False, seed: int = DEFAULT_SEED, progress=None) -> Path:
@@ -579,9 +574,9 @@ def run(out_dir: Path = Path("."), quick: bool = False, seed: int = DEFAULT_SEED
     pictures = plots.save_all(results, out_dir / PLOT_DIR)
     seconds = time.perf_counter() - started
     report = out_dir / REPORT
-    report.write_text(render(results, pictures, out_dir, seconds, code, worlds.kept_section(report)) + "\n")
+    report.write_text(render(results, pictures, out_dir, seconds, code, kept_sections(report)) + "\n")
     tell(f"wrote {report} and {len(pictures)} plots in {out_dir / PLOT_DIR} ({seconds:.0f} s)")
-    if _replace_between_markers(out_dir / "README.md", main_tables(results)):
+    if sections.replace(out_dir / "README.md", TABLE_BEGIN, TABLE_END, [TABLE_BEGIN, *main_tables(results), TABLE_END]):
         tell(f"updated the main tables in {out_dir / 'README.md'}")
     return report
 

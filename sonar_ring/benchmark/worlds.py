@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from sonar_ring import pipeline
+from sonar_ring.benchmark import sections
 from sonar_ring.benchmark.environment import machine, revision, today
 from sonar_ring.echoes import screen_ping
 from sonar_ring.explain import EchoTests
@@ -47,6 +48,7 @@ WORLDS = {"ideal": IDEAL, **{f"{effect} alone": REALISTIC.only(effect) for effec
 
 SECTION_BEGIN = "<!-- sonar-ring bench --map: section -->"
 SECTION_END = "<!-- /sonar-ring bench --map: section -->"
+TITLE = "## Maps in a real robot's world"
 SUMMARY_BEGIN = "<!-- sonar-ring bench --map: summary -->"
 SUMMARY_END = "<!-- /sonar-ring bench --map: summary -->"
 
@@ -90,13 +92,14 @@ class Outcome:
     map_ms: np.ndarray = field(default_factory=lambda: np.empty(0))
 
 
-class _Counts:
+class Refusals:
     """What a mapper refused, by reason (the mapper's ``problem`` and ``note``)."""
 
     def __init__(self) -> None:
         self.problems: dict[str, int] = {}
 
     def problem(self, reason: str, detail: str = "", count: int = 1) -> None:
+        """Count ``count`` refusals of ``reason``."""
         if count:
             self.problems[reason] = self.problems.get(reason, 0) + count
 
@@ -116,7 +119,7 @@ def mapped(recorded: Recorded, layout, slam: bool, echo_tests: bool = True) -> O
     """
     settings = pipeline.Settings(sigma_speed=pipeline.ROBOT_SIGMA_SPEED)
     tests = EchoTests() if echo_tests else None
-    builder = MapBuilder(MapperSettings(slam=slam, pose_history=None, layout=layout, echo_tests=tests), _Counts())
+    builder = MapBuilder(MapperSettings(slam=slam, pose_history=None, layout=layout, echo_tests=tests), Refusals())
     label_ms, map_ms, estimate = [], [], []
     for k, (echoes, pose) in enumerate(zip(recorded.echoes, recorded.odometry, strict=True)):
         stamp = int(round(1e9 * (1.0 + k / layout.ping_rate)))
@@ -143,21 +146,37 @@ odometry taken as exact, every echo mapped: as before this round), with the echo
 as it ships (SLAM and the echo tests)."""
 
 
+def simulated(world: str, seed: int, count: int):
+    """``count`` pings over laps of :data:`SCENE` in world ``world``, seed ``seed``, simulated one by one.
+
+    Yields, per ping, the true pose, the :class:`~sonar_ring.simulate.Ping`,
+    the wheel odometry's pose in ``odom`` and the usable (screened) echoes
+    (None where nothing was usable); nothing is kept, so any length of run fits.
+    """
+    scene, layout = load_scene(SCENE), load_layout(LAYOUT)
+    model = World(scene, layout, WORLDS[world], noise=NOISE, seed=seed)
+    poses = scene.trajectory.poses(layout.ping_rate)[1]
+    for k in range(count):
+        pose = poses[k % len(poses)]
+        ping = model.ping(pose, k / layout.ping_rate)
+        yield pose, ping, model.odometry_pose(pose), screen_ping(ping.echoes, layout).echoes
+
+
+def lap_pings() -> int:
+    """Pings in one lap of :data:`SCENE` with :data:`LAYOUT` at its ping rate."""
+    return len(load_scene(SCENE).trajectory.poses(load_layout(LAYOUT).ping_rate)[1])
+
+
 def simulate_run(world: str, seed: int, laps: int, pings: int | None = None) -> Recorded:
     """Simulate ``laps`` laps of :data:`SCENE` (``pings`` stops earlier) in world ``world``, seed ``seed``."""
-    scene, layout = load_scene(SCENE), load_layout(LAYOUT)
-    simulated = World(scene, layout, WORLDS[world], noise=NOISE, seed=seed)
-    poses = scene.trajectory.poses(layout.ping_rate)[1]
-    total = laps * len(poses) if pings is None else pings
+    total = laps * lap_pings() if pings is None else pings
     echoes, odometry, truth, heard = [], [], [], set()
-    for k in range(total):
-        pose = poses[k % len(poses)]
-        ping = simulated.ping(pose, k / layout.ping_rate)
-        odometry.append(simulated.odometry_pose(pose))
+    for pose, ping, odometry_pose, usable in simulated(world, seed, total):
+        odometry.append(odometry_pose)
         truth.append(pose)
         complete = (ping.truth_origin == DIRECT) & np.isfinite(ping.tof).all(axis=1)
         heard.update(ping.truth_reflector[complete].tolist())
-        echoes.append(screen_ping(ping.echoes, layout).echoes)
+        echoes.append(usable)
     return Recorded(echoes, np.array(odometry), np.array(truth), np.array(sorted(heard), dtype=int))
 
 
@@ -229,7 +248,7 @@ def section(results: dict, seeds: int, laps: int, seconds: float, code: str) -> 
     """The ``BENCHMARKS.md`` section: how it was made, the table, what the columns mean."""
     return [
         SECTION_BEGIN,
-        "## Maps in a real robot's world",
+        TITLE,
         "",
         f"Regenerate with `sonar-ring bench --map` (this run: {seeds} seeds × {len(results)} worlds, {laps} laps "
         f"of the `{SCENE}` scene each, {seconds / 60:.0f} min on {len(os.sched_getaffinity(0))} CPUs; "
@@ -247,26 +266,9 @@ def section(results: dict, seeds: int, laps: int, seconds: float, code: str) -> 
     ]
 
 
-def _replace(path: Path, begin: str, end: str, lines: list[str]) -> bool:
-    if not path.is_file():
-        return False
-    text = path.read_text()
-    start, stop = text.find(begin), text.find(end)
-    if start < 0 or stop < start:
-        return False
-    path.write_text(text[:start] + "\n".join(lines) + text[stop + len(end):])
-    return True
-
-
 def kept_section(report: Path) -> list[str]:
     """The map section of an existing ``BENCHMARKS.md`` (markers included), or a line that says how to make it."""
-    if report.is_file():
-        text = report.read_text()
-        start, stop = text.find(SECTION_BEGIN), text.find(SECTION_END)
-        if 0 <= start < stop:
-            return text[start:stop + len(SECTION_END)].splitlines()
-    return [SECTION_BEGIN, "## Maps in a real robot's world", "", "Not measured yet: run `sonar-ring bench --map`.",
-            SECTION_END]
+    return sections.kept(report, SECTION_BEGIN, SECTION_END, TITLE, "sonar-ring bench --map")
 
 
 def run(out_dir: Path = Path("."), seeds: int = SEEDS, laps: int = LAPS, pings: int | None = None,
@@ -281,11 +283,9 @@ def run(out_dir: Path = Path("."), seeds: int = SEEDS, laps: int = LAPS, pings: 
     results = measure(seeds, laps, pings, worlds, tell=tell)
     lines = section(results, seeds, laps, time.perf_counter() - started, code)
     report = Path(out_dir) / "BENCHMARKS.md"
-    if not _replace(report, SECTION_BEGIN, SECTION_END, lines):
-        existing = report.read_text() if report.is_file() else "# Benchmarks\n"
-        report.write_text(existing.rstrip("\n") + "\n\n" + "\n".join(lines) + "\n")
-    if _replace(Path(out_dir) / "README.md", SUMMARY_BEGIN, SUMMARY_END,
-                [SUMMARY_BEGIN, *table(results), SUMMARY_END]):
+    sections.write(report, SECTION_BEGIN, SECTION_END, lines)
+    if sections.replace(Path(out_dir) / "README.md", SUMMARY_BEGIN, SUMMARY_END,
+                        [SUMMARY_BEGIN, *table(results), SUMMARY_END]):
         tell(f"updated the map table in {Path(out_dir) / 'README.md'}")
     tell(f"wrote the map section of {report}")
     return report
