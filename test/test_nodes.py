@@ -147,10 +147,11 @@ def test_graph_as_separate_processes_publishes_and_exits_cleanly(ros):
         listener = Listener(namespace)
         executor = SingleThreadedExecutor()
         executor.add_node(listener.node)
-        assert spin_until(executor, lambda: len(listener.paired()) >= 20 and listener.maps, timeout=40)
+        # the map publishes an entry once it has persisted over pings and travel
+        assert spin_until(executor, lambda: len(listener.paired()) >= 20 and listener.maps
+                          and len(landmarks_from_msg(listener.maps[-1])) > 0, timeout=60)
         d2 = np.concatenate([mahalanobis_squared(found, truth) for found, truth in listener.paired()])
         assert np.mean(d2 <= CHI2_2DOF_3SIGMA) >= 0.99
-        assert len(landmarks_from_msg(listener.maps[-1])) > 0
         listener.node.destroy_node()
     finally:
         for process in processes:
