@@ -335,8 +335,8 @@ def _add_bench(subparsers) -> None:
     study = p.add_mutually_exclusive_group()
     study.add_argument("--map", action="store_true",
                        help="instead: the maps of the room in the ideal world, with each realistic effect alone and "
-                            "in the realistic world, scored over 3 laps, 20 seeds in the realistic world and 3 in each other "
-                            "(about an hour on 2 cores); "
+                            "in the realistic world, scored over 3 laps, 20 seeds in the realistic world and 3 in "
+                            "each other (about an hour on 2 cores); "
                             "writes its section of DIR/BENCHMARKS.md and its table in DIR/README.md. With --quick: 2 "
                             "seeds of 200 pings in two worlds")
     study.add_argument("--slam-cost", action="store_true",

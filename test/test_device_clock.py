@@ -101,8 +101,8 @@ def test_a_stepped_host_clock_starts_the_estimate_afresh(step):
 def test_a_turning_robot_maps_the_same_with_device_stamps_as_with_the_true_firing_times():
     """One circle of 1.2 m around the room's pillar at 0.6 rad/s, the ring's 30 Hz, the sender stalling 100 ms
     mid-turn.  Each ping is placed at the odometry pose (50 Hz, exact) interpolated at its stamp, by the mapper's
-    core (odometry taken as exact, no echo tests: the map shows what the stamps do).  Device stamps: the same entries, classes
-    and positions within 2 mm; arrival stamps: a different map."""
+    core (odometry taken as exact, no echo tests: the map shows what the stamps do).  Device stamps: the same
+    entries, classes and positions within 2 mm; arrival stamps: a different map."""
     layout, scene = load_layout("browne_ring"), load_scene("room")
     centre, radius, turn_rate = np.array([3.6, 2.2]), 1.2, 0.6
 

@@ -258,7 +258,8 @@ def section(results: dict, seeds: int, effect_seeds: int, laps: int, seconds: fl
         TITLE,
         "",
         f"Regenerate with `sonar-ring bench --map` (this run: {seeds} seeds in the realistic world and {effect_seeds} "
-        f"in each of the other {len(results) - 1}, {laps} laps of the `{SCENE}` scene each, {seconds / 60:.0f} min on {len(os.sched_getaffinity(0))} CPUs; "
+        f"in each of the other {len(results) - 1}, {laps} laps of the `{SCENE}` scene each, {seconds / 60:.0f} min "
+        f"on {len(os.sched_getaffinity(0))} CPUs; "
         f"{today()}; sonar_ring at git {code}; {machine()}).",
         "Each world is the `realistic` profile of `sonar_ring.realism` with only the named effect on (`ideal`: none, "
         "`realistic`: all); every mapper maps the same simulated pings (σ_t = 1 µs, σ_A = 2 %) from the wheel "
