@@ -774,17 +774,20 @@ def _add_support(table, capacity: int) -> None:
     ``pings`` the pings that saw it, ``origin`` the sensor position of its first
     sighting and ``travel`` the farthest the sensor was from there at a later
     one (m); ``explained`` the pings with an explained sighting matching it, and
-    ``unexplained`` those that fused one after the first of them.
+    ``unexplained`` those that fused one after the first of them; ``first_driven``
+    the map's odometer (:attr:`LandmarkMap.driven`) at its first sighting, m.
     """
     table.pings = np.zeros(capacity, np.int64)
+    table.first_driven = np.zeros(capacity)
     table.origin = np.zeros((capacity, 2))
     table.travel = np.zeros(capacity)
     table.explained = np.zeros(capacity, np.int64)
     table.unexplained = np.zeros(capacity, np.int64)
 
 
-def _start_support(table, slots, sensor) -> None:
+def _start_support(table, slots, sensor, driven: float) -> None:
     table.pings[slots] = 1
+    table.first_driven[slots] = driven
     table.origin[slots] = sensor
     table.travel[slots] = 0.0
     table.explained[slots] = 0
@@ -798,6 +801,7 @@ def _absorb_support(table, keep: int, other: int) -> None:
                              float(np.hypot(*(table.origin[keep] - table.origin[other]))))
     table.explained[keep] += table.explained[other]
     table.unexplained[keep] += table.unexplained[other]
+    table.first_driven[keep] = min(table.first_driven[keep], table.first_driven[other])
 
 
 class _Points:
@@ -844,6 +848,7 @@ class _Points:
         self.difference = np.zeros((capacity, 3))  # sum W d (2), sum (d^T W d - separation noise)
         self.modelled = np.zeros(capacity, np.int64)  # sightings with both models
         self.curvature_decided = np.zeros(capacity, bool)
+        self.decision_distance = np.full(capacity, np.nan)  # m driven from the first sighting to the decision
 
 
 class _Walls:
@@ -1090,6 +1095,9 @@ class LandmarkMap:
         self._walls = _Walls(self.max_walls)
         self._counts = MapCounts()
         self._ping = 0
+        self.driven = 0.0
+        """The map's odometer: how far the sensor has moved over the pings it was given, m."""
+        self._last_sensor: np.ndarray | None = None
         self._next_uid = 0
         self._renamed: dict[int, int] = {}  # this update's entries that became (or merged into) another
         self._removed: list[int] = []  # this update's entries explained away or evicted
@@ -1167,6 +1175,9 @@ class LandmarkMap:
             return Placed(np.empty(0, np.int64), np.empty(0, np.int64), {})
         self._ping += 1
         self._counts.pings += 1
+        if self._last_sensor is not None:
+            self.driven += float(np.hypot(*(sightings.sensor - self._last_sensor)))
+        self._last_sensor = sightings.sensor
         self._counts.sightings += sightings.offered
         self._counts.invalid += sightings.invalid
         self._counts.not_finite += sightings.not_finite
@@ -1430,7 +1441,7 @@ class LandmarkMap:
         p.latest[slots] = position
         p.observations[slots] = 1
         p.last_seen[slots] = self._ping
-        _start_support(p, slots, s.sensor)
+        _start_support(p, slots, s.sensor, self.driven)
         p.group[slots] = s.group[rows]
         p.confidence_sum[slots] = np.where(classified, s.confidence[rows], 0.0)
         p.confidence_count[slots] = classified
@@ -1440,6 +1451,7 @@ class LandmarkMap:
         p.difference[slots] = 0.0
         p.modelled[slots] = 0
         p.curvature_decided[slots] = False
+        p.decision_distance[slots] = np.nan
         self._fuse_models(s, rows, slots)
         return out
 
@@ -1461,7 +1473,7 @@ class LandmarkMap:
         w.extent[slots, 0], w.extent[slots, 1] = along.min(axis=1), along.max(axis=1)
         w.observations[slots] = 1
         w.last_seen[slots] = self._ping
-        _start_support(w, slots, s.sensor)
+        _start_support(w, slots, s.sensor, self.driven)
         w.group[slots] = s.group[rows]
         w.confidence_sum[slots] = s.confidence[rows]
         w.confidence_count[slots] = 1.0
@@ -1613,6 +1625,7 @@ class LandmarkMap:
         p.mean[slots[edge]] = p.edge_fit[slots[edge]]
         p.mean[slots[corner]] = p.corner_fit[slots[corner]]
         p.curvature_decided[slots[decided]] = True
+        p.decision_distance[slots[decided]] = self.driven - p.first_driven[slots[decided]]
         p.by_motion[slots[decided]] = False
         p.confidence_sum[slots[decided]] = confidence[decided]
         p.confidence_count[slots[decided]] = 1.0
@@ -1641,7 +1654,7 @@ class LandmarkMap:
         w.extent[walls] = np.sort(p.extent[slots] * _dot(tangent, p.across[slots])[:, None], axis=1)
         w.observations[walls] = p.observations[slots]
         w.last_seen[walls] = p.last_seen[slots]
-        for column in ("pings", "origin", "travel", "explained", "unexplained"):
+        for column in ("pings", "origin", "travel", "explained", "unexplained", "first_driven"):
             getattr(w, column)[walls] = getattr(p, column)[slots]
         w.group[walls] = p.group[slots]
         w.confidence_sum[walls] = p.confidence_sum[slots]
@@ -1779,6 +1792,16 @@ class LandmarkMap:
         return ended
 
     # ------------------------------------------------------------------ output
+
+    def decision_distances(self) -> np.ndarray:
+        """How far the sensor moved from each point's first sighting until its curvature told it an edge or a corner.
+
+        (D,) m, one per active point :mod:`sonar_ring.curvature` decided (the
+        map's odometer, :attr:`driven`: the distance driven, not the straight
+        line).
+        """
+        p = self._points
+        return p.decision_distance[p.active & p.curvature_decided].copy()
 
     def persistent(self, uids) -> np.ndarray:
         """Which entries ``uids`` (K,) persist; (K,) bool (False for an entry not in the map).

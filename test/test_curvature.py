@@ -193,6 +193,9 @@ def test_the_map_decides_as_the_sequential_test():
                                      edge_covariance[run, j][None], noise[run, j][None], np.ones(1, bool))
                 landmark_map.update(transform_landmarks(seen, sensor), sensor, models)
             assert landmark_map.snapshot().landmark_class.tolist() == [verdict[run]], (kind, run)
+            # the distance driven from the first sighting to the decision: the sequential test's deciding sighting
+            expected_distance = [travel[first[run]] - travel[0]] if verdict[run] != CORNER_OR_EDGE else []
+            assert_allclose(landmark_map.decision_distances(), expected_distance, atol=1e-9)
 
 
 def test_chi2_quantile_is_wilson_hilferty():
