@@ -5,7 +5,7 @@ Regenerate ``bench/results/device_clock.md`` and ``bench/plots/device_clock_erro
 
     python bench/bench_device_clock.py
 
-The case of issue #25: the device clock runs 50 ppm fast from its own epoch,
+The case the driver is held to: the device clock runs 50 ppm fast from its own epoch,
 each frame's transport delay is uniform over 0..10 ms, and the sender stalls
 once for 100 ms (the frames fired meanwhile arrive together when it ends).
 :class:`sonar_ring.device_clock.DeviceClock` stamps every frame as the driver

@@ -340,7 +340,7 @@ def _add_bench(subparsers) -> None:
                             "writes its section of DIR/BENCHMARKS.md and its table in DIR/README.md. With --quick: 2 "
                             "seeds of 200 pings in two worlds")
     study.add_argument("--slam-cost", action="store_true",
-                       help="instead: what the mapper with SLAM costs, against issue #22's targets, on the room in the "
+                       help="instead: what the mapper with SLAM costs, against its targets, on the room in the "
                             "realistic world: its update per ping over 3 laps (median, p99, the echo tests' and the "
                             "SLAM's shares), the resident memory of a 30-minute simulated run (growth after 5 minutes "
                             "of warm-up; stopped after 60 min of wall time), and the speed of the whole `sonar-ring "

@@ -229,7 +229,7 @@ REALISTIC = Realism(
     # A busy room: about one phantom per ping around the 48-pair ring.
     spurious_rate=0.02,
     # Second-order reflections at half the amplitude of their two reflectivities' product (what an
-    # independent image-method room left in: issue #26's test).
+    # independent image-method room left in, the multipath case the echo tests are held to).
     multipath_gain=0.5,
     late_echoes=1.0,
 )

@@ -193,7 +193,7 @@ def targets(results: Results, seconds: float) -> list[str]:
 
 
 def _graph_targets(graph: dict) -> list[tuple[str, str, str]]:
-    """The running graph's targets (issue #7): latency at the nominal rate and the sustained rate.
+    """The running graph's targets: latency at the nominal rate and the sustained rate.
 
     Judged with the graph on one CPU, as the launch file's ``cpus`` argument runs
     it; the latency on any CPU is shown beside it, with its own verdict.

@@ -1,4 +1,4 @@
-"""``sonar-ring bench --slam-cost``: what the mapper with SLAM costs on this machine, against issue #22's targets.
+"""``sonar-ring bench --slam-cost``: what the mapper with SLAM costs on this machine, against its targets.
 
 Three measurements, each judged against its target (:data:`MEDIAN_TARGET_MS`,
 :data:`P99_TARGET_MS`, :data:`GROWTH_TARGET`, :data:`SPEED_TARGET`):
@@ -72,11 +72,11 @@ RUNS = 5
 
 MEDIAN_TARGET_MS = 2.0
 P99_TARGET_MS = 10.0
-"""Issue #22: the mapper's update per ping, median and 99th percentile, ms."""
+"""Target: the mapper's update per ping, median and 99th percentile, ms."""
 GROWTH_TARGET = 0.05
-"""Issue #22: resident set growth after warm-up over a 30-minute run, fraction."""
+"""Target: resident set growth after warm-up over a 30-minute run, fraction."""
 SPEED_TARGET = 10.0
-"""Issue #22: ``sonar-ring process`` with SLAM, times real time."""
+"""Target: ``sonar-ring process`` with SLAM, times real time."""
 
 SECTION_BEGIN = "<!-- sonar-ring bench --slam-cost: section -->"
 SECTION_END = "<!-- /sonar-ring bench --slam-cost: section -->"
