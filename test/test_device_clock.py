@@ -40,7 +40,7 @@ def stamp_errors(clock, fired, device_us, arrival):
 
 
 def test_stamps_are_within_0_1_ms_of_the_firing_time_after_a_2_s_warm_up():
-    """The issue's case.  0.1 ms needs enough fast frames: with delays spread evenly over 10 ms, one frame
+    """The case the driver is held to.  0.1 ms needs enough fast frames: with delays spread evenly over 10 ms, one frame
     in a hundred is that fast, so 2 s take a 1 kHz stream (the ring's 30 Hz gets there in about a minute)."""
     fired, device_us, arrival = frames(rate=1000, seconds=8)
     clock = DeviceClock()
