@@ -1906,8 +1906,8 @@ class LandmarkMap:
 def load_kernels() -> None:
     """Load the map's compiled kernels now instead of at the first update.
 
-    Loading takes about 0.5 s (numba's start and the cached machine code of each
-    kernel); a process that maps on a deadline pays it at start.  A scratch map
+    Loading starts numba and reads the cached machine code of each kernel; a
+    process that maps on a deadline pays that at start.  A scratch map
     sees two walls, a corner and an unknown reflector from three poses, which
     takes every kernel's path with the production argument types.
     """
