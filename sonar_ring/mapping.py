@@ -1243,7 +1243,8 @@ class LandmarkMap:
     def _screen(self, landmarks: Landmarks, sensor: np.ndarray, models: PointModels | None,
                 explained: np.ndarray) -> Sightings:
         """The usable landmarks, with the unusable ones counted by kind (and their point models, if given)."""
-        # Copies: landmarks decoded from a message are read-only views, another type to numba.
+        # Copies (np.array) in the types load_kernels compiled, whatever arrays the caller's landmarks hold
+        # (a read-only one is another type to numba); the kernel only reads them.
         position = np.array(landmarks.position, dtype=float)
         segment = np.array(landmarks.segment, dtype=float)
         keep, covariance, information, normal, distance, counts = _screen_rows(

@@ -69,7 +69,7 @@ def to_sequence(values, dtype) -> array.array:
 
 
 def from_sequence(values, dtype) -> np.ndarray:
-    """A read-only numpy view of a message sequence (``array.array``), no copy."""
+    """A numpy view of a message sequence (``array.array``: writable, the message's own memory), no copy."""
     return np.frombuffer(values, dtype=dtype) if len(values) else np.empty(0, dtype=dtype)
 
 
