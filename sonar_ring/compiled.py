@@ -15,7 +15,7 @@ and compiled from the first call of any kernel on:
   changes to the caller's file alone;
 * the machine code is cached beside the module (or in the user's cache where that
   is read-only; nowhere, and compiled in each process, where neither can be
-  written), so later processes load it in milliseconds;
+  written), so later processes load it instead of compiling it;
 * ``error_model="numpy"``: division follows IEEE (inf and NaN, as numpy) instead of
   raising ``ZeroDivisionError``;
 * ``kernel(inline=True)`` inlines a kernel into its callers before they are

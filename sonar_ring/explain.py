@@ -474,7 +474,7 @@ class EchoTests:
         m: how close to a wall's line such a point must lie.
     refresh_pings : int
         Pings between two refreshes of the map the tests use (its walls grown, its points):
-        the map changes slowly, the preparation costs about a millisecond.
+        the map changes slowly, so its preparation need not be paid every ping.
     """
 
     sigma_path: float = 343e-6

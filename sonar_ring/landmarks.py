@@ -90,7 +90,7 @@ class Landmarks:
             if index.shape != (len(self),):
                 raise IndexError(f"Landmarks.select: a mask of shape {index.shape} for {len(self)} landmarks")
             index = np.flatnonzero(index)  # once, not once per field
-        # take: for 2-D and 3-D fields several times faster than indexing with an array
+        # take: for 2-D and 3-D fields faster than indexing with an array
         return Landmarks(*(getattr(self, name).take(index, axis=0) for name in _FIELDS))
 
     def with_class(self, landmark_class, confidence) -> Landmarks:

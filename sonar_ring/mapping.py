@@ -1254,7 +1254,8 @@ class LandmarkMap:
     def _screen(self, landmarks: Landmarks, sensor: np.ndarray, models: PointModels | None,
                 explained: np.ndarray) -> Sightings:
         """The usable landmarks, with the unusable ones counted by kind (and their point models, if given)."""
-        # Copies: landmarks decoded from a message are read-only views, another type to numba.
+        # Copies (np.array) in the types load_kernels compiled, whatever arrays the caller's landmarks hold
+        # (a read-only one is another type to numba); the kernel only reads them.
         position = np.array(landmarks.position, dtype=float)
         segment = np.array(landmarks.segment, dtype=float)
         keep, covariance, information, normal, distance, counts = _screen_rows(
@@ -1929,8 +1930,8 @@ class LandmarkMap:
 def load_kernels() -> None:
     """Load the map's compiled kernels now instead of at the first update.
 
-    Loading takes about 0.5 s (numba's start and the cached machine code of each
-    kernel); a process that maps on a deadline pays it at start.  A scratch map
+    Loading starts numba and reads the cached machine code of each kernel; a
+    process that maps on a deadline pays that at start.  A scratch map
     sees two walls, a corner and an unknown reflector from three poses, which
     takes every kernel's path with the production argument types.
     """

@@ -180,7 +180,8 @@ def classify_ping(layout: Layout, echoes: EchoArrays, hypotheses: Landmarks,
     """
     ping = np.zeros(echoes.n_echoes, dtype=np.int64) if ping is None else np.asarray(ping, dtype=np.int64)
     decided, confidence = _evidence(layout, echoes, settings, ping)
-    # Copies: hypotheses decoded from a message are read-only views, another type to numba.
+    # Copies (astype) in the types load_kernels compiled, whatever arrays the caller's hypotheses hold:
+    # Landmarks' uint32 echo rows become int64, a read-only or strided array (another type to numba) a new one.
     pick, label, decided_confidence, edge_row = _picks(hypotheses.landmark_class.astype(np.uint8),
                                                        hypotheses.echo.astype(np.int64), hypotheses.valid.astype(bool),
                                                        decided, confidence)

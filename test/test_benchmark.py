@@ -8,7 +8,7 @@ import pytest
 from sonar_ring.benchmark import slam_cost, worlds
 from sonar_ring.benchmark.measure import LSQ_NAME
 from sonar_ring.benchmark.methods import BEARING, RING_FAMILIES
-from sonar_ring.benchmark.report import PLOT_DIR, REPORT, TABLE_BEGIN, TABLE_END
+from sonar_ring.benchmark.report import LATENCY_BEGIN, LATENCY_END, PLOT_DIR, REPORT, TABLE_BEGIN, TABLE_END
 from sonar_ring.cli import main
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -19,11 +19,13 @@ def test_quick_report_has_every_row_the_targets_and_the_plots(tmp_path):
     readme.write_text(f"# Project\n\n{TABLE_BEGIN}\nan old table\n{TABLE_END}\n\n## Next section\n")
     kept = f"{worlds.SECTION_BEGIN}\n## Maps in a real robot's world\n\nthe map study's table\n{worlds.SECTION_END}"
     cost = f"{slam_cost.SECTION_BEGIN}\n## Cost of the mapper with SLAM\n\nthe cost table\n{slam_cost.SECTION_END}"
-    (tmp_path / REPORT).write_text(f"# An old report\n\n{kept}\n\n{cost}\n")
+    history = f"{LATENCY_BEGIN}\n## Latency work, step by step\n\nwritten by hand\n{LATENCY_END}"
+    (tmp_path / REPORT).write_text(f"# An old report\n\n{kept}\n\n{cost}\n\n{history}\n")
     assert main(["bench", "--quick", "--out", str(tmp_path), "--seed", "3"]) == 0
 
     text = (tmp_path / REPORT).read_text()
     assert "An old report" not in text and kept in text and cost in text  # the studies' sections survive a rerun
+    assert history in text  # and so does the history written by hand
     tables = text[text.index(TABLE_BEGIN):text.index(TABLE_END)]
     for family in (BEARING, *RING_FAMILIES):
         for method in family.methods:
@@ -60,6 +62,15 @@ def test_quick_report_has_every_row_the_targets_and_the_plots(tmp_path):
     assert "an old table" not in updated
     assert updated.startswith("# Project\n\n" + TABLE_BEGIN) and updated.endswith(TABLE_END + "\n\n## Next section\n")
     assert tables.strip() in updated
+
+
+def test_a_report_without_the_latency_history_gets_none(tmp_path):
+    from sonar_ring.benchmark.report import kept_sections
+
+    (tmp_path / REPORT).write_text("# An old report\n")
+    kept = "\n".join(kept_sections(tmp_path / REPORT))
+    assert LATENCY_BEGIN not in kept and "Latency work" not in kept
+    assert worlds.SECTION_BEGIN in kept and slam_cost.SECTION_BEGIN in kept  # placeholders that say how to make them
 
 
 def test_quick_map_study_writes_its_section_and_readme_table(tmp_path):

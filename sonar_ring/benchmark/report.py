@@ -41,6 +41,9 @@ REPORT = "BENCHMARKS.md"
 PLOT_DIR = Path("bench") / "plots"
 TABLE_BEGIN = "<!-- sonar-ring bench: main tables -->"
 TABLE_END = "<!-- /sonar-ring bench: main tables -->"
+LATENCY_BEGIN = "<!-- kept by sonar-ring bench: latency work -->"
+LATENCY_END = "<!-- /kept by sonar-ring bench: latency work -->"
+"""The history of the latency work in ``BENCHMARKS.md``, written by hand: a rerun keeps it as it stands."""
 
 TIME_LIMIT = 600.0
 """The whole report must regenerate within this many seconds on the project's 2-core machine."""
@@ -542,11 +545,15 @@ def render(results: Results, plots: list[Path], out_dir: Path, seconds: float, c
 
 
 def kept_sections(report: Path) -> list[str]:
-    """The sections of ``sonar-ring bench --map`` and ``--slam-cost`` in ``report`` (or lines saying how to make them).
+    """The sections of ``report`` this run does not write, as they stand.
 
-    (:func:`sonar_ring.benchmark.worlds.kept_section`, :func:`sonar_ring.benchmark.slam_cost.kept_section`.)
+    The history of the latency work (:data:`LATENCY_BEGIN`), when there is one,
+    and the sections of ``sonar-ring bench --map`` and ``--slam-cost`` (or lines
+    saying how to make them: :func:`sonar_ring.benchmark.worlds.kept_section`,
+    :func:`sonar_ring.benchmark.slam_cost.kept_section`).
     """
-    return [*worlds.kept_section(report), "", *slam_cost.kept_section(report)]
+    history = sections.existing(report, LATENCY_BEGIN, LATENCY_END)
+    return [*history, *([""] if history else []), *worlds.kept_section(report), "", *slam_cost.kept_section(report)]
 
 
 def run(out_dir: Path = Path("."), quick: bool = False, seed: int = DEFAULT_SEED, progress=None) -> Path:

@@ -3,7 +3,8 @@
 A study that is run apart from ``sonar-ring bench`` (``--map``, ``--slam-cost``)
 writes its section between its own markers; ``sonar-ring bench`` keeps those
 sections when it rewrites the rest of the report (:func:`kept`), and each study
-replaces only its own (:func:`write`).
+replaces only its own (:func:`write`).  A section written by hand between its
+own markers is kept as it stands (:func:`existing`).
 """
 
 from __future__ import annotations
@@ -30,11 +31,16 @@ def write(report: Path, begin: str, end: str, lines: list[str]) -> None:
         report.write_text(existing.rstrip("\n") + "\n\n" + "\n".join(lines) + "\n")
 
 
-def kept(report: Path, begin: str, end: str, title: str, command: str) -> list[str]:
-    """The section of an existing ``report`` (markers included), or one that says ``command`` makes it."""
+def existing(report: Path, begin: str, end: str) -> list[str]:
+    """The section of an existing ``report`` (markers included); empty without file or markers."""
     if report.is_file():
         text = report.read_text()
         start, stop = text.find(begin), text.find(end)
         if 0 <= start < stop:
             return text[start:stop + len(end)].splitlines()
-    return [begin, title, "", f"Not measured yet: run `{command}`.", end]
+    return []
+
+
+def kept(report: Path, begin: str, end: str, title: str, command: str) -> list[str]:
+    """The section of an existing ``report`` (markers included), or one that says ``command`` makes it."""
+    return existing(report, begin, end) or [begin, title, "", f"Not measured yet: run `{command}`.", end]

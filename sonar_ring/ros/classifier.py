@@ -54,7 +54,7 @@ class Classifier(SonarNode):
         self.params = declare(self, PARAMS, self._on_change)
         self.layout = load_layout(self.params["layout"])
         self.settings = settings_from(self.params)
-        load_screening_kernels()  # now, or the first ping would wait ~0.5 s for them
+        load_screening_kernels()  # now, or the first ping would wait for numba to load them
         pipeline.load_kernels()
         if self.layout.kind == "ring":
             ring_consistency.load_kernels()

@@ -8,7 +8,7 @@ little back to back but much more in a process that waited for its ping (its
 code and data gone cold).  For code that builds message objects, rclpy stores
 primitive sequences as ``array.array``; one is built from a numpy buffer in a
 single copy, where assigning the numpy array itself makes rclpy check every
-element.  The README's "Benchmarks" has the figures.
+element.  BENCHMARKS.md ("Latency work, step by step") has the figures.
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ def to_sequence(values, dtype) -> array.array:
 
 
 def from_sequence(values, dtype) -> np.ndarray:
-    """A read-only numpy view of a message sequence (``array.array``), no copy."""
+    """A numpy view of a message sequence (``array.array``: writable, the message's own memory), no copy."""
     return np.frombuffer(values, dtype=dtype) if len(values) else np.empty(0, dtype=dtype)
 
 

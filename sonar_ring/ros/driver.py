@@ -103,7 +103,7 @@ class Driver(SonarNode):
         super().__init__("driver", **kwargs)
         self.params = declare(self, PARAMS, self._on_change)
         self.layout = load_layout(self.params["layout"])
-        load_screening_kernels()  # now, or the first ping would wait ~0.5 s for them
+        load_screening_kernels()  # now, or the first ping would wait for numba to load them
         self.health = NodeHealth(self, hardware_id=f"{self.params['source']}:{self.layout.name}")
         self._echo_publisher = self.create_publisher(Echoes, "echoes", qos_profile_sensor_data)
         if self.params["publish_range"]:

@@ -4,12 +4,11 @@ After every wait, rclpy's :class:`~rclpy.executors.SingleThreadedExecutor`
 walks every entity of every node, releases the handles it held, and runs the
 ready callback as a task (a coroutine driven by a guard condition).  In the
 composed graph -- one subscription on the ping path beside 28 parameter
-services and five timers -- a ping's callback started 0.38-0.41 ms after the
-middleware received it at 30 Hz on the 2-core benchmark machine; called
-directly, 0.21-0.24 ms, and its markers went out 0.06-0.15 ms sooner (three
-alternating runs each; some of the time saved is spent again warming the
-callback's own code after the idle time between pings).  rclcpp's static
-executor exists for the same reason.
+services and five timers -- that walk stands between the middleware receiving
+a ping and its callback; called directly, the callback starts sooner and its
+markers go out sooner (alternating runs; some of the time saved is spent again
+warming the callback's own code after the idle time between pings).  rclcpp's
+static executor exists for the same reason.
 
 This executor waits on the same entities, and calls a ready subscription's
 callback directly; anything else that is ready (timers, services, guard

@@ -111,7 +111,7 @@ class InputGate:
             if expected and header.frame_id != expected:
                 return "wrong_frame_id", f"frame {header.frame_id!r}, expected {expected!r}"
         stamp = stamp_ns(header)
-        # The clock's own reading: Clock.now() builds a Time object for it (13 us cold, three gates a ping).
+        # The clock's own reading: Clock.now() builds a Time object around it, and three gates a ping read it.
         now = self._clock.handle.get_now().nanoseconds
         if now < self._last_clock:
             self._health.note("clock jumped back")

@@ -74,7 +74,7 @@ class Localiser(SonarNode):
         self.params = declare(self, PARAMS, self._on_change)
         self.layout = load_layout(self.params["layout"])
         self.settings = settings_from(self.params)
-        load_screening_kernels()  # now, or the first ping would wait ~0.5 s for them
+        load_screening_kernels()  # now, or the first ping would wait for numba to load them
         if self.layout.kind != "triad":
             localise.load_kernels()
         self.health = NodeHealth(self, hardware_id=self.layout.name)

@@ -8,9 +8,9 @@ namespaces and ids are fixed, so each ping replaces the previous markers, and a
 lifetime makes them vanish when pings stop.
 
 The MarkerArray is written straight into its serialized (CDR) form from the
-arrays, and published as such: built from message objects, each point is a
-``geometry_msgs/Point`` made in Python, about 2 us apiece -- 0.4 ms for a ping
-of the ring and tens of milliseconds for a map with its covariance ellipses.
+arrays, and published as such: built from message objects, each point would be
+a ``geometry_msgs/Point`` made in Python, a cost per point -- and a map's
+covariance ellipses alone have 32 points each.
 """
 
 from __future__ import annotations

@@ -279,8 +279,8 @@ def stage_workers(stage: PingStage, jobs: int):
     """``jobs - 1`` forked processes that run ``stage`` (a process pool), or None when ``jobs`` is 1.
 
     The workers start at once and load the localiser's and classifier's compiled
-    kernels (about 0.5 s) while this process opens the bag and reads the odometry, so
-    the first batch does not wait for them.
+    kernels while this process opens the bag and reads the odometry, so the first
+    batch does not wait for them.
     """
     if jobs <= 1:
         yield None

@@ -4,8 +4,8 @@ A ping gives one message on each ``range/group_NN`` (Nav2's range layer takes
 a list of topics, one sensor each; 48 messages at once on one topic would
 overflow a sensor-data subscription's queue of 5) that has a subscriber: the
 driver looks for subscribers once a second (:class:`RangeOutput`), as lazy
-publishers of image_transport do, because 48 messages per ping cost about
-1.5 ms when nobody listens.
+publishers of image_transport do, because 48 messages a ping cost their
+building and publishing even when nobody listens.
 
 ``sensor_msgs/Range`` describes a cone along +x of its frame (REP 117), so each
 receiver group gets a frame ``<frame_id>/group_NN`` at the centre of its
