@@ -23,7 +23,7 @@ setup(
     python_requires=">=3.10",
     packages=find_packages(include=["sonar_ring", "sonar_ring.*"]),
     data_files=sorted(config_files.items()),
-    install_requires=["numpy>=1.24", "numba>=0.60", "pyyaml>=6"],
+    install_requires=["numpy>=1.24", "numba>=0.60", "pyyaml>=6", "gtsam>=4.2", "pyserial>=3.5"],
     extras_require={
         "plot": ["matplotlib>=3.7"],
         "bag": ["rosbags>=0.10", "tqdm>=4.66"],

@@ -12,8 +12,8 @@ an edge (in extended precision, rounded to float64), localises them with the
 production path (:mod:`sonar_ring.localise`) and with Browne's formulas
 (:mod:`sonar_ring.reference.browne`), and reports the maximum position errors
 and the wall-clock time of each model over the whole grid.  A Monte-Carlo run
-compares the bearing and range spread with the Cramer-Rao bound of DESIGN.md
-section 5.  Results go to ``bench/results/localise.md``.
+compares the bearing and range spread with the Cramer-Rao bound of one pair
+(``uncertainty.cramer_rao_bound``).  Results go to ``bench/results/localise.md``.
 """
 
 from __future__ import annotations
@@ -242,7 +242,7 @@ def main():
         "Production calls include the input checks and reason codes; the plane also returns its normal and "
         "both reflection points.",
         "",
-        "## Monte Carlo vs the Cramer-Rao bound (DESIGN.md section 5)",
+        "## Monte Carlo vs the Cramer-Rao bound (uncertainty.cramer_rao_bound)",
         "",
         f"sigma_t = {SIGMA_TOF * 1e6:.0f} us, c = {C} m/s, D = 40 mm, transmitter at the pair's mid-point, "
         "corner at 2 m; 100,000 draws per bearing. Bearing = eq 4 (`localise.bearing`), range = distance of "

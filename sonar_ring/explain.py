@@ -133,9 +133,6 @@ from sonar_ring.simulate import Placement, place
 NONE, MULTIPATH = 0, 1
 """Labels of an echo row (:attr:`Explanation.label`): not explained, or a predicted double bounce."""
 
-LABEL_NAMES = ("none", "multipath")
-"""Name of each label, indexable by the label."""
-
 JUNCTION = 0.1
 """m: walls this close meet in a corner; a point this close to a wall is its end or corner (module docstring)."""
 

@@ -87,7 +87,7 @@ class MapperSettings:
     echo_tests : EchoTests or None
         Explain each ping's landmarks by the map before mapping them, and (without
         SLAM) publish only persistent entries; None: neither (every entry seen
-        ``min_observations`` times is published, as before this round).
+        ``min_observations`` times is published).
     min_support_pings, min_support_travel : int, float
         What makes an entry persistent (:class:`~sonar_ring.mapping.LandmarkMap`).
     """

@@ -1,6 +1,8 @@
-"""Landmark map in ``odom``: association, fusion, wall segments, PLANE vs CORNER over motion.
+"""Landmark map: association, fusion, wall segments, PLANE vs fixed point over motion, edge vs corner by curvature.
 
-The mapper core behind the ``mapper`` node (numpy only).  Per ping the node turns the
+The map's frame is ``odom`` without SLAM, ``map`` as SLAM's front end
+(:mod:`sonar_ring.slam`); below, ``odom`` stands for either.  The mapper core
+behind the ``mapper`` node (numpy only).  Per ping the node turns the
 classifier's landmarks from the sensor frame into ``odom`` with
 :func:`transform_landmarks` and hands them to :meth:`LandmarkMap.update` with the
 sensor pose; :meth:`LandmarkMap.snapshot` (landmarks) and :meth:`LandmarkMap.points`
@@ -95,15 +97,18 @@ provided that
 Otherwise the point stays UNKNOWN, placed with the corner model.  The confidence of
 a decision is ``1 - exp(-|Delta| / 2)``, one minus the inverse likelihood ratio
 (0.99 at the default threshold 9.21, a ratio of 100).  An edge placed with the
-corner model also stays put, so motion calls it a CORNER; an EDGE sighting from the
-classifier renames such a point.
+corner model also stays put, so motion makes such a point a fixed point,
+CORNER_OR_EDGE, until the wavefront's curvature over its sightings tells an edge
+from a corner (:mod:`sonar_ring.curvature`); an EDGE or CORNER sighting from the
+classifier names it at once.
 
 Memory
 ------
 At most ``max_points`` points and ``max_walls`` walls.  When a new entry needs a
-slot in a full table, the entry seen least recently (ties: fewest observations)
-is evicted; entries seen in the current ping are never evicted, and new landmarks
-that find no slot are dropped and counted.
+slot in a full table, an entry that never persisted goes first, then the
+entry seen least recently (ties: fewest observations); entries seen in the
+current ping are never evicted, and new landmarks that find no slot are dropped
+and counted.
 
 Bad data never raises in :meth:`LandmarkMap.update`: sightings with ``valid``
 False, non-finite fields, a covariance that is not positive definite, an unknown

@@ -62,7 +62,7 @@ Frames and units: scenes and poses in the world frame (m, rad); odometry in
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -289,9 +289,6 @@ def _number(value):
     """A YAML or parameter value as a float where it is a number (bools stay bools, to be refused)."""
     return float(value) if isinstance(value, int | float) and not isinstance(value, bool) else value
 
-
-FIELDS = tuple(f.name for f in fields(Realism))
-"""The field names of :class:`Realism`, in order."""
 
 # --------------------------------------------------------------------------- odometry
 

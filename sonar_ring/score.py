@@ -1,7 +1,6 @@
 """One map score: a map of landmarks against the scene it was built in, and a pose estimate against the truth.
 
-The referee of the demo, ``sonar-ring process`` (when the bag carries the
-simulator's truth), the benchmark and the tests.  Given the map (landmarks in a
+The referee of the demo, the benchmark and the tests.  Given the map (landmarks in a
 frame whose pose in the scene's world frame is known) and the scene:
 
 * an entry of a decided class is **right** for a true reflector of its class

@@ -531,7 +531,7 @@ class LandmarkSlam:
             values.insert(key, gtsam.Point2(*entries.position[index]))
         else:
             normal = entries.normal[index]
-            # n . x = d with n the unit normal away from the side the wall was seen from: d > 0 past the origin
+            # n . x = d with n the entry's unit normal (towards the side the wall was seen from)
             values.insert(key, np.array([math.atan2(normal[1], normal[0]), float(normal @ entries.position[index])]))
         self._confirmed[uid] = _Confirmed(key, kind)
 

@@ -7,7 +7,7 @@
   fallback where the unscented transform of :mod:`sonar_ring.solvers` loses a
   sigma point);
 * :func:`cramer_rao_bound` -- the bounds any estimator of one pair meets
-  (DESIGN.md section 5).
+  (its docstring gives them).
 
 Units and frames as in :mod:`sonar_ring.localise`: metres, seconds, one frame
 for every position.
@@ -25,7 +25,7 @@ from sonar_ring.localise import PointEstimate
 
 
 def cramer_rao_bound(separation, sigma_tof, speed_of_sound, phi=0.0):
-    """Cramer-Rao bounds on bearing and range for one pair (DESIGN.md section 5).
+    """Cramer-Rao bounds on bearing and range for one pair.
 
     ``sigma_phi >= sqrt(2) c sigma_t / (D cos phi)`` and
     ``sigma_r >= c sigma_t / (2 sqrt(2))``, for independent TOF noise of standard

@@ -57,7 +57,7 @@ def test_speed_of_sound_term_of_the_path_covariance():
 
 @pytest.mark.parametrize("phi_deg", [-45, -30, -15, 0, 15, 30, 45])
 def test_monte_carlo_meets_the_cramer_rao_bound(phi_deg):
-    """sigma_t = 1 us, D = 40 mm, transmitter at the pair's mid-point, corner at 2 m (DESIGN.md section 5)."""
+    """sigma_t = 1 us, D = 40 mm, transmitter at the pair's mid-point, corner at 2 m (cramer_rao_bound's formulas)."""
     tx, rx1, rx2 = np.zeros(2), np.array([0.0, 0.02]), np.array([0.0, -0.02])
     phi = np.radians(phi_deg)
     apex = 2.0 * np.array([np.cos(phi), np.sin(phi)])

@@ -6,7 +6,8 @@ every localisation, classification and azimuth method and the baselines on the
 same echoes at sigma_t in {0, 0.3, 1, 2} us, times them, and writes
 ``DIR/BENCHMARKS.md`` with plots in ``DIR/bench/plots/``.
 
-The modules import numpy only at module level (scipy for the least-squares
-baseline and matplotlib for the plots are imported when used); the graph
+The modules import numpy (and, through the mapper's SLAM, gtsam) at module
+level; scipy for the least-squares baseline and matplotlib for the plots are
+imported when used; the graph
 benchmark (:mod:`sonar_ring.benchmark.graph`) needs rclpy and the built messages.
 """

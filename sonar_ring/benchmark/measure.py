@@ -297,7 +297,7 @@ def _pipeline(layout, sizes: Sizes) -> dict:
 
 
 def _graph(quick: bool) -> dict:
-    """The lead's graph benchmark (needs rclpy and the built messages), or why it was not run."""
+    """The running graph's benchmark (needs rclpy and the built messages), or why it was not run."""
     try:
         importlib.import_module("rclpy")
     except ImportError:

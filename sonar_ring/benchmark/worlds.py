@@ -150,7 +150,7 @@ MAPPERS: dict[str, Callable[[Recorded, object], Outcome]] = {
     "SLAM + echo tests": lambda recorded, layout: mapped(recorded, layout, slam=True),
 }
 """The mappers compared, on the same runs: the mapper node with ``slam: false, echo_tests: false`` (the
-odometry taken as exact, every echo mapped: as before this round), with the echo tests (``slam: false``), and
+odometry taken as exact, every echo mapped: the baseline), with the echo tests (``slam: false``), and
 as it ships (SLAM and the echo tests)."""
 
 
