@@ -1154,9 +1154,7 @@ class LandmarkMap:
         """The usable landmarks of one ping as sightings, the others counted by kind; None for a bad pose.
 
         Uses the map's settings, never its entries, so any map with the same
-        settings gives the same sightings: ``sonar-ring process`` screens pings in
-        its workers, and only :meth:`add` goes in order.  Parameters and errors
-        as :meth:`update`.
+        settings gives the same sightings.  Parameters and errors as :meth:`update`.
         """
         _check_landmarks(landmarks, "LandmarkMap.screen")
         pose = _pose(sensor_pose, "LandmarkMap.screen")

@@ -538,7 +538,7 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
     jobs : int, optional
         Processes in all: this one (the map's association and fusion and the
         file I/O, in order) and ``jobs - 1`` workers for the localiser's and
-        classifier's work and the mapper's screening; 1 does everything here;
+        classifier's work; 1 does everything here;
         default one per CPU this process may use.
     progress : bool
         Draw a progress bar on stderr (in a terminal: :func:`~sonar_ring.progress.progress_bar`).
