@@ -188,15 +188,19 @@ def score_map(landmarks: Landmarks, scene: Scene, heard=None, map_pose=(0.0, 0.0
         near_any = truth.near_any(entries)
         own = truth.reflectors[code]
         near_own = (distance <= NEAR_DISTANCE).any(axis=1)
-        # Each reflector's best right entry maps it; the others are duplicates.
+        # Each reflector's best right entry maps it; the other right entries are duplicates (one entry right for
+        # two reflectors -- a wall across a doorway, say -- maps both and duplicates neither).
         cost = np.where(right, distance, np.inf)
         best_entry = np.argmin(cost, axis=0) if len(entries) else np.zeros(0, int)
         mapped = np.isfinite(cost.min(axis=0)) if len(entries) else np.zeros(len(own), bool)
         right_entries = right.any(axis=1)
+        mapping = np.zeros(len(entries), bool)
+        if len(entries):
+            mapping[best_entry[mapped]] = True
         per_class[CLASS_NAMES[code]] = ClassScore(
             heard=int(np.count_nonzero(is_heard[own])),
             mapped=int(np.count_nonzero(mapped & is_heard[own])),
-            duplicates=int(np.count_nonzero(right_entries)) - int(np.count_nonzero(mapped)),
+            duplicates=int(np.count_nonzero(right_entries & ~mapping)),
             ghosts=int(np.count_nonzero(~near_own & ~near_any)),
             wrong_class=int(np.count_nonzero(~near_own & near_any)),
             misplaced=int(np.count_nonzero(near_own & ~right_entries)),

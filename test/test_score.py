@@ -74,6 +74,19 @@ def test_each_fault_is_counted_once():
     assert (undecided.undecided, undecided.unknown_ghosts, undecided.ghosts) == (1, 1, 1)
 
 
+def test_one_wall_right_for_two_reflectors_maps_both_and_duplicates_neither():
+    """A wall entry across the doorway lies on both north walls' line and overlaps both."""
+    perfect = _perfect()
+    north = [k for k, wall in enumerate(ROOM.walls) if np.allclose(wall[:, 1], 4.5)]
+    assert len(north) == 2
+    across = make_landmarks([PLANE], [[3.0, 4.5]], normal=[[0.0, -1.0]], segment=[[[0.0, 4.5], [6.0, 4.5]]])
+    keep = np.setdiff1d(np.arange(len(perfect)), north)
+    score = score_map(Landmarks.concatenate([perfect.select(keep), across]), ROOM)
+    plane = score.per_class["plane"]
+    assert (plane.mapped, plane.duplicates, plane.entries) == (10, 0, 9)
+    assert score.total("duplicates") == 0
+
+
 def test_a_wall_past_its_end_or_tilted():
     perfect = _perfect()
     south = 0
