@@ -26,6 +26,7 @@ import numpy as np
 
 from sonar_ring.geometry import LayoutError, load_layout
 from sonar_ring.realism import PROFILES, RANGES, World, scene_realism
+from sonar_ring.score import score_map
 from sonar_ring.simulate import (
     CLASS_NAMES,
     DEFAULT_THRESHOLD,
@@ -247,8 +248,12 @@ def _add_process(subparsers) -> None:
     p.add_argument("--odom-topic", metavar="TOPIC", help="nav_msgs/Odometry for the mapper, relative to the echoes' "
                    "namespace (default: odom if the bag has it, else the mapper's fixed_pose)")
     p.add_argument("--jobs", type=_positive_int, metavar="N", help="processes in all: this one (reading, mapping, "
-                   "writing) and N - 1 workers localising, classifying and screening batches of pings for the "
-                   "mapper; 1: all in this one (default: one per CPU)")
+                   "writing) and N - 1 workers localising and classifying batches of pings; 1: all in this one "
+                   "(default: one per CPU)")
+    p.add_argument("--scene", metavar="SCENE", help="score each final map against this scene (name or YAML path) "
+                   "with sonar_ring.score, the map's frame taken as the scene's world frame (as in a bag from "
+                   "sonar-ring record-sim, whose odometry starts at the true pose); every reflector of the scene "
+                   "counts as heard")
     _add_output_options(p)
     p.set_defaults(handler=_run_process)
 
@@ -268,6 +273,11 @@ def _run_process(args) -> int:
     print("  refused: " + (", ".join(f"{n} {reason}" for reason, n in sorted(report.problems.items())) or "nothing"))
     if report.notes:
         print("  expected losses: " + ", ".join(f"{n} {reason}" for reason, n in sorted(report.notes.items())))
+    if args.scene is not None:
+        scene = load_scene(args.scene)
+        for topic, final_map in report.maps.items():
+            lines = score_map(final_map, scene).summary().splitlines()
+            print(f"  map score against {scene.name} ({topic}): " + "; ".join(lines))
     print(f"wrote {offline.describe(args.out_bag)}")
     return 0
 

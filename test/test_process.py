@@ -117,9 +117,12 @@ def test_record_sim_writes_the_drivers_topics_on_trajectory_time(sim_bag):
 
 def test_process_of_a_simulated_bag_finds_the_true_reflectors(sim_bag, tmp_path, capsys):
     out = tmp_path / "out"
-    code, printed, _ = run_cli(capsys, "process", str(sim_bag), str(out), "--quiet")
+    code, printed, _ = run_cli(capsys, "process", str(sim_bag), str(out), "--quiet", "--scene", "room")
     assert code == 0
     assert f"processed {PINGS} pings" in printed and "refused: nothing" in printed
+    # the final map scored against the scene the bag was recorded in
+    score_line = next(line for line in printed.splitlines() if line.startswith("  map score against room (/echoes):"))
+    assert "plane: " in score_line and "heard mapped" in score_line
     types, messages = read_bag(out)
     assert sorted(types) == sorted(OUTPUTS)
     _, source = read_bag(sim_bag)

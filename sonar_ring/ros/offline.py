@@ -168,6 +168,8 @@ class ProcessReport:
         Expected losses (no fault, e.g. an empty ping), by reason.
     skipped : list of str
         Topics asked for or looked for that could not be used, and why.
+    maps : dict of str to Landmarks
+        The final map of each echoes topic, as published (in its map frame).
     """
 
     pings: int = 0
@@ -180,6 +182,7 @@ class ProcessReport:
     problems: Counter = field(default_factory=Counter)
     notes: Counter = field(default_factory=Counter)
     skipped: list = field(default_factory=list)
+    maps: dict = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
@@ -596,8 +599,9 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
                                                                 meanwhile=mapping.load_kernels):
                 graph.take(time_ns, header, output)
             bar.close()
-            for graph in graphs.values():
+            for name, graph in graphs.items():
                 graph.finish()
+                report.maps[name] = graph.builder.snapshot()
                 report.per_class.update(dict(zip(CLASS_NAMES, graph.per_class.tolist(), strict=True)))
                 report.map_per_class.update(dict(zip(CLASS_NAMES, graph.map_per_class().tolist(), strict=True)))
     report.pings = len(times)
