@@ -1840,7 +1840,10 @@ class LandmarkMap:
         persistent : bool
             Only the persistent entries (:meth:`persistent`).
         decided : bool
-            Leave out the UNKNOWN points (neither motion nor a ping has told what they are).
+            Leave out the UNKNOWN points (neither motion nor a ping has told what they are), and the
+            CORNER_OR_EDGE points whose sightings carry curvature evidence (:mod:`sonar_ring.curvature`:
+            a ring's) until it tells them an edge or a corner; a fixed point whose sensor gives no such
+            evidence (a triad's) stays in as CORNER_OR_EDGE.
 
         Returns
         -------
@@ -1891,7 +1894,10 @@ class LandmarkMap:
             if persistent:
                 keep &= self._supported(table)
             if decided and table is self._points:
-                keep &= table.landmark_class != UNKNOWN
+                # A ring's true corners and edges decide within metres; what stays undecided there is,
+                # in the realistic world, almost only multipath that no model fits.
+                awaiting = (table.landmark_class == CORNER_OR_EDGE) & (table.modelled > 0)
+                keep &= (table.landmark_class != UNKNOWN) & ~awaiting
             if only is not None:
                 keep &= np.isin(table.uid, np.asarray(only, dtype=np.int64))
             chosen.append(np.flatnonzero(keep))

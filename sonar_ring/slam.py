@@ -553,15 +553,15 @@ class LandmarkSlam:
         return np.array(sorted(self._confirmed), dtype=np.int64)
 
     def snapshot(self, min_observations: int = 1) -> Landmarks:
-        """The map in ``map``: the confirmed entries (walls first, then points), as :meth:`LandmarkMap.snapshot`.
+        """The map in ``map``: confirmed, decided entries (walls first, then points), as :meth:`LandmarkMap.snapshot`.
 
         Walls end at the confirmed corners and edges on their lines near their ends (:meth:`published`).
         """
-        return self.published().snapshot(min_observations=min_observations, only=self.confirmed)
+        return self.published().snapshot(min_observations=min_observations, only=self.confirmed, decided=True)
 
     def points(self, min_observations: int = 1) -> np.ndarray:
         """Costmap points of the confirmed entries in ``map``, (P, 2), m (walls ended as in :meth:`snapshot`)."""
-        return self.published().points(min_observations=min_observations, only=self.confirmed)
+        return self.published().points(min_observations=min_observations, only=self.confirmed, decided=True)
 
     def published(self) -> LandmarkMap:
         """The front end with the confirmed walls ended at the confirmed points on their lines near their ends.

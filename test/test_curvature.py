@@ -196,6 +196,9 @@ def test_the_map_decides_as_the_sequential_test():
             # the distance driven from the first sighting to the decision: the sequential test's deciding sighting
             expected_distance = [travel[first[run]] - travel[0]] if verdict[run] != CORNER_OR_EDGE else []
             assert_allclose(landmark_map.decision_distances(), expected_distance, atol=1e-9)
+            # what the mapper publishes: a point its curvature can tell is held back until it does
+            published = landmark_map.snapshot(decided=True).landmark_class.tolist()
+            assert published == ([] if verdict[run] == CORNER_OR_EDGE else [verdict[run]]), (kind, run)
 
 
 def test_chi2_quantile_is_wilson_hilferty():
