@@ -1,4 +1,4 @@
-"""The sonar_ring graph: driver -> localiser -> classifier -> mapper, and RViz on request.
+"""The sonar_ring graph: driver -> localiser -> mapper, and RViz on request.
 
     ros2 launch sonar_ring sonar_ring.launch.py                      # hardware, Browne ring
     ros2 launch sonar_ring sonar_ring.launch.py source:=simulator    # default room scene
@@ -20,7 +20,7 @@ from launch.substitutions import LaunchConfiguration, PathJoinSubstitution, Pyth
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
 
-NODES = ("driver", "localiser", "classifier", "mapper")
+NODES = ("driver", "localiser", "mapper")
 
 ARGUMENTS = {
     "layout": ("browne_ring", "sensor layout: a name in config/layouts"),
@@ -32,7 +32,7 @@ ARGUMENTS = {
     "namespace": ("", "namespace of every node and relative topic"),
     "use_sim_time": ("false", "use /clock (bag replay)"),
     "rviz": ("false", "start RViz with config/sonar_ring.rviz"),
-    "single_process": ("false", "run the four nodes in one process (one executor)"),
+    "single_process": ("false", "run the three nodes in one process (one executor)"),
     "cpus": ("", "CPUs the sonar_ring processes run on, as taskset -c takes them (e.g. 1 or 2-3); empty: any. "
              "On one CPU a ping's middleware threads and executor share its cache: lower, steadier latency"),
 }

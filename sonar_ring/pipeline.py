@@ -298,13 +298,12 @@ def _matched_rows(layout: Layout, echoes: EchoArrays, ping: np.ndarray):
     return np.concatenate(firsts).astype(np.int64), np.concatenate(seconds).astype(np.int64)
 
 
-def label_pings(layout: Layout, pings: list[EchoArrays], localiser: Settings = Settings(),
-                classifier: Settings = Settings()) -> list[tuple[Landmarks, Landmarks]]:
+def label_pings(layout: Layout, pings: list[EchoArrays], settings: Settings = Settings()
+                ) -> list[tuple[Landmarks, Landmarks]]:
     """:func:`localise_ping` then :func:`classify_ping` for many pings at once; per ping the same result.
 
     For each ping of ``pings`` (screened echoes of ``layout``): its valid
-    hypotheses (with ``localiser`` settings) and its labelled landmarks (with
-    ``classifier`` settings), ``echo`` counting the ping's own rows -- exactly
+    hypotheses and its labelled landmarks, ``echo`` counting the ping's own rows -- exactly
     what the two functions give for that ping alone, since a row's results
     depend only on its own ping.  Consecutive pings with the same speed of sound
     (and the same amplitude and phase-delay columns) are stacked and go through
@@ -323,9 +322,9 @@ def label_pings(layout: Layout, pings: list[EchoArrays], localiser: Settings = S
         stacked = EchoArrays(batch[0].layout, batch[0].speed_of_sound,
                              *(np.concatenate([getattr(p, name) for p in batch])
                                for name in ("group", "transmitter", "tof", "amplitude", "phase_delay")))
-        hypotheses = localise_ping(layout, stacked, localiser)
+        hypotheses = localise_ping(layout, stacked, settings)
         hypotheses = hypotheses.select(hypotheses.valid)
-        labelled = classify_ping(layout, stacked, hypotheses, classifier,
+        labelled = classify_ping(layout, stacked, hypotheses, settings,
                                  ping=np.repeat(np.arange(len(batch)), sizes))
         results += zip(_split(hypotheses, offsets), _split(labelled, offsets), strict=True)
         start = stop

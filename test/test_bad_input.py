@@ -13,15 +13,14 @@ from rclpy.time import Time
 from ros_harness import spin_until
 from sonar_ring.msg import Echoes, LandmarkArray
 from std_msgs.msg import Header
+from visualization_msgs.msg import MarkerArray
 
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import load_layout
-from sonar_ring.landmarks import Landmarks
-from sonar_ring.ros.classifier import Classifier
 from sonar_ring.ros.convert import echoes_to_msg, landmarks_from_msg, landmarks_to_msg
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.driver import Driver
-from sonar_ring.ros.inputs import InputGate
+from sonar_ring.ros.inputs import TopicCheck, node_clock
 from sonar_ring.ros.localiser import Localiser
 from sonar_ring.ros.mapper import Mapper
 from sonar_ring.simulate import Simulator, load_scene
@@ -178,8 +177,8 @@ def test_stamp_order_restarts_when_simulated_time_jumps_back(ros):
     health = NodeHealth(node)
     clock = node.get_clock()
     forgotten = []
-    gate = InputGate(node, health, "echoes", {"frame_id": "", "future_tolerance": 1.0},
-                     on_clock_jump=lambda: forgotten.append(True))
+    gate = TopicCheck(node_clock(node), health, "echoes", {"frame_id": "", "future_tolerance": 1.0},
+                      on_clock_jump=lambda: forgotten.append(True))
 
     def header(seconds):
         h = Header(frame_id="sonar_ring")
@@ -245,41 +244,26 @@ def test_mapper_integrates_a_ping_once_and_refuses_stale_and_future_ones(ros):
     bench.close()
 
 
-def _classifier_bench():
-    """A classifier, its bench feeding ``echoes`` and taking ``landmarks``, and a publisher of ``landmarks/raw``."""
-    classifier = Classifier()
-    bench = Bench(classifier, "echoes", Echoes, "landmarks", LandmarkArray)
-    raw_publisher = bench.peer.create_publisher(LandmarkArray, "landmarks/raw", qos_profile_sensor_data)
-    assert spin_until(bench.executor, lambda: raw_publisher.get_subscription_count() > 0, timeout=10)
-    return classifier, bench, raw_publisher
-
-
-def test_classifier_pairs_each_ping_once(ros):
-    classifier, bench, raw_publisher = _classifier_bench()
-    header = bench.header()
-    echoes_msg = echoes_to_msg(wall_ping(), header)
-    raw = _one_ping_of_landmarks()
-    raw.header = header
-    for _ in range(2):
-        bench.publisher.publish(echoes_msg)
-        raw_publisher.publish(raw)
+def test_localiser_labels_the_rows_it_localised_once_per_ping(ros):
+    localiser = Localiser()
+    bench = Bench(localiser, "echoes", Echoes, "landmarks", LandmarkArray)
+    raw, markers = [], []
+    bench.peer.create_subscription(LandmarkArray, "landmarks/raw", raw.append, qos_profile_sensor_data)
+    bench.peer.create_subscription(MarkerArray, "markers", markers.append, 10)
+    assert spin_until(bench.executor, lambda: bench.peer.count_publishers("landmarks/raw") > 0
+                      and bench.peer.count_publishers("markers") > 0, timeout=10)
+    good = wall_ping()
+    mixed = with_rows(good, group=[60, 2], transmitter=[0, 5], tof=[[0.01, 0.01], [0.01, 0.01]])
+    ping = bench.send(echoes_to_msg(mixed, bench.header()))
+    bench.send(ping)  # the same ping again: refused, nothing published twice
     assert bench.outputs_settle(1)
-    assert spin_until(bench.executor, lambda: classifier.health.problems["duplicate_stamp"] == 2, timeout=5)
-    assert len(bench.out) == 1
-    assert problems(classifier) == {"duplicate_stamp": 2}
-    bench.close()
-
-
-def test_classifier_leaves_out_stray_hypotheses_and_labels_the_rest(ros):
-    classifier, bench, raw_publisher = _classifier_bench()
-    header = bench.header()
-    hypotheses = landmarks_from_msg(_one_ping_of_landmarks())
-    stray = replace(hypotheses.select([0]), echo=np.array([10**6], dtype=np.uint32))
-    bench.publisher.publish(echoes_to_msg(wall_ping(), header))
-    raw_publisher.publish(landmarks_to_msg(Landmarks.concatenate([hypotheses, stray]), header))
-    assert bench.outputs_settle(1)
-    assert len(landmarks_from_msg(bench.out[0])) > 0
-    assert problems(classifier) == {"stray_hypothesis": 1}
+    assert spin_until(bench.executor, lambda: raw and markers, timeout=5)
+    assert (len(bench.out), len(raw), len(markers)) == (1, 1, 1)
+    labelled, hypotheses = landmarks_from_msg(bench.out[0]), landmarks_from_msg(raw[0])
+    assert len(labelled) == good.n_echoes and set(labelled.echo) == set(hypotheses.echo)
+    for row, position in zip(labelled.echo, labelled.position, strict=True):  # one of the row's hypotheses
+        assert np.min(np.abs(hypotheses.position[hypotheses.echo == row] - position).max(axis=1)) == 0.0
+    assert problems(localiser) == {"unknown_group": 1, "unknown_transmitter": 1, "duplicate_stamp": 1}
     bench.close()
 
 

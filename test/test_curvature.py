@@ -61,7 +61,7 @@ def test_point_models_solve_both_models_from_the_paths_a_landmark_implies():
                        for estimate in estimates]
         group = int(np.argmin(np.abs(np.angle(np.exp(1j * (RING.plan.yaw - math.atan2(point[1], point[0])))))))
         rows.append((estimates, covariances, group, 0.5 * (tx + 0.5 * (rx1 + rx2))))
-    # what the classifier hands on: an undecided point by the virtual-image model, its covariance widened by the
+    # what classify_ping hands on: an undecided point by the virtual-image model, its covariance widened by the
     # models' discrepancy g g^T; an edge by the edge model
     gap = rows[0][0][1].position - rows[0][0][0].position
     landmarks = make_landmarks([UNKNOWN, EDGE], [rows[0][0][0].position, rows[1][0][1].position],
@@ -111,7 +111,7 @@ def passes(kind, runs, rng, sigma_tof=1e-6, pings=120, motion="past"):
         else:
             true = np.linalg.norm(point - tx, axis=-1)[:, None] + np.linalg.norm(point[:, None] - rx, axis=-1)
         noisy = true + rng.normal(0.0, sigma, true.shape)
-        # what the classifier hands on: the virtual-image model's position, its covariance, the pair
+        # what classify_ping hands on: the virtual-image model's position, its covariance, the pair
         estimate = localise.corner(tx, rx[:, 0], rx[:, 1], noisy[:, 0], noisy[:, 1])
         landmarks = make_landmarks(np.full(runs, CORNER), estimate.position, group=groups, covariance=(
             uncertainty.position_covariance(estimate, tx, rx[:, 0], rx[:, 1], paths_covariance)))
@@ -186,7 +186,7 @@ def test_the_map_decides_as_the_sequential_test():
             landmark_map = LandmarkMap()
             for j, s in enumerate(travel):
                 sensor = np.array([s, 0.0, 0.0])
-                gap = edge[run, j] - corner[run, j]  # as the classifier widens an undecided point's covariance
+                gap = edge[run, j] - corner[run, j]  # as classify_ping widens an undecided point's covariance
                 seen = make_landmarks([UNKNOWN], corner[run, j] - sensor[:2],
                                       covariance=corner_covariance[run, j] + np.outer(gap, gap))
                 models = PointModels(corner[run, j][None], edge[run, j][None], corner_covariance[run, j][None],

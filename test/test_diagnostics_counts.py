@@ -28,20 +28,19 @@ from test_transport import frame, free_port
 from visualization_msgs.msg import MarkerArray
 
 from sonar_ring.frames import encode_echoes
-from sonar_ring.ros.classifier import Classifier
 from sonar_ring.ros.driver import Driver
 from sonar_ring.ros.localiser import Localiser
 from sonar_ring.ros.mapper import Mapper
 
 pytestmark = pytest.mark.ros
 
-OUTPUTS = {"driver": {"echoes": Echoes}, "localiser": {"landmarks/raw": LandmarkArray},
-           "classifier": {"landmarks": LandmarkArray, "markers": MarkerArray},
+OUTPUTS = {"driver": {"echoes": Echoes},
+           "localiser": {"landmarks/raw": LandmarkArray, "landmarks": LandmarkArray, "markers": MarkerArray},
            "mapper": {"map/landmarks": LandmarkArray, "map/markers": MarkerArray, "map/points": PointCloud2,
                       "slam/pose": PoseWithCovarianceStamped}}
 """The topics each node's ``published`` counts."""
-INPUTS = {"localiser": "echoes", "classifier": "landmarks/raw", "mapper": "landmarks"}
-"""The topic whose messages each node downstream of the driver counts as ``inputs`` (the classifier: pings paired)."""
+INPUTS = {"localiser": "echoes", "mapper": "landmarks"}
+"""The topic whose messages each node downstream of the driver counts as ``inputs``."""
 ALL_MESSAGES = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)
 """The map topics' QoS with a queue deep enough to keep every map the mapper publishes."""
@@ -55,7 +54,6 @@ def test_every_nodes_counts_on_diagnostics_are_what_was_received(ros):
             Parameter("source", value="hardware"), Parameter("device", value=f"udp://127.0.0.1:{port}"),
             Parameter("publish_range", value=False)]),
         "localiser": Localiser(namespace=namespace),
-        "classifier": Classifier(namespace=namespace),
         "mapper": Mapper(namespace=namespace, parameter_overrides=[Parameter("use_odometry", value=False),
                                                                     Parameter("map_rate", value=10.0)]),
     }

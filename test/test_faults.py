@@ -80,7 +80,7 @@ def test_restarted_localiser_rejoins_and_a_late_subscriber_gets_the_map(ros):
         return subprocess.Popen([executable(name), "--ros-args", "-r", f"__ns:={namespace}", "-p",
                                  "source:=simulator", "-p", "map_rate:=5.0"])
 
-    processes = {name: start(name) for name in ("driver", "localiser", "classifier", "mapper")}
+    processes = {name: start(name) for name in ("driver", "localiser", "mapper")}
     observer = rclpy.create_node("fault_observer", namespace=namespace)
     landmarks, published_maps = [], []
     observer.create_subscription(LandmarkArray, "landmarks", landmarks.append, qos_profile_sensor_data)
@@ -94,7 +94,7 @@ def test_restarted_localiser_rejoins_and_a_late_subscriber_gets_the_map(ros):
         spin_until(executor, lambda: False, timeout=0.5)
         landmarks.clear()
         spin_until(executor, lambda: False, timeout=1.0)
-        assert not landmarks, "without a localiser the classifier has nothing to label"
+        assert not landmarks, "without a localiser nothing is labelled"
         processes["localiser"] = start("localiser")
         assert spin_until(executor, lambda: len(landmarks) >= 10, timeout=40), "the new localiser rejoined"
         # SLAM maps a landmark once it is decided and seen from several poses: wait for a map with one.
@@ -114,7 +114,7 @@ def test_restarted_localiser_rejoins_and_a_late_subscriber_gets_the_map(ros):
         for process in processes.values():
             process.send_signal(signal.SIGINT)
         codes = [process.wait(timeout=20) for process in processes.values()]
-    assert codes == [0, 0, 0, 0]
+    assert codes == [0, 0, 0]
 
 
 def test_driver_drops_and_counts_frames_beyond_its_queue(ros):

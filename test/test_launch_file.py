@@ -48,10 +48,10 @@ def launched_nodes(**configurations):
     return nodes, context
 
 
-def test_launch_file_starts_the_four_nodes_rviz_and_the_single_process_graph():
+def test_launch_file_starts_the_three_nodes_rviz_and_the_single_process_graph():
     nodes, _ = launched_nodes()
     executables = sorted(node.node_executable for node in nodes)
-    assert executables == sorted(["driver", "localiser", "classifier", "mapper", "graph", "rviz2"])
+    assert executables == sorted(["driver", "localiser", "mapper", "graph", "rviz2"])
 
 
 def test_cpus_runs_the_sonar_ring_processes_under_taskset_before_any_launch_prefix():
@@ -77,10 +77,10 @@ def test_cpus_keeps_the_launch_prefix_filter():
     spec = importlib.util.spec_from_file_location("sonar_ring_launch", LAUNCH_FILE)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
-    _, context = launched_nodes(cpus="", **{"launch-prefix": "gdb --args", "launch-prefix-filter": "classifier"})
-    assert module.cpu_prefix(context, "classifier") is None
-    _, context = launched_nodes(cpus="1", **{"launch-prefix": "gdb --args", "launch-prefix-filter": "classifier"})
-    assert module.cpu_prefix(context, "classifier") == "taskset -c 1 gdb --args"
-    assert module.cpu_prefix(context, "localiser") == "taskset -c 1"
+    _, context = launched_nodes(cpus="", **{"launch-prefix": "gdb --args", "launch-prefix-filter": "localiser"})
+    assert module.cpu_prefix(context, "localiser") is None
+    _, context = launched_nodes(cpus="1", **{"launch-prefix": "gdb --args", "launch-prefix-filter": "localiser"})
+    assert module.cpu_prefix(context, "localiser") == "taskset -c 1 gdb --args"
+    assert module.cpu_prefix(context, "mapper") == "taskset -c 1"
     _, context = launched_nodes(cpus="1 2")
     assert module.cpu_prefix(context, "graph") == "taskset -c '1 2'"  # one argument, as given

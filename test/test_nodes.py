@@ -16,7 +16,6 @@ from sonar_ring.msg import LandmarkArray
 from visualization_msgs.msg import Marker, MarkerArray
 
 from sonar_ring.landmarks import CLASS_NAMES
-from sonar_ring.ros.classifier import Classifier
 from sonar_ring.ros.convert import echoes_from_cdr, landmarks_from_msg
 from sonar_ring.ros.driver import Driver
 from sonar_ring.ros.graph import NODES, compose
@@ -94,7 +93,7 @@ def test_graph_in_one_process_matches_ground_truth(ros):
 
 def test_graph_in_one_process_maps_the_ideal_world(ros):
     nodes, listener = _run_graph([Parameter("world", value="ideal")])
-    mapper = nodes[3]
+    mapper = nodes[-1]
     counts = mapper.map.counts
     assert counts.fused > 5 * counts.created, "repeated sightings must fuse into existing entries"
     scene = load_scene("room")
@@ -130,8 +129,7 @@ def test_driver_hands_on_the_arrays_its_message_carries(ros):
 
 
 def test_composing_nodes_of_different_layouts_is_refused(ros):
-    nodes = [Driver(), Localiser(parameter_overrides=[Parameter("layout", value="barshan_kuc_pair")]), Classifier(),
-             Mapper()]
+    nodes = [Driver(), Localiser(parameter_overrides=[Parameter("layout", value="barshan_kuc_pair")]), Mapper()]
     with pytest.raises(ParameterError, match="share one layout"):
         compose(nodes)
     for node in nodes:
@@ -141,8 +139,7 @@ def test_composing_nodes_of_different_layouts_is_refused(ros):
 def test_graph_as_separate_processes_publishes_and_exits_cleanly(ros):
     namespace = f"/separate_{os.getpid()}"
     processes = [subprocess.Popen([executable(name), "--ros-args", "-r", f"__ns:={namespace}",
-                                   "-p", "source:=simulator"]) for name in ("driver", "localiser", "classifier",
-                                                                            "mapper")]
+                                   "-p", "source:=simulator"]) for name in ("driver", "localiser", "mapper")]
     try:
         listener = Listener(namespace)
         executor = SingleThreadedExecutor()
@@ -157,7 +154,7 @@ def test_graph_as_separate_processes_publishes_and_exits_cleanly(ros):
         for process in processes:
             process.send_signal(signal.SIGINT)
         codes = [process.wait(timeout=20) for process in processes]
-    assert codes == [0, 0, 0, 0]
+    assert codes == [0, 0, 0]
 
 
 def test_ctrl_c_inside_nested_compiled_kernels_is_an_interrupt():
@@ -179,28 +176,28 @@ def test_ctrl_c_inside_nested_compiled_kernels_is_an_interrupt():
 
 
 def test_invalid_parameter_changes_are_refused_and_the_old_value_kept(ros):
-    localiser, classifier, driver = Localiser(), Classifier(), Driver()
+    localiser, driver = Localiser(), Driver()
     result = localiser.set_parameters([Parameter("models", value=["plane", "wall"])])[0]
     assert not result.successful and "models must be a non-empty subset" in result.reason
     assert localiser.get_parameter("models").value == ["plane", "corner", "edge"]
-    result = classifier.set_parameters([Parameter("sigma_tof", value=-1.0)])[0]
+    result = localiser.set_parameters([Parameter("sigma_tof", value=-1.0)])[0]
     assert not result.successful
-    assert classifier.get_parameter("sigma_tof").value == 1e-6
+    assert localiser.get_parameter("sigma_tof").value == 1e-6
     result = driver.set_parameters([Parameter("source", value="topic")])[0]
     assert not result.successful and "read-only" in result.reason
     assert localiser.set_parameters([Parameter("models", value=["corner"])])[0].successful
-    assert localiser.settings.models == ("corner",)
+    assert localiser.stage.settings.models == ("corner",)
     # the driver's fallback speed of sound: 0 (the default) or what the echo screening accepts
     result = driver.set_parameters([Parameter("speed_of_sound", value=200.0)])[0]
     assert not result.successful and "250..450 m/s" in result.reason
     assert driver.set_parameters([Parameter("speed_of_sound", value=420.0)])[0].successful
     assert driver.set_parameters([Parameter("speed_of_sound", value=0.0)])[0].successful
-    for node in (localiser, classifier, driver):
+    for node in (localiser, driver):
         node.destroy_node()
 
 
 def test_graph_nodes_add_no_qos_event_waitables_to_the_executor(ros):
     """Every waitable is visited on every executor wait; the default QoS event handlers were 40 of them."""
     nodes = [cls(parameter_overrides=[Parameter("source", value="topic")]) for cls in NODES]
-    assert [len(list(node.waitables)) for node in nodes] == [0, 0, 0, 0]
+    assert [len(list(node.waitables)) for node in nodes] == [0, 0, 0]
     assert len(list(nodes[0].publishers)) > 48  # echoes and one Range topic per group, all without handlers

@@ -131,18 +131,17 @@ def test_batched_pings_give_each_ping_its_own_result_exactly(layout_name, scene_
                           pings[3].tof[:0], np.empty((0, 0), np.float32), np.empty((0, 0)))
     for index in (6, 7):  # a warmer stretch: stacked apart from the rest
         pings[index] = EchoArrays(**{**pings[index].__dict__, "speed_of_sound": 349.0})
-    localiser = pipeline.Settings(models=("plane", "edge", "corner"), sigma_tof=3e-7)
-    classifier = pipeline.Settings(sigma_tof=1e-7)
-    batched = pipeline.label_pings(layout, pings, localiser, classifier)
+    settings = pipeline.Settings(models=("plane", "edge", "corner"), sigma_tof=3e-7)
+    batched = pipeline.label_pings(layout, pings, settings)
     assert len(batched) == len(pings)
     decided = invalid = 0
     for echoes, (hypotheses, labelled) in zip(pings, batched, strict=True):
-        everything = pipeline.localise_ping(layout, echoes, localiser)
+        everything = pipeline.localise_ping(layout, echoes, settings)
         alone = everything.select(everything.valid)
         assert_same_landmarks(hypotheses, alone)
-        assert_same_landmarks(labelled, pipeline.classify_ping(layout, echoes, alone, classifier))
+        assert_same_landmarks(labelled, pipeline.classify_ping(layout, echoes, alone, settings))
         # Invalid hypotheses change nothing: the composed localiser hands them all on.
-        assert_same_landmarks(labelled, pipeline.classify_ping(layout, echoes, everything, classifier))
+        assert_same_landmarks(labelled, pipeline.classify_ping(layout, echoes, everything, settings))
         decided += np.count_nonzero(labelled.landmark_class != UNKNOWN)
         invalid += np.count_nonzero(~everything.valid)
     assert sum(len(h) for h, _ in batched) > 0

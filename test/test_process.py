@@ -312,7 +312,7 @@ def test_an_existing_output_or_a_bad_parameter_file_is_one_line(sim_bag, tmp_pat
 
 def test_parameters_from_a_file_reach_the_nodes_functions(sim_bag, tmp_path, capsys):
     params = tmp_path / "params.yaml"
-    params.write_text("/**/classifier:\n  ros__parameters:\n    marker_lifetime: 2.0\n"
+    params.write_text("/**/localiser:\n  ros__parameters:\n    marker_lifetime: 2.0\n"
                       "/**/mapper:\n  ros__parameters:\n    map_rate: 10.0\n")
     code, _, err = run_cli(capsys, "process", str(sim_bag), str(tmp_path / "out"), "--params", str(params), "--quiet")
     assert code == 0, err

@@ -2,7 +2,7 @@
 
 ``ros2 bag play`` is not installable here, so the test plays the bag itself:
 ``/clock`` first, then each echo message at its recorded time, into a fresh
-localiser and classifier running with ``use_sim_time``.
+localiser running with ``use_sim_time``.
 """
 
 import time
@@ -20,7 +20,6 @@ from rosgraph_msgs.msg import Clock
 from sonar_ring.msg import Echoes, LandmarkArray
 
 from sonar_ring.ros.bag import typestore
-from sonar_ring.ros.classifier import Classifier
 from sonar_ring.ros.convert import landmarks_from_msg
 from sonar_ring.ros.driver import Driver
 from sonar_ring.ros.localiser import Localiser
@@ -39,7 +38,7 @@ def record_live_run(bag: Path):
     rclpy.init()
     try:
         overrides = [Parameter("scene", value="room"), Parameter("ping_rate", value=60.0)]
-        nodes = [Driver(parameter_overrides=overrides), Localiser(), Classifier()]
+        nodes = [Driver(parameter_overrides=overrides), Localiser()]
         recorder = rclpy.create_node("recorder")
         recorded = {"echoes": [], "landmarks": []}
         for topic, kind in (("echoes", Echoes), ("landmarks", LandmarkArray)):
@@ -64,14 +63,14 @@ def record_live_run(bag: Path):
 
 
 def replay(bag: Path):
-    """Play the bag's echoes with /clock into a sim-time localiser and classifier; return landmarks by stamp."""
+    """Play the bag's echoes with /clock into a sim-time localiser; return landmarks by stamp."""
     with Reader(bag) as reader:
         echoes = [(t, bytes(raw)) for connection, t, raw in reader.messages()
                   if connection.topic == "/echoes"]
     rclpy.init()
     try:
         sim_time = [Parameter("use_sim_time", value=True)]
-        nodes = [Localiser(parameter_overrides=sim_time), Classifier(parameter_overrides=sim_time)]
+        nodes = [Localiser(parameter_overrides=sim_time)]
         player = rclpy.create_node("player")
         clock = player.create_publisher(Clock, "/clock", QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE))
         publisher = player.create_publisher(Echoes, "echoes", qos_profile_sensor_data)

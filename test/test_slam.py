@@ -2,7 +2,6 @@
 and a corner, a loop closed without duplicates, faults detected, and the mapper's core around it."""
 
 import math
-from collections import Counter
 from dataclasses import replace
 
 import gtsam
@@ -16,6 +15,7 @@ from sonar_ring.echoes import screen_ping
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import CORNER, PLANE, Landmarks
 from sonar_ring.map_builder import MapBuilder, MapperSettings
+from sonar_ring.ping_stage import Counts, PingStage
 from sonar_ring.poses import compose, relative_pose
 from sonar_ring.realism import IDEAL, World
 from sonar_ring.score import score_map, trajectory_error
@@ -24,6 +24,7 @@ from sonar_ring.slam import LandmarkSlam, SlamSettings, wall_error
 
 RING = load_layout("browne_ring")
 SETTINGS = pipeline.Settings(sigma_speed=pipeline.ROBOT_SIGMA_SPEED)
+STAGE = PingStage(RING, SETTINGS)
 CORNER_ROOM = load_scene({
     "name": "corner_room",
     "reflectors": [
@@ -34,23 +35,11 @@ CORNER_ROOM = load_scene({
 })
 
 
-class Tally:
-    def __init__(self):
-        self.problems, self.notes = Counter(), Counter()
-
-    def problem(self, reason, detail="", count=1):
-        self.problems[reason] += count
-
-    def note(self, reason, count=1):
-        self.notes[reason] += count
-
-
 def labelled_pings(scene, poses, seed=0):
     world = World(scene, RING, IDEAL, noise=Noise(tof=1e-6, amplitude=0.02), seed=seed)
     pings = [world.ping(pose, k / RING.ping_rate) for k, pose in enumerate(poses)]
     echoes = [screen_ping(p.echoes, RING).echoes for p in pings]
-    return [pipeline.label_pings(RING, [e], SETTINGS, SETTINGS)[0][1] if e is not None else Landmarks.empty()
-            for e in echoes], pings
+    return [STAGE.label(e)[1] if e is not None else Landmarks.empty() for e in echoes], pings
 
 
 def test_wall_error_jacobians_match_finite_differences():
@@ -106,7 +95,7 @@ def test_a_loop_closes_without_duplicates():
         truth.append(pose)
         heard.update(ping.truth_reflector[(ping.truth_origin == DIRECT) & np.isfinite(ping.tof).all(axis=1)].tolist())
         echoes = screen_ping(ping.echoes, RING).echoes
-        found = pipeline.label_pings(RING, [echoes], SETTINGS, SETTINGS)[0][1]
+        found = STAGE.label(echoes)[1]
         estimates.append(slam.add_ping(found, odometry[-1], k / RING.ping_rate).pose)
     score = score_map(slam.snapshot(min_observations=2), room, sorted(heard))
     assert score.total("duplicates") == 0 and score.ghosts == 0, score.summary()
@@ -119,7 +108,7 @@ def test_a_loop_closes_without_duplicates():
 def test_an_odometry_jump_starts_a_new_segment_and_a_stretch_without_landmarks_is_reported():
     truth = np.array([[1.0 + 0.01 * k, 1.0, math.radians(-135)] for k in range(80)])
     landmarks, _ = labelled_pings(CORNER_ROOM, truth)
-    health = Tally()
+    health = Counts()
     builder = MapBuilder(MapperSettings(), health)
     for k, (found, pose) in enumerate(zip(landmarks, truth, strict=True)):
         odometry = pose if k < 60 else compose(pose, (0.5, 0.0, math.radians(20)))  # slipped wheels
@@ -138,7 +127,7 @@ def test_an_odometry_jump_starts_a_new_segment_and_a_stretch_without_landmarks_i
 
 
 def test_the_builder_waits_for_odometry_and_counts_what_it_cannot_place():
-    health = Tally()
+    health = Counts()
     builder = MapBuilder(MapperSettings(slam=False), health)
     empty = Landmarks.empty()
     builder.add_odometry(100, (0.0, 0.0, 0.0))
@@ -159,7 +148,7 @@ def test_error_handling():
     assert report.keyframe and not report.fault
     with pytest.raises(TypeError):
         SlamSettings(keyframe_distance=0.1, unknown=1)
-    health = Tally()
+    health = Counts()
     builder = MapBuilder(MapperSettings(), health)
     builder.add_odometry(10, (math.nan, 0.0, 0.0))
     builder.add_ping(10, Landmarks.empty())

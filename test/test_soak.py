@@ -6,20 +6,20 @@ Browne ring's 30 Hz, from its own process, for one lap of the room's trajectory
 (``loops``: 14,200 pings, 47 s at that rate; ``SONAR_RING_SOAK_LAPS`` changes
 the laps) in the ideal world (the realistic one's multipath alone costs the
 simulator several milliseconds a ping; this test loads the graph) and then
-stops; localiser, classifier and mapper share one executor in this process,
+stops; localiser and mapper share one executor in this process,
 each with its own subscriptions (not composed as in the ``graph``
 executable), so every ping crosses DDS queues.  When they fall behind
-(three callbacks and message decoding per ping on a shared core, and whatever
+(two callbacks and message decoding per ping on a shared core, and whatever
 else the machine runs), the nodes must drop what they cannot take -- from their
-depth-5 subscription queues and the classifier's and mapper's bounded pending
-pings -- and count it, instead of queueing without bound.
+depth-5 subscription queues and the mapper's bounded pending pings (waiting
+for their odometry) -- and count it, instead of queueing without bound.
 
 Checked, at any load: every ping the driver published is taken by the
 localiser or counted as ``dropped_input (echoes)``, exactly, once the driver has
 stopped and the graph has drained (apart from the pings published before the
 localiser heard the driver at all, which no subscriber can count: the first
-ping's sequence number tells how many); the pending pings never exceed their
-limits; resident memory of both processes grows less than 5 % (and 10 MiB)
+ping's sequence number tells how many); the mapper's pending pings never
+exceed their limit; resident memory of both processes grows less than 5 % (and 10 MiB)
 after the first quarter (warm-up: imports, DDS discovery, the map filling).
 Not checked: how many pings per second the graph keeps up with, which depends
 on the machine and what else runs on it -- ``sonar-ring bench`` measures the
@@ -46,9 +46,7 @@ from sonar_ring.msg import LandmarkArray
 
 from sonar_ring import map_builder
 from sonar_ring.geometry import load_layout
-from sonar_ring.ros import classifier as classifier_module
-from sonar_ring.ros.classifier import Classifier
-from sonar_ring.ros.inputs import InputGate, stamp_ns
+from sonar_ring.ros.inputs import TopicCheck, stamp_ns
 from sonar_ring.ros.localiser import Localiser
 from sonar_ring.ros.mapper import Mapper
 from sonar_ring.simulate import load_scene
@@ -95,30 +93,30 @@ class Observer:
 
 
 def first_sequence_number(node):
-    """The publication sequence number of the first message each gate of ``node`` took, by gate, as they come.
+    """The publication sequence number of the first message each topic check of ``node`` took, as they come.
 
     Pings published before a subscription heard its publisher at all are lost
     to it without a gap to count; the first one's sequence number tells how many.
     """
     first = {}
-    for gate in (value for value in vars(node).values() if isinstance(value, InputGate)):
-        def count_lost(info, gate=gate, count_lost=gate.count_lost):
-            if info is not None and gate not in first:
-                first[gate] = info.get("publication_sequence_number")
+    for check in (value for value in vars(node).values() if isinstance(value, TopicCheck)):
+        def count_lost(info, check=check, count_lost=check.count_lost):
+            if info is not None and check not in first:
+                first[check] = info.get("publication_sequence_number")
             count_lost(info)
-        gate.count_lost = count_lost
+        check.count_lost = count_lost
     return first
 
 
 def drops(node):
     return {reason: n for reason, n in node.health.problems.items()
-            if reason.startswith(("dropped_input", "unpaired")) or reason == "no_odometry"}
+            if reason.startswith("dropped_input") or reason == "no_odometry"}
 
 
 def test_ten_times_the_ping_rate_for_a_lap_of_the_room(ros):
     namespace = f"/soak_{os.getpid()}"
-    nodes = [cls(namespace=namespace) for cls in (Localiser, Classifier, Mapper)]
-    localiser, classifier, mapper = nodes
+    nodes = [cls(namespace=namespace) for cls in (Localiser, Mapper)]
+    localiser, mapper = nodes
     first = first_sequence_number(localiser)
     observer = Observer(namespace)
     executor = SingleThreadedExecutor()
@@ -138,13 +136,13 @@ def test_ten_times_the_ping_rate_for_a_lap_of_the_room(ros):
         while observer.driver_published < PINGS:
             spin_until(executor, lambda: False, timeout=1.0)
             samples.append((time.monotonic() - started, rss_mib(), rss_mib(driver.pid)))
-            pending.append((len(classifier._pending), mapper.pending_pings))
+            pending.append(mapper.pending_pings)
             assert time.monotonic() - started < HUNG_SECONDS, "the driver must finish its laps"
         # Drained: the localiser has taken or counted every ping, or nothing has changed for a while.
         last, quiet_since = None, time.monotonic()
         while accounted() < PINGS and time.monotonic() - quiet_since < 5.0:
             spin_until(executor, lambda: False, timeout=0.5)
-            pending.append((len(classifier._pending), mapper.pending_pings))
+            pending.append(mapper.pending_pings)
             if accounted() != last:
                 last, quiet_since = accounted(), time.monotonic()
     finally:
@@ -156,7 +154,7 @@ def test_ten_times_the_ping_rate_for_a_lap_of_the_room(ros):
     after_warm_up = seconds >= seconds[-1] / 4
     report = {"duration_s": float(seconds[-1]), "rate_hz": RATE, "driver_published": observer.driver_published,
               "heard_from_ping": list(first.values()), "localiser_taken": localiser.health.received_count,
-              "classified": classifier.health.received_count, "mapped_pings": mapper.map.counts.pings,
+              "mapped_pings": mapper.map.counts.pings,
               "drops": {node.get_name(): drops(node) for node in nodes}}
     for name, mib in (("graph", graph_mib), ("driver", driver_mib)):
         base = mib[after_warm_up][0]
@@ -171,8 +169,7 @@ def test_ten_times_the_ping_rate_for_a_lap_of_the_room(ros):
                                      for node in nodes}
     print(f"\nsoak report: {report}")
 
-    assert max(p for p, _ in pending) <= classifier_module.PENDING_LIMIT
-    assert max(p for _, p in pending) <= map_builder.PENDING_LIMIT
+    assert max(pending) <= map_builder.PENDING_LIMIT
     assert observer.driver_published == PINGS
     assert accounted() == PINGS, f"pings lost without a count: {report}"
     for node in nodes:

@@ -16,10 +16,12 @@ from sonar_ring.curvature import point_models
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, UNKNOWN
 from sonar_ring.map_builder import MapBuilder, MapperSettings
+from sonar_ring.ping_stage import PingStage
 from sonar_ring.simulate import Noise, Simulator, load_scene
 
 TRIAD = load_layout("kreczmer_triad")
 SETTINGS = pipeline.Settings(sigma_tof=1e-6, sigma_speed=pipeline.ROBOT_SIGMA_SPEED)
+STAGE = PingStage(TRIAD, SETTINGS)
 NOISE = Noise(tof=1e-6, amplitude=0.02)
 STEP = 0.3 / TRIAD.ping_rate  # m a ping at walking pace
 
@@ -41,8 +43,7 @@ def drive(scene_name, poses, seed=3):
     for k, pose in enumerate(poses):
         stamp = 10**9 + k * 10**9 // 20
         builder.add_odometry(stamp, pose)
-        labelled = pipeline.label_pings(TRIAD, [simulator.ping(pose, noise=NOISE, rng=rng).echoes], SETTINGS,
-                                        SETTINGS)[0][1]
+        labelled = STAGE.label(simulator.ping(pose, noise=NOISE, rng=rng).echoes)[1]
         labels.append(labelled.landmark_class)
         assert builder.add_ping(stamp, labelled)
     return builder, np.concatenate(labels)

@@ -8,7 +8,7 @@ Three measurements, each judged against its target (:data:`MEDIAN_TARGET_MS`,
    echo tests on: the mapper node's), maps ``laps`` laps of the room in the
    realistic world (:func:`sonar_ring.benchmark.worlds.simulated`, seed 0:
    the pings of ``sonar-ring bench --map``'s realistic runs), each ping
-   labelled by :func:`sonar_ring.pipeline.label_pings` first; the time of each
+   labelled by :meth:`sonar_ring.ping_stage.PingStage.label_many` first; the time of each
    ``add_ping`` (its odometry is already there, so it maps at once).  For the
    split, the builder's echo tests (``MapBuilder._explain``), the
    :func:`~sonar_ring.explain.explain_landmarks` it calls and the SLAM update
@@ -57,6 +57,7 @@ from sonar_ring.benchmark.environment import machine, revision, today
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import Landmarks
 from sonar_ring.map_builder import MapBuilder, MapperSettings
+from sonar_ring.ping_stage import Counts, PingStage
 
 WORLD = "realistic"
 SEED = 0
@@ -96,16 +97,16 @@ def labelled_pings(count: int, seed: int = SEED, batch: int = 64):
     """``(stamp ns, odometry pose, labelled landmarks)`` of ``count`` pings of the room in the realistic world.
 
     Simulated (:func:`~sonar_ring.benchmark.worlds.simulated`) and labelled
-    (:func:`~sonar_ring.pipeline.label_pings`, with a robot's settings) ``batch``
+    (:meth:`~sonar_ring.ping_stage.PingStage.label_many`, with a robot's settings) ``batch``
     at a time, as they are taken; ping ``k`` is stamped ``1 + k / ping_rate`` s.
     """
     layout = load_layout(worlds.LAYOUT)
-    settings = pipeline.Settings(sigma_speed=pipeline.ROBOT_SIGMA_SPEED)
+    stage = PingStage(layout, pipeline.Settings(sigma_speed=pipeline.ROBOT_SIGMA_SPEED))
     pings = worlds.simulated(WORLD, seed, count)
     first = 0
     while taken := [(odometry, echoes) for _, _, odometry, echoes in itertools.islice(pings, batch)]:
         usable = [index for index, (_, echoes) in enumerate(taken) if echoes is not None]
-        labels = pipeline.label_pings(layout, [taken[index][1] for index in usable], settings, settings)
+        labels = stage.label_many([taken[index][1] for index in usable])
         labelled = dict(zip(usable, (landmarks for _, landmarks in labels), strict=True))
         for index, (odometry, _) in enumerate(taken):
             stamp = int(round(1e9 * (1.0 + (first + index) / layout.ping_rate)))
@@ -120,7 +121,7 @@ def new_builder() -> MapBuilder:
     """
     mapping.load_kernels()
     explain.load_kernels()
-    return MapBuilder(MapperSettings(layout=load_layout(worlds.LAYOUT)), worlds.Refusals())
+    return MapBuilder(MapperSettings(layout=load_layout(worlds.LAYOUT)), Counts())
 
 
 def _map_sizes(builder: MapBuilder) -> dict:

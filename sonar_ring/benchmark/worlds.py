@@ -4,7 +4,7 @@ Scored against the scene over many seeds.  For every world and seed, :func:`simu
 room with Browne's ring (σ_t = 1 µs, σ_A = 2 %; :class:`sonar_ring.realism.World`)
 and keeps what a robot has -- the usable echoes of every ping and the wheel
 odometry's pose -- beside the truth.  Every mapper of :data:`MAPPERS` then
-builds its map from the same pings (``echoes`` -> :func:`sonar_ring.pipeline.label_pings`
+builds its map from the same pings (``echoes`` -> :class:`sonar_ring.ping_stage.PingStage`
 -> the mapper), and :func:`sonar_ring.score.score_map` scores the final map
 against the reflectors the sensor heard.  Runs go to one process per CPU.
 
@@ -28,11 +28,11 @@ import numpy as np
 from sonar_ring import pipeline
 from sonar_ring.benchmark import sections
 from sonar_ring.benchmark.environment import machine, revision, today
-from sonar_ring.echoes import screen_ping
 from sonar_ring.explain import EchoTests
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import Landmarks
 from sonar_ring.map_builder import MapBuilder, MapperSettings
+from sonar_ring.ping_stage import Counts, PingStage, check_ping
 from sonar_ring.realism import EFFECTS, IDEAL, REALISTIC, World
 from sonar_ring.score import MapScore, score_map, trajectory_error
 from sonar_ring.simulate import DIRECT, Noise, load_scene
@@ -102,21 +102,6 @@ class Outcome:
     decision_m: np.ndarray = field(default_factory=lambda: np.empty(0))
 
 
-class Refusals:
-    """What a mapper refused, by reason (the mapper's ``problem`` and ``note``)."""
-
-    def __init__(self) -> None:
-        self.problems: dict[str, int] = {}
-
-    def problem(self, reason: str, detail: str = "", count: int = 1) -> None:
-        """Count ``count`` refusals of ``reason``."""
-        if count:
-            self.problems[reason] = self.problems.get(reason, 0) + count
-
-    def note(self, reason: str, count: int = 1) -> None:
-        """Expected losses are not a mapper's fault: not kept."""
-
-
 def mapped(recorded: Recorded, layout, slam: bool, echo_tests: bool = True) -> Outcome:
     """The mapper's core (:class:`~sonar_ring.map_builder.MapBuilder`) on a run: with SLAM or in ``odom``, echo tests.
 
@@ -127,16 +112,15 @@ def mapped(recorded: Recorded, layout, slam: bool, echo_tests: bool = True) -> O
     the map is scored in the world frame); the pose estimate is SLAM's, or
     the odometry.
     """
-    settings = pipeline.Settings(sigma_speed=pipeline.ROBOT_SIGMA_SPEED)
+    stage = PingStage(layout, pipeline.Settings(sigma_speed=pipeline.ROBOT_SIGMA_SPEED))
     tests = EchoTests() if echo_tests else None
-    builder = MapBuilder(MapperSettings(slam=slam, pose_history=None, layout=layout, echo_tests=tests), Refusals())
+    builder = MapBuilder(MapperSettings(slam=slam, pose_history=None, layout=layout, echo_tests=tests), Counts())
     label_ms, map_ms, estimate = [], [], []
     for k, (echoes, pose) in enumerate(zip(recorded.echoes, recorded.odometry, strict=True)):
         stamp = int(round(1e9 * (1.0 + k / layout.ping_rate)))
         builder.add_odometry(stamp, pose)
         started = time.perf_counter()
-        labelled = pipeline.label_pings(layout, [echoes], settings, settings)[0][1] if echoes is not None \
-            else Landmarks.empty()
+        labelled = stage.label(echoes)[1] if echoes is not None else Landmarks.empty()
         placed = time.perf_counter()
         builder.add_ping(stamp, labelled)
         label_ms.append(1e3 * (placed - started))
@@ -161,8 +145,9 @@ def simulated(world: str, seed: int, count: int):
     """``count`` pings over laps of :data:`SCENE` in world ``world``, seed ``seed``, simulated one by one.
 
     Yields, per ping, the true pose, the :class:`~sonar_ring.simulate.Ping`,
-    the wheel odometry's pose in ``odom`` and the usable (screened) echoes
-    (None where nothing was usable); nothing is kept, so any length of run fits.
+    the wheel odometry's pose in ``odom`` and the usable echoes
+    (:func:`~sonar_ring.ping_stage.check_ping`; None where nothing was usable);
+    nothing is kept, so any length of run fits.
     """
     scene, layout = load_scene(SCENE), load_layout(LAYOUT)
     model = World(scene, layout, WORLDS[world], noise=NOISE, seed=seed)
@@ -170,7 +155,8 @@ def simulated(world: str, seed: int, count: int):
     for k in range(count):
         pose = poses[k % len(poses)]
         ping = model.ping(pose, k / layout.ping_rate)
-        yield pose, ping, model.odometry_pose(pose), screen_ping(ping.echoes, layout).echoes
+        stamp = round(1e9 * k / layout.ping_rate)
+        yield pose, ping, model.odometry_pose(pose), check_ping(ping.echoes, layout, Counts(), stamp)
 
 
 def lap_pings() -> int:

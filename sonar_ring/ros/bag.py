@@ -85,7 +85,7 @@ GRAPH_TOPICS = (
     Topic("/tf", TF_TYPE, TF),
     Topic("/tf_static", TF_TYPE, LATCHED),
 )
-"""The topics the driver (simulator source), localiser, classifier and mapper publish, whatever the layout."""
+"""The topics the driver (simulator source), localiser and mapper publish, whatever the layout."""
 
 TOPIC = {topic.name: topic for topic in GRAPH_TOPICS}
 

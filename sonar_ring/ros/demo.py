@@ -1,6 +1,6 @@
 """demo: the whole graph on a simulated scene for one lap, recorded, drawn and scored.
 
-Runs driver (simulator source) -> localiser -> classifier -> mapper in one
+Runs driver (simulator source) -> localiser -> mapper in one
 process, in real time (the driver pings at the layout's rate), in the
 ``realistic`` world by default (drifting wheel odometry, missed, spurious,
 multipath and late echoes, the air's true speed of sound: :mod:`sonar_ring.realism`;
@@ -246,7 +246,7 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
     try:
         nodes = [cls(parameter_overrides=overrides) for cls in NODES]
         compose(nodes)
-        driver, localiser, classifier, mapper = nodes
+        driver, localiser, mapper = nodes
         total = pings or driver.pings_per_lap * laps
         listener = SonarNode("demo_listener")  # no QoS event handlers: the executor keeps its direct path
         found, truth, odometry, true_pose, estimate = {}, {}, {}, {}, {}
@@ -258,7 +258,7 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
         subscribe(PoseWithCovarianceStamped, "slam/pose", lambda m: estimate.__setitem__(_stamp_key(m), (
             m.pose.pose.position.x, m.pose.pose.position.y, poses.yaw_of(m.pose.pose.orientation))), 100)
         executor = DirectExecutor()
-        for node in [localiser, classifier, mapper, listener]:
+        for node in [localiser, mapper, listener]:
             executor.add_node(node)
         _wait_for_recorder(listener, recorder, executor,
                            [absolute(topic.name) for topic in subscribed_topics(driver.layout)])

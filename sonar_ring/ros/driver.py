@@ -37,10 +37,11 @@ from sonar_ring.geometry import load_layout, speed_of_sound
 from sonar_ring.landmarks import make_landmarks
 from sonar_ring.msg import Echoes
 from sonar_ring.msg import LandmarkArray as LandmarkArrayMsg
+from sonar_ring.ping_stage import check_ping
 from sonar_ring.realism import DESCRIPTIONS, PROFILES, RANGES, World, scene_realism
 from sonar_ring.ros.convert import AnyHeader, MessageHeader, as_message_types, echoes_to_msg, landmarks_to_msg
 from sonar_ring.ros.diagnostics import NodeHealth
-from sonar_ring.ros.inputs import FUTURE_TOLERANCE, InputGate, screened, take_echoes
+from sonar_ring.ros.inputs import FUTURE_TOLERANCE, TopicCheck, node_clock, stamp_ns
 from sonar_ring.ros.node import SonarNode
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.ranges import RangeOutput, publish_group_frames
@@ -115,7 +116,7 @@ class Driver(SonarNode):
         if source == "simulator":
             self._start_simulator()
         elif source == "topic":
-            self._gate = InputGate(self, self.health, "tof_in", self.params, frame_param=None)
+            self._check = TopicCheck(node_clock(self), self.health, "tof_in", self.params, frame_param=None)
             self.create_subscription(Echoes, "tof_in", self._on_topic, qos_profile_sensor_data, raw=True)
         else:
             self._start_hardware()
@@ -177,7 +178,7 @@ class Driver(SonarNode):
     def _on_topic(self, data: bytes, info: MessageInfo) -> None:
         started = time.perf_counter()
         self.health.received()
-        taken = take_echoes(data, info, self._gate, self.health)
+        taken = self._check.take_echoes(data, info)
         if taken is None:
             return
         received, echoes = taken
@@ -275,11 +276,11 @@ class Driver(SonarNode):
     # ------------------------------------------------------------------ output
 
     def _publish(self, echoes: EchoArrays, header: AnyHeader) -> float:
-        """Screen a ping (:func:`sonar_ring.echoes.screen_ping`) and publish what is usable of it.
+        """Check a ping (:func:`sonar_ring.ping_stage.check_ping`) and publish what is usable of it.
 
         Returns the seconds the nodes that follow this one in this process took.
         """
-        kept = usable_echoes(echoes, self.layout, self.health, header,
+        kept = usable_echoes(echoes, self.layout, self.health, stamp_ns(header),
                              self.params["speed_of_sound"] or DEFAULT_SPEED_OF_SOUND)
         if kept is None:
             return 0.0
@@ -310,15 +311,15 @@ class Driver(SonarNode):
         super().destroy_node()
 
 
-def usable_echoes(echoes: EchoArrays, layout, health, header: AnyHeader, speed_of_sound: float) -> EchoArrays | None:
-    """What the driver publishes of a ping, or None when nothing of it is usable.
+def usable_echoes(echoes: EchoArrays, layout, counts, stamp: int, speed_of_sound: float) -> EchoArrays | None:
+    """What the driver publishes of a ping stamped ``stamp`` (ns), or None when nothing of it is usable.
 
-    ``speed_of_sound`` (m/s) where the source gave none, then screened
-    (:func:`sonar_ring.ros.inputs.screened`: rejections counted on ``health``).
+    The ping is the driver's layout's (hardware frames name none), with
+    ``speed_of_sound`` (m/s) where the source gave none, then checked
+    (:func:`sonar_ring.ping_stage.check_ping`: rejections counted on ``counts``).
     """
-    if not echoes.speed_of_sound:
-        echoes = replace(echoes, speed_of_sound=speed_of_sound)
-    return screened(echoes, layout, health, header)
+    echoes = replace(echoes, layout=layout.name, speed_of_sound=echoes.speed_of_sound or speed_of_sound)
+    return check_ping(echoes, layout, counts, stamp)
 
 
 def realism_params(realism) -> list[Param]:

@@ -1,34 +1,33 @@
-"""graph: driver, localiser, classifier and mapper in one process and one executor.
+"""graph: driver, localiser and mapper in one process and one executor.
 
-The same nodes as the four executables, composed: each hands its ping straight
+The same nodes as the three executables, composed: each hands its ping straight
 to the next (:func:`compose`), as rclcpp's intra-process communication does,
 so a ping is one executor callback from the driver's input to the map.  Every
 topic is still published for RViz, recorders and your nodes, in the order that
-gets a ping to RViz first: the driver and the localiser hand a ping on before
-they publish ``echoes`` and ``landmarks/raw``, and the classifier publishes
-``markers`` before ``landmarks``.  The nodes take
+gets a ping to RViz first: the driver hands a ping on before it publishes
+``echoes``, and the localiser publishes ``markers`` and ``landmarks`` before it
+hands the ping to the mapper, and ``landmarks/raw`` after.  The nodes take
 their inputs only from each other, so feed this process through the driver's
-source (``source:=topic`` reads ``tof_in``) -- or run the four executables to
+source (``source:=topic`` reads ``tof_in``) -- or run the three executables to
 take ``echoes`` or ``landmarks`` from elsewhere.  Odometry still comes over DDS.
 """
 
 import itertools
 
-from sonar_ring.ros.classifier import Classifier
 from sonar_ring.ros.driver import Driver
 from sonar_ring.ros.localiser import Localiser
 from sonar_ring.ros.mapper import Mapper
 from sonar_ring.ros.params import ParameterError
 from sonar_ring.ros.run import spin
 
-NODES = (Driver, Localiser, Classifier, Mapper)
+NODES = (Driver, Localiser, Mapper)
 
 
 def compose(nodes) -> None:
     """Wire ``nodes`` (instances of :data:`NODES`, in that order) so each takes its pings from the one before.
 
-    Raises :class:`~sonar_ring.ros.params.ParameterError` when the driver,
-    localiser and classifier were given different layouts: handed over
+    Raises :class:`~sonar_ring.ros.params.ParameterError` when the driver
+    and localiser were given different layouts: handed over
     directly, a ping is not checked against the next node's layout again.
     """
     layouts = {node.get_name(): node.layout.name for node in nodes if hasattr(node, "layout")}
@@ -39,7 +38,7 @@ def compose(nodes) -> None:
 
 
 def main(args=None) -> None:
-    """Run the four nodes, composed, until Ctrl-C or shutdown."""
+    """Run the three nodes, composed, until Ctrl-C or shutdown."""
     spin(*NODES, args=args, setup=compose)
 
 

@@ -1,6 +1,6 @@
-"""What every node checks of an input message before it uses it: header, order, losses, fit to the layout.
+"""What every node checks of an input message's header before it uses it: frame, order, losses.
 
-One :class:`InputGate` per subscribed topic and node.  It refuses, counting
+One :class:`TopicCheck` per subscribed topic and node.  It refuses, counting
 each by reason on ``/diagnostics`` (:meth:`NodeHealth.problem`, warning
 throttled):
 
@@ -22,12 +22,14 @@ faster than the node works are dropped by the bounded subscription queue
 (depth 5, sensor-data QoS), never queued without bound, and this is where they
 are counted.
 
-The nodes subscribe to ``Echoes`` serialized: :func:`take_echoes` decodes
-a message (:func:`~sonar_ring.ros.convert.echoes_from_cdr`; bytes that are not a
-whole message count as ``malformed_message``) and puts it through the gate, and
-:func:`check_echoes` then takes what is usable of the ping
-(:func:`sonar_ring.echoes.screen_ping`): a bad row or value is dropped and
-counted, the rest of the ping is still used.
+The clock is a function giving integer ns, so ``sonar-ring process`` checks
+headers against bag time with the same class (:func:`node_clock` gives a
+node's).  The nodes subscribe to ``Echoes`` serialized:
+:meth:`TopicCheck.take_echoes` decodes a message
+(:func:`~sonar_ring.ros.convert.echoes_from_cdr`; bytes that are not a whole
+message count as ``malformed_message``) and checks its header; what is usable
+of its arrays is then :func:`sonar_ring.ping_stage.check_ping`'s to say, the
+one check of a ping's arrays.
 """
 
 from __future__ import annotations
@@ -35,10 +37,8 @@ from __future__ import annotations
 from collections import OrderedDict
 from collections.abc import Callable
 
-from rclpy.node import Node
-
-from sonar_ring.echoes import EchoArrays, screen_ping
-from sonar_ring.ros.convert import AnyHeader, MessageError, MessageHeader, echoes_from_cdr
+from sonar_ring.echoes import EchoArrays
+from sonar_ring.ros.convert import MessageError, MessageHeader, echoes_from_cdr
 from sonar_ring.ros.diagnostics import NodeHealth
 from sonar_ring.ros.params import Param
 
@@ -54,14 +54,24 @@ def stamp_ns(header) -> int:
     return header.stamp.sec * 10**9 + header.stamp.nanosec
 
 
-class InputGate:
+def node_clock(node) -> Callable[[], int]:
+    """The reading of ``node``'s clock (ROS time or ``/clock``), integer ns, as a function.
+
+    The clock's own reading: ``Clock.now()`` builds a Time object around it, and
+    a ping's checks read it once per topic.
+    """
+    handle = node.get_clock().handle
+    return lambda: handle.get_now().nanoseconds
+
+
+class TopicCheck:
     """The header checks and loss count of one input topic of one node.
 
     Parameters
     ----------
-    node : Node
-        Whose clock and parameters apply.
-    health : NodeHealth
+    clock : callable
+        The node clock's time, integer ns (:func:`node_clock`; bag time offline).
+    health : NodeHealth or Counts
         Where refusals and losses are counted.
     topic : str
         Input topic, for the log lines.
@@ -77,10 +87,10 @@ class InputGate:
         order (the mapper's odometry history).
     """
 
-    def __init__(self, node: Node, health: NodeHealth, topic: str, params: dict,
+    def __init__(self, clock: Callable[[], int], health: NodeHealth, topic: str, params: dict,
                  frame_param: str | None = EXPECTED_FRAME.name, on_clock_jump: Callable[[], None] | None = None
                  ) -> None:
-        self._clock = node.get_clock()
+        self._clock = clock
         self._health = health
         self._topic = topic
         self._params = params
@@ -111,8 +121,7 @@ class InputGate:
             if expected and header.frame_id != expected:
                 return "wrong_frame_id", f"frame {header.frame_id!r}, expected {expected!r}"
         stamp = stamp_ns(header)
-        # The clock's own reading: Clock.now() builds a Time object around it, and three gates a ping read it.
-        now = self._clock.handle.get_now().nanoseconds
+        now = self._clock()
         if now < self._last_clock:
             self._health.note("clock jumped back")
             self._last_stamp = None
@@ -146,43 +155,16 @@ class InputGate:
             self._health.problem(f"dropped_input ({self._topic})", f"{sequence - last - 1} messages arrived faster "
                                  "than this node works", count=sequence - last - 1)
 
+    def take_echoes(self, data: bytes, info) -> tuple[MessageHeader, EchoArrays] | None:
+        """A serialized Echoes message decoded and its header admitted, or None after counting why not.
 
-def take_echoes(data: bytes, info, gate: InputGate, health: NodeHealth) -> tuple[MessageHeader, EchoArrays] | None:
-    """A serialized Echoes message decoded and admitted by ``gate``, or None after counting why not.
-
-    ``info`` is the message's ``MessageInfo`` (or None); the messages lost before
-    it are counted even when it does not decode.
-    """
-    try:
-        header, echoes = echoes_from_cdr(data)
-    except MessageError as error:
-        gate.count_lost(info)
-        health.problem("malformed_message", str(error))
-        return None
-    return (header, echoes) if gate.admit(header, info) else None
-
-
-def check_echoes(header: AnyHeader, echoes: EchoArrays, layout, health: NodeHealth) -> EchoArrays | None:
-    """The usable part of a decoded Echoes ping (:func:`take_echoes`), or None after counting why nothing is.
-
-    A ping of another layout (``layout_mismatch``) or that the layout cannot
-    read (see :func:`sonar_ring.echoes.screen_ping`) is refused whole; bad rows
-    and values are dropped and counted, and the rest of the ping is returned.
-    Nodes that screen the same message keep the same rows, so row indices
-    (``echo``) agree between the localiser and the classifier.
-    """
-    if echoes.layout != layout.name:
-        health.problem("layout_mismatch", f"echoes of layout {echoes.layout!r}, this node runs {layout.name!r}")
-        return None
-    return screened(echoes, layout, health, header)
-
-
-def screened(echoes: EchoArrays, layout, health: NodeHealth, header: AnyHeader) -> EchoArrays | None:
-    """:func:`sonar_ring.echoes.screen_ping` with its rejections counted on ``health``, the ping named by ``header``."""
-    result = screen_ping(echoes, layout)
-    for reason, count in result.problems.items():
-        where = f"ping at {header.stamp.sec}.{header.stamp.nanosec:09d}"
-        health.problem(reason, f"{where}: {result.detail}" if result.detail else where, count)
-    if result.echoes is not None and result.echoes.n_echoes == 0:
-        health.note("empty ping")
-    return result.echoes
+        ``info`` is the message's ``MessageInfo`` (or None); the messages lost before
+        it are counted even when it does not decode.
+        """
+        try:
+            header, echoes = echoes_from_cdr(data)
+        except MessageError as error:
+            self.count_lost(info)
+            self._health.problem("malformed_message", str(error))
+            return None
+        return (header, echoes) if self.admit(header, info) else None

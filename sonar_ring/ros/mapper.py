@@ -45,7 +45,7 @@ from sonar_ring.msg import LandmarkArray
 from sonar_ring.poses import yaw_of
 from sonar_ring.ros.convert import AnyHeader, MessageError, landmarks_from_msg, serialize_landmarks
 from sonar_ring.ros.diagnostics import NodeHealth
-from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, InputGate, stamp_ns
+from sonar_ring.ros.inputs import EXPECTED_FRAME, FUTURE_TOLERANCE, TopicCheck, node_clock, stamp_ns
 from sonar_ring.ros.markers import covariance_ellipses, explained_markers, landmark_markers, serialize_markers
 from sonar_ring.ros.node import LATCHED, SonarNode
 from sonar_ring.ros.params import Param, declare
@@ -219,8 +219,8 @@ class Mapper(SonarNode):
         if self.params["slam"]:
             self._pose_publisher = self.create_publisher(PoseWithCovarianceStamped, "slam/pose", 10)
             self._transform_publisher()
-        self._landmarks_gate = InputGate(self, self.health, "landmarks", self.params)
-        self._odometry_gate = InputGate(self, self.health, "odom", self.params, frame_param="odom_frame",
+        self._landmarks_check = TopicCheck(node_clock(self), self.health, "landmarks", self.params)
+        self._odometry_check = TopicCheck(node_clock(self), self.health, "odom", self.params, frame_param="odom_frame",
                                         on_clock_jump=self.builder.forget_odometry)
         self.ping_inputs = (self.create_subscription(LandmarkArray, "landmarks", self._on_landmarks,
                                                      qos_profile_sensor_data),)
@@ -252,7 +252,7 @@ class Mapper(SonarNode):
     # ------------------------------------------------------------------ input
 
     def _on_odometry(self, msg: Odometry, info: MessageInfo) -> None:
-        if not self._odometry_gate.admit(msg.header, info):
+        if not self._odometry_check.admit(msg.header, info):
             return
         started = time.perf_counter()
         placed = self.builder.add_odometry(stamp_ns(msg.header), odometry_pose(msg))
@@ -261,7 +261,7 @@ class Mapper(SonarNode):
 
     def _on_landmarks(self, msg: LandmarkArray, info: MessageInfo) -> None:
         self.health.received()
-        if not self._landmarks_gate.admit(msg.header, info):
+        if not self._landmarks_check.admit(msg.header, info):
             return
         try:
             landmarks = landmarks_from_msg(msg)
@@ -271,9 +271,9 @@ class Mapper(SonarNode):
         self._place(stamp_ns(msg.header), landmarks)
 
     def on_ping(self, header: AnyHeader, landmarks: Landmarks) -> None:
-        """A ping's labelled landmarks from the classifier in this process: their header and arrays."""
+        """A ping's labelled landmarks from the localiser in this process: their header and arrays."""
         self.health.received()
-        if self._landmarks_gate.admit(header):
+        if self._landmarks_check.admit(header):
             self._place(stamp_ns(header), landmarks)
 
     def _place(self, stamp: int, landmarks: Landmarks) -> None:

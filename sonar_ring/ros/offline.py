@@ -1,11 +1,10 @@
 """The graph over rosbag2 files, in bag time and without DDS: ``sonar-ring process`` and ``sonar-ring record-sim``.
 
-:func:`process_bag` runs the localiser, classifier and mapper over the echoes
+:func:`process_bag` runs the localiser and mapper over the echoes
 recorded in a bag and writes what they publish to a new bag;
 :func:`record_sim` writes what the driver's simulator source publishes.
-Both call the functions the nodes call -- :func:`sonar_ring.ros.inputs.take_echoes` and
-:func:`~sonar_ring.ros.inputs.check_echoes`,
-:mod:`sonar_ring.pipeline`, :mod:`sonar_ring.ros.convert`,
+Both call what the nodes call -- :class:`sonar_ring.ros.inputs.TopicCheck`,
+:func:`sonar_ring.ping_stage.check_ping` and :class:`~sonar_ring.ping_stage.PingStage`, :mod:`sonar_ring.ros.convert`,
 :mod:`sonar_ring.ros.markers`, the mapper's core (:class:`~sonar_ring.map_builder.MapBuilder`,
 with SLAM by default) and its :func:`~sonar_ring.ros.mapper.map_messages` and
 :func:`~sonar_ring.ros.mapper.pose_message`, the driver's message builders
@@ -18,10 +17,10 @@ Bag time replaces the node clocks: a ping's outputs are written at its echoes'
 bag time with its echoes' header, and the map at ``map_rate`` ticks of bag time
 (the first one ``1 / map_rate`` after the first ping), when it changed.
 
-The localiser's and classifier's work on a ping needs nothing of other pings
-(:class:`PingStage`), so ``process`` runs it on batches of pings at once
-(:func:`sonar_ring.pipeline.label_pings`) and hands the batches to worker
-processes; the input check, the mapper and the file I/O stay in order in the
+The localiser's work on a ping needs nothing of other pings
+(:class:`~sonar_ring.ping_stage.PingStage`), so ``process`` runs it on batches
+of pings at once (:func:`ping_outputs`) and hands the batches to worker
+processes; the header check, the mapper and the file I/O stay in order in the
 main process.
 
 ``process`` also writes what tf would carry, with the bag library's own types
@@ -48,15 +47,15 @@ from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import Header
 
-from sonar_ring import localise, mapping, pipeline, ring_consistency
+from sonar_ring import mapping
 from sonar_ring.echoes import EchoArrays
-from sonar_ring.echoes import load_kernels as load_screening_kernels
 from sonar_ring.geometry import Layout, LayoutError, config_path, load_layout
 from sonar_ring.landmarks import CLASS_NAMES, Landmarks
 from sonar_ring.map_builder import MapBuilder
+from sonar_ring.ping_stage import Counts, PingStage, check_ping
 from sonar_ring.progress import progress_bar
 from sonar_ring.realism import World, scene_realism
-from sonar_ring.ros import classifier, localiser, mapper
+from sonar_ring.ros import localiser, mapper
 from sonar_ring.ros.bag import (
     TOPIC,
     BagError,
@@ -75,7 +74,7 @@ from sonar_ring.ros.driver import (
     truth_message,
     usable_echoes,
 )
-from sonar_ring.ros.inputs import InputGate, check_echoes, stamp_ns, take_echoes
+from sonar_ring.ros.inputs import TopicCheck, stamp_ns
 from sonar_ring.ros.markers import landmark_markers, serialize_markers
 from sonar_ring.ros.params import file_values
 from sonar_ring.ros.ranges import range_messages
@@ -83,57 +82,31 @@ from sonar_ring.simulate import Noise, load_scene
 
 ECHOES_TYPE = TOPIC["echoes"].type_name
 ODOMETRY_TYPE = TOPIC["odom"].type_name
-NODE_PARAMS = {"localiser": localiser.PARAMS, "classifier": classifier.PARAMS, "mapper": mapper.PARAMS}
+NODE_PARAMS = {"localiser": localiser.PARAMS, "mapper": mapper.PARAMS}
 """The nodes ``process`` stands in for, with their parameter lists."""
 SIM_START_NS = 10**9
 """Stamp of the first simulated ping, ns: trajectory time plus 1 s (a zero stamp means "latest" to tf and RViz)."""
 
 
-class Tally:
-    """Problems and expected losses counted by reason: the part of ``NodeHealth`` the shared checks call."""
+class BagTime:
+    """The clock of ``sonar-ring process``: the bag time of the message being read, ns.
 
-    def __init__(self) -> None:
-        self.problems: Counter[str] = Counter()
-        self.notes: Counter[str] = Counter()
-
-    def problem(self, reason: str, detail: str = "", count: int = 1) -> None:
-        """Count ``count`` bad inputs of ``reason`` (``detail`` is for a node's log line)."""
-        if count:
-            self.problems[reason] += count
-
-    def note(self, reason: str, count: int = 1) -> None:
-        """Count ``count`` expected losses of ``reason``."""
-        if count:
-            self.notes[reason] += count
-
-
-class BagClock:
-    """Stands in for a node in :class:`~sonar_ring.ros.inputs.InputGate`: its clock reads bag time.
-
-    The gates then refuse what the nodes refuse on replay with ``use_sim_time``
-    (empty or wrong frame, stamps ahead of bag time, duplicate and out-of-order stamps).
-    It offers what a gate reads of a node's rclpy clock: ``get_clock().handle.get_now().nanoseconds``.
+    Given to :class:`~sonar_ring.ros.inputs.TopicCheck` in place of a node's
+    clock, so the checks refuse what the nodes refuse on replay with
+    ``use_sim_time`` (empty or wrong frame, stamps ahead of bag time, duplicate
+    and out-of-order stamps).
     """
 
     def __init__(self) -> None:
         self.nanoseconds = 0
 
-    def get_clock(self) -> BagClock:
-        """The clock (this object)."""
-        return self
-
-    @property
-    def handle(self) -> BagClock:
-        """The clock's handle (this object)."""
-        return self
-
-    def get_now(self) -> BagClock:
-        """The time (this object: ``nanoseconds`` is the bag time of the message being read)."""
-        return self
+    def __call__(self) -> int:
+        """The bag time, ns."""
+        return self.nanoseconds
 
 
 def node_values(params_file) -> dict:
-    """Parameter values of the localiser, classifier and mapper, by node name, from a parameters file or defaults."""
+    """Parameter values of the localiser and mapper, by node name, from a parameters file or defaults."""
     if params_file is None:
         return {node: {p.name: p.default for p in params} for node, params in NODE_PARAMS.items()}
     return {node: file_values(params_file, node, params) for node, params in NODE_PARAMS.items()}
@@ -187,12 +160,12 @@ class ProcessReport:
 
 @dataclass(frozen=True)
 class PingOutput:
-    """What the localiser and classifier make of one ping.
+    """What the localiser makes of one ping.
 
     Attributes
     ----------
     problems, notes : dict of str to int
-        Refusals and expected losses of :func:`~sonar_ring.ros.inputs.check_echoes`, by reason.
+        Refusals and expected losses of :func:`~sonar_ring.ping_stage.check_ping`, by reason.
     messages : tuple of bytes
         Serialized ``landmarks/raw``, ``landmarks`` and ``markers`` messages;
         empty when the ping was refused.
@@ -209,99 +182,75 @@ class PingOutput:
     labelled: Landmarks | None = None
 
 
-@dataclass(frozen=True)
-class PingStage:
-    """The localiser's and the classifier's work on one ping: it needs no other ping.
+def ping_outputs(stage: PingStage, pings: list[tuple[Header, EchoArrays]], marker_lifetime: float
+                 ) -> list[PingOutput]:
+    """Check, localise, label and draw decoded Echoes messages as the localiser does, one output per message.
 
-    So it can run in worker processes (:func:`ordered_map`); a ping's output
-    does not depend on where it ran.
+    ``pings`` holds each message's header and arrays (:func:`~sonar_ring.ros.convert.echoes_from_cdr`).
+    The checked pings go through :meth:`~sonar_ring.ping_stage.PingStage.label_many`
+    together, which gives each ping what the node gives it alone.
     """
-
-    layout: Layout
-    localiser_settings: pipeline.Settings
-    classifier_settings: pipeline.Settings
-    marker_lifetime: float
-
-    @classmethod
-    def from_values(cls, layout: Layout, values: dict) -> PingStage:
-        """The stage of the localiser and classifier parameter values ``values`` (by node name)."""
-        return cls(layout, localiser.settings_from(values["localiser"]), localiser.settings_from(values["classifier"]),
-                   values["classifier"]["marker_lifetime"])
-
-    def run(self, pings: list[tuple[Header, EchoArrays]]) -> list[PingOutput]:
-        """Check, localise, classify and draw decoded Echoes messages, as the two nodes do, one output per message.
-
-        ``pings`` holds each message's header and arrays (:func:`~sonar_ring.ros.convert.echoes_from_cdr`).
-
-        The checked pings go through :func:`sonar_ring.pipeline.label_pings`
-        together, which gives each ping what the nodes give it alone.
-        """
-        tallies = [Tally() for _ in pings]
-        checked = [check_echoes(header, echoes, self.layout, tally)
-                   for (header, echoes), tally in zip(pings, tallies, strict=True)]
-        usable = [index for index, echoes in enumerate(checked) if echoes is not None]
-        # The messages carry the arrays' own dtypes, so the nodes' message round trips are lossless and skipped.
-        labels = dict(zip(usable, pipeline.label_pings(self.layout, [checked[i] for i in usable],
-                                                       self.localiser_settings, self.classifier_settings),
-                          strict=True))
-        outputs = []
-        for index, ((header, _), tally) in enumerate(zip(pings, tallies, strict=True)):
-            if index not in labels:
-                outputs.append(PingOutput(dict(tally.problems), dict(tally.notes)))
-                continue
-            hypotheses, labelled = labels[index]
-            data = (serialize_landmarks(hypotheses, header),
-                    serialize_landmarks(labelled, header),
-                    serialize_markers(landmark_markers(labelled, "landmarks", self.marker_lifetime), header))
-            per_class = np.bincount(labelled.landmark_class, minlength=len(CLASS_NAMES))
-            outputs.append(PingOutput(dict(tally.problems), dict(tally.notes), data, per_class, labelled))
-        return outputs
+    counts = [Counts() for _ in pings]
+    checked = [check_ping(echoes, stage.layout, count, stamp_ns(header))
+               for (header, echoes), count in zip(pings, counts, strict=True)]
+    usable = [index for index, echoes in enumerate(checked) if echoes is not None]
+    # The messages carry the arrays' own dtypes, so the node's message round trips are lossless and skipped.
+    labels = dict(zip(usable, stage.label_many([checked[i] for i in usable]), strict=True))
+    outputs = []
+    for index, ((header, _), count) in enumerate(zip(pings, counts, strict=True)):
+        if index not in labels:
+            outputs.append(PingOutput(dict(count.problems), dict(count.notes)))
+            continue
+        hypotheses, labelled = labels[index]
+        data = (serialize_landmarks(hypotheses, header),
+                serialize_landmarks(labelled, header),
+                serialize_markers(landmark_markers(labelled, "landmarks", marker_lifetime), header))
+        per_class = np.bincount(labelled.landmark_class, minlength=len(CLASS_NAMES))
+        outputs.append(PingOutput(dict(count.problems), dict(count.notes), data, per_class, labelled))
+    return outputs
 
 
-_worker_stage: PingStage | None = None
-"""The stage of this worker process (set by :func:`_start_worker`)."""
+_worker_stage: tuple[PingStage, float] | None = None
+"""The stage of this worker process and the markers' lifetime, s (set by :func:`_start_worker`)."""
 
 
-def _start_worker(stage: PingStage) -> None:
+def _start_worker(stage: PingStage, marker_lifetime: float) -> None:
     global _worker_stage
-    _worker_stage = stage
-    load_screening_kernels()
-    if stage.layout.kind != "triad":
-        localise.load_kernels()
-    pipeline.load_kernels()
-    if stage.layout.kind == "ring":
-        ring_consistency.load_kernels()
+    _worker_stage = stage, marker_lifetime
+    stage.load_kernels()
 
 
 def _work(batch: list[bytes]) -> list[PingOutput]:
-    return _worker_stage.run([echoes_from_cdr(data) for data in batch])
+    stage, marker_lifetime = _worker_stage
+    return ping_outputs(stage, [echoes_from_cdr(data) for data in batch], marker_lifetime)
 
 
 @contextlib.contextmanager
-def stage_workers(stage: PingStage, jobs: int):
+def stage_workers(stage: PingStage, marker_lifetime: float, jobs: int):
     """``jobs - 1`` forked processes that run ``stage`` (a process pool), or None when ``jobs`` is 1.
 
-    The workers start at once and load the localiser's and classifier's compiled
-    kernels while this process opens the bag and reads the odometry, so the first
-    batch does not wait for them.
+    The workers start at once and load the stage's compiled kernels while this
+    process opens the bag and reads the odometry, so the first batch does not
+    wait for them.
     """
     if jobs <= 1:
         yield None
         return
     context = multiprocessing.get_context("fork")
-    with ProcessPoolExecutor(jobs - 1, mp_context=context, initializer=_start_worker, initargs=(stage,)) as pool:
+    with ProcessPoolExecutor(jobs - 1, mp_context=context, initializer=_start_worker,
+                             initargs=(stage, marker_lifetime)) as pool:
         pool.submit(int)  # the pool forks its workers at the first task
         yield pool
 
 
-def ordered_map(stage: PingStage, items, workers: ProcessPoolExecutor | None, jobs: int, meanwhile=None,
-                batch: int = 64):
+def ordered_map(stage: PingStage, marker_lifetime: float, items, workers: ProcessPoolExecutor | None, jobs: int,
+                meanwhile=None, batch: int = 64):
     """``(item, output)`` for ``(ping, data, item)`` in ``items``, in order: the stage's output.
 
     The output is that of ``ping`` (header and arrays decoded from the serialized
-    message ``data``, :meth:`PingStage.run`).
+    message ``data``, :func:`ping_outputs`).
 
-    The stage runs on ``batch`` messages at a time (:meth:`PingStage.run`).
+    The stage runs on ``batch`` messages at a time (:func:`ping_outputs`).
     Without ``workers`` it runs here; with them (:func:`stage_workers`) the
     batches go to the workers (``jobs - 1`` of them) as serialized messages
     (``data``), while this process, which reads, maps and writes and is the
@@ -314,7 +263,7 @@ def ordered_map(stage: PingStage, items, workers: ProcessPoolExecutor | None, jo
         if meanwhile:
             meanwhile()
         for chunk in chunks:
-            outputs = stage.run([ping for ping, *_ in chunk])
+            outputs = ping_outputs(stage, [ping for ping, *_ in chunk], marker_lifetime)
             yield from zip([item for *_, item in chunk], outputs, strict=True)
         return
     pending = deque()
@@ -332,7 +281,7 @@ def ordered_map(stage: PingStage, items, workers: ProcessPoolExecutor | None, jo
 class OfflineGraph:
     """The input check and the mapper of one echoes topic, and the writing of its outputs, in bag-time order.
 
-    The per-ping work between them is a :class:`PingStage`; the mapper is the
+    The per-ping work between them is a :class:`~sonar_ring.ping_stage.PingStage`; the mapper is the
     node's core (:class:`~sonar_ring.map_builder.MapBuilder`) with the whole
     odometry of the bag.
 
@@ -348,7 +297,7 @@ class OfflineGraph:
         to place every ping at the mapper's ``fixed_pose``.
     writer : BagWriter
         Where the outputs go.
-    tally : Tally
+    counts : Counts
         Where refused inputs are counted.
     layout : Layout
         The sensor (its group frames go on ``/tf_static``).
@@ -356,19 +305,19 @@ class OfflineGraph:
 
     OUTPUTS = ("landmarks/raw", "landmarks", "markers", "map/landmarks", "map/markers", "map/points", "slam/pose")
 
-    def __init__(self, values: dict, namespace: str, odometry, writer: BagWriter, tally: Tally,
+    def __init__(self, values: dict, namespace: str, odometry, writer: BagWriter, counts: Counts,
                  layout: Layout) -> None:
         self._mapper = values["mapper"]
         settings = replace(mapper.mapper_settings(self._mapper), pose_history=None, layout=layout)
-        self.builder = MapBuilder(settings, tally)
+        self.builder = MapBuilder(settings, counts)
         self._odometry = odometry if odometry is not None else ([], np.empty((0, 3)))
         for stamp, pose in zip(*self._odometry, strict=True):
             self.builder.add_odometry(stamp, pose)
         self._odometry_written = 0
         self._writer = writer
-        self._tally = tally
-        self._clock = BagClock()
-        self._gate = InputGate(self._clock, tally, "echoes", values["localiser"])
+        self._counts = counts
+        self._clock = BagTime()
+        self._check = TopicCheck(self._clock, counts, "echoes", values["localiser"])
         self._connections = {name: writer.connection(absolute(name, namespace), TOPIC[name].message, TOPIC[name].qos)
                              for name in self.OUTPUTS + ("/tf", "/tf_static")}
         self._map_period = int(round(1e9 / self._mapper["map_rate"]))
@@ -380,17 +329,17 @@ class OfflineGraph:
     def admit(self, time_ns: int, data: bytes) -> tuple[Header, EchoArrays] | None:
         """The header and arrays of the Echoes message recorded at bag time ``time_ns`` (ns).
 
-        None when the localiser would refuse it (:func:`~sonar_ring.ros.inputs.take_echoes`).
+        None when the localiser would refuse it (:meth:`~sonar_ring.ros.inputs.TopicCheck.take_echoes`).
         """
         self._clock.nanoseconds = time_ns
-        return take_echoes(data, None, self._gate, self._tally)
+        return self._check.take_echoes(data, None)
 
     def take(self, time_ns: int, header: Header, output: PingOutput) -> None:
         """Write a ping's outputs at ``time_ns``, map its landmarks (and write the map ticks before it)."""
         self._maps_until(time_ns)
         self._transforms_until(time_ns, header.frame_id)
-        self._tally.problems.update(output.problems)
-        self._tally.notes.update(output.notes)
+        self._counts.problems.update(output.problems)
+        self._counts.notes.update(output.notes)
         if output.per_class is None:
             return
         for name, data in zip(("landmarks/raw", "landmarks", "markers"), output.messages, strict=True):
@@ -481,19 +430,19 @@ def _namespace(topic: str) -> str:
     return topic.rsplit("/", 1)[0]
 
 
-def _read_odometry(bag: BagReader, connections, mapper_values: dict, tally: Tally):
+def _read_odometry(bag: BagReader, connections, mapper_values: dict, counts: Counts):
     """Odometry stamps (ns, list) and poses (O, 3) of a topic, without what the mapper's input gate refuses."""
-    clock = BagClock()
-    gate = InputGate(clock, tally, "odom", mapper_values, frame_param="odom_frame")
+    clock = BagTime()
+    check = TopicCheck(clock, counts, "odom", mapper_values, frame_param="odom_frame")
     stamps, poses = [], []
     for _, time_ns, data in bag.messages(connections):
         try:
             msg = deserialize_message(data, Odometry)
         except Exception:  # rclpy raises a bare RuntimeError/TypeError for CDR it cannot decode
-            tally.problem("undecodable_odometry")
+            counts.problem("undecodable_odometry")
             continue
         clock.nanoseconds = time_ns
-        if gate.admit(msg.header):
+        if check.admit(msg.header):
             stamps.append(stamp_ns(msg.header))
             poses.append(mapper.odometry_pose(msg))
     return stamps, np.array(poses, dtype=float).reshape(-1, 3)
@@ -518,7 +467,7 @@ def _layout_of(bag: BagReader, connections, layout):
 
 def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topics=None, odom_topic=None,
                 storage: str = "mcap", jobs: int | None = None, progress: bool = True) -> ProcessReport:
-    """Run the localiser, classifier and mapper over a bag's echoes; write their outputs to a new bag.
+    """Run the localiser and mapper over a bag's echoes; write their outputs to a new bag.
 
     Parameters
     ----------
@@ -540,8 +489,8 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
         ``mcap`` or ``sqlite3``, for the output.
     jobs : int, optional
         Processes in all: this one (the map's association and fusion and the
-        file I/O, in order) and ``jobs - 1`` workers for the localiser's and
-        classifier's work; 1 does everything here;
+        file I/O, in order) and ``jobs - 1`` workers for the localiser's
+        work; 1 does everything here;
         default one per CPU this process may use.
     progress : bool
         Draw a progress bar on stderr (in a terminal: :func:`~sonar_ring.progress.progress_bar`).
@@ -553,7 +502,7 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
     """
     started = time.perf_counter()
     report = ProcessReport()
-    tally = Tally()
+    counts = Counts()
     with BagReader(in_path) as bag:
         topics = _topics_by_name(bag)
         chosen = _echo_topics(topics, echoes_topics, report)
@@ -572,16 +521,17 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
             params_file = config_path("params", sensor.name)
         report.params_file = str(params_file or "defaults")
         values = node_values(params_file)
-        stage = PingStage.from_values(sensor, values)
+        stage = PingStage(sensor, localiser.settings_from(values["localiser"]))
+        marker_lifetime = values["localiser"]["marker_lifetime"]
         jobs = jobs or len(os.sched_getaffinity(0))
-        with stage_workers(stage, jobs) as workers, BagWriter(out_path, storage) as writer:
+        with stage_workers(stage, marker_lifetime, jobs) as workers, BagWriter(out_path, storage) as writer:
             graphs = {}
             for name, namespace in zip(chosen, namespaces, strict=True):
                 odometry = None
                 if values["mapper"]["use_odometry"]:
                     odometry = _odometry_for(bag, topics, absolute(odom_topic or "odom", namespace),
-                                             values["mapper"], tally, report, explicit=odom_topic is not None)
-                graphs[name] = OfflineGraph(values, namespace, odometry, writer, tally, sensor)
+                                             values["mapper"], counts, report, explicit=odom_topic is not None)
+                graphs[name] = OfflineGraph(values, namespace, odometry, writer, counts, sensor)
             bar = progress_bar(sum(c.msgcount for c in echo_connections), enabled=progress)
             times = []
 
@@ -595,7 +545,7 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
                     bar.update(1)
 
             # The map's kernels load while the workers localise the first batches.
-            for (graph, time_ns, header), output in ordered_map(stage, admitted(), workers, jobs,
+            for (graph, time_ns, header), output in ordered_map(stage, marker_lifetime, admitted(), workers, jobs,
                                                                 meanwhile=mapping.load_kernels):
                 graph.take(time_ns, header, output)
             bar.close()
@@ -606,12 +556,12 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
                 report.map_per_class.update(dict(zip(CLASS_NAMES, graph.map_per_class().tolist(), strict=True)))
     report.pings = len(times)
     report.data_seconds = (times[-1] - times[0]) * 1e-9 if times else 0.0
-    report.problems, report.notes = tally.problems, tally.notes
+    report.problems, report.notes = counts.problems, counts.notes
     report.seconds = time.perf_counter() - started
     return report
 
 
-def _odometry_for(bag: BagReader, topics: dict, name: str, mapper_values: dict, tally: Tally,
+def _odometry_for(bag: BagReader, topics: dict, name: str, mapper_values: dict, counts: Counts,
                   report: ProcessReport, explicit: bool):
     """The odometry history of topic ``name``, or None (reported) when the bag has none there."""
     connections = topics.get(name)
@@ -621,7 +571,7 @@ def _odometry_for(bag: BagReader, topics: dict, name: str, mapper_values: dict, 
             report.skipped.append(f"{name}: {why}")
         report.skipped.append(f"map at fixed_pose {list(mapper_values['fixed_pose'])}: no odometry on {name}")
         return None
-    return _read_odometry(bag, connections, mapper_values, tally)
+    return _read_odometry(bag, connections, mapper_values, counts)
 
 
 # --------------------------------------------------------------------------- record-sim
@@ -664,7 +614,7 @@ def record_sim(scene, out_path, *, layout="browne_ring", laps: int = 1, pings: i
     simulated = World(scene, sensor, scene_realism(scene, world, realism, where="--realism"),
                       noise=Noise(tof=sigma_t, amplitude=sigma_a), seed=seed, ping_rate=rate)
     poses = scene.trajectory.poses(rate)[1] if scene.trajectory is not None else scene.sensor_pose[None, :]
-    tally = Tally()
+    counts = Counts()
     report = RecordReport()
     total = laps * len(poses) if pings is None else min(pings, laps * len(poses))
     bar = progress_bar(total, enabled=progress)
@@ -681,7 +631,7 @@ def record_sim(scene, out_path, *, layout="browne_ring", laps: int = 1, pings: i
             stamp = SIM_START_NS + round(k * 1e9 / rate)
             header = Header(frame_id=frame_id)
             header.stamp.sec, header.stamp.nanosec = divmod(stamp, 10**9)
-            kept = usable_echoes(ping.echoes, sensor, tally, header, DEFAULT_SPEED_OF_SOUND)
+            kept = usable_echoes(ping.echoes, sensor, counts, stamp, DEFAULT_SPEED_OF_SOUND)
             messages = [("odom", odometry_message(odometry, header)),
                         ("truth/pose", odometry_message(pose, header, frame_id=WORLD_FRAME)),
                         ("truth", truth_message(ping, header))]
@@ -695,7 +645,7 @@ def record_sim(scene, out_path, *, layout="browne_ring", laps: int = 1, pings: i
         bar.close()
     report.pings = total
     report.data_seconds = (total - 1) / rate if total else 0.0
-    report.problems = tally.problems
+    report.problems = counts.problems
     report.seconds = time.perf_counter() - started
     return report
 
