@@ -66,7 +66,7 @@ def _add_simulate(subparsers) -> None:
     where.add_argument("--trajectory", action="store_true",
                        help="one ping per pose of the scene's trajectory, at the layout's ping rate")
     p.add_argument("--out", type=Path, metavar="FILE",
-                   help="write the pings to FILE.npz or FILE.json (format: see README)")
+                   help="write the pings to FILE.npz or FILE.json (format: see doc/CORE_API.md)")
     p.add_argument("--png", type=Path, metavar="FILE", help="draw the scene, sensor and echoes into FILE.png")
     p.add_argument("--seed", type=int, default=0, help="seed of the noise generator (default: 0)")
     p.add_argument("--sigma-t", type=_non_negative, default=0.0, metavar="S",

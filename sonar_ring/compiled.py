@@ -2,7 +2,7 @@
 
 A ping holds tens to hundreds of echoes, each with a handful of receivers, and the
 map holds 2 x 2 matrices per entry: there numpy spends its time starting each
-operation, not computing (README, "The numpy core", has the figures).  The few
+operation, not computing (doc/CORE_API.md, "The numpy core", has the figures).  The few
 loops that dominate a ping are plain Python over arrays, marked :func:`kernel`
 and compiled from the first call of any kernel on:
 
