@@ -1,6 +1,6 @@
 """Graph benchmark: ping -> markers latency and the highest sustained ping rate of the running nodes.
 
-The four nodes run as the ``graph`` executable does (one process, one executor,
+The nodes run as the ``graph`` executable does (one process, one executor,
 composed so a ping is one callback; ``source:=topic``, fixed pose) in a child
 process; this process plays the sensor and RViz, as lightly as it can (the
 same two cores run both): each ping -- 48 pairs of the Browne ring, 3 echoes
@@ -8,7 +8,7 @@ per pair -- is serialized once, and goes to the driver's ``tof_in`` with the
 wall clock at sending written into its stamp; a ping's
 latency is the time from that stamp until the middleware here received its
 markers (which carry the same stamp), so it includes both DDS hops, the
-graph's executor, the driver's checks, localiser, classifier and the marker
+graph's executor, the driver's checks, the localiser and the marker
 message, but not this process's own executor.
 
 The graph runs twice: on one CPU (the last this process may use), as the
@@ -16,6 +16,8 @@ launch file's ``cpus`` argument runs it, for the latency and the rate ladder;
 then on any CPU, as the scheduler places it, for the latency again.  On one
 CPU its middleware threads hand a ping to its executor without waking the
 other core, and no migration leaves its code in the other core's cache.
+Then the nodes run once more, each in its own process, as the launch file
+starts them by default (:func:`separate_processes`): every hop crosses DDS.
 Needs ROS 2 (rclpy and the built ``sonar_ring`` messages).
 """
 
@@ -108,7 +110,8 @@ def run(quick: bool = False) -> dict:
         (each node's median compute time per message from ``/diagnostics``);
         ``any_cpu``: the latency figures (the same first five keys) with the
         graph on any CPU, ``{"error": why}`` if that run failed, or None when
-        this process may use one CPU only;
+        this process may use one CPU only; ``separate``: the same figures with
+        one process per node (:func:`separate_processes`), or ``{"error": why}``;
         ``rows_per_ping`` and ``note`` (what was measured).
     """
     plan = QUICK if quick else FULL
@@ -126,20 +129,38 @@ def run(quick: bool = False) -> dict:
                                                       "dropped")}
         except Exception as exc:  # the pinned figures stand on their own
             any_cpu = {"error": f"failed: {exc}"}
+    try:
+        separate = separate_processes(quick)
+    except Exception as exc:  # the graph's own figures stand on their own
+        separate = {"error": f"failed: {exc}"}
     placement = f"on CPU {cpu}" + (", then on any CPU" if len(allowed) > 1 else " (the only one it may use)")
     return {
-        **pinned, "cpu": cpu, "any_cpu": any_cpu, "rows_per_ping": echoes.n_echoes,
+        **pinned, "cpu": cpu, "any_cpu": any_cpu, "separate": separate, "rows_per_ping": echoes.n_echoes,
         "note": (f"{layout.n_groups} pairs x {len(ECHO_RANGES)} pole echoes ({echoes.n_echoes} rows) per ping, "
                  f"sigma_t {SIGMA_TOF * 1e6:g} us; the graph executable in its own process (source:=topic, fixed "
                  f"pose), {placement}; latency from the ping's stamp to its markers arriving in another process"),
     }
 
 
-def _session(echoes: EchoArrays, plan: Plan, cpu: int | None, ladder: bool, domain: int) -> dict:
-    """One run of the graph process, on ``cpu`` (None: any): its latency, and the rate ladder if asked.
+def separate_processes(quick: bool = False) -> dict:
+    """The latency with each node in its own process, as the launch file starts them by default, on any CPU.
 
-    The graph and this process meet in ROS ``domain``.  Returns the keys of
-    :func:`run` up to ``node_latency_ms``.
+    The keys of :func:`run`'s ``any_cpu``.  The pings cross DDS between the
+    nodes too, so this is the graph's latency as a user's launch gives it.
+    """
+    plan = QUICK if quick else FULL
+    echoes = benchmark_echoes(load_layout(LAYOUT), np.random.default_rng(0))
+    result = _session(echoes, plan, None, ladder=False, domain=100 + (os.getpid() + 2) % 99, separate=True)
+    return {key: result[key] for key in ("latency_median_ms", "latency_p99_ms", "rate_hz", "pings", "dropped")}
+
+
+def _session(echoes: EchoArrays, plan: Plan, cpu: int | None, ladder: bool, domain: int,
+             separate: bool = False) -> dict:
+    """One run of the graph process (``separate``: of one process per node), on ``cpu`` (None: any).
+
+    Its latency, and the rate ladder if asked.  The graph and this process
+    meet in ROS ``domain``.  Returns the keys of :func:`run` up to
+    ``node_latency_ms``.
     """
     import rclpy
     from rclpy.executors import SingleThreadedExecutor
@@ -154,12 +175,16 @@ def _session(echoes: EchoArrays, plan: Plan, cpu: int | None, ladder: bool, doma
     environment = dict(os.environ, ROS_DOMAIN_ID=str(domain), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     # Set before rclpy starts: the middleware's threads, made later, inherit it.
     placement = "" if cpu is None else f"import os; os.sched_setaffinity(0, {{{cpu}}}); "
-    command = [sys.executable, "-c", placement + "from sonar_ring.ros.graph import main; main()", "--ros-args",
-               "-p", "source:=topic", "-p", f"layout:={LAYOUT}", "-p", "use_odometry:=false",
-               "--log-level", "error"]
+    from sonar_ring.ros.graph import NODES
+
+    modules = [node.__module__ for node in NODES] if separate else ["sonar_ring.ros.graph"]
     errors = tempfile.TemporaryFile(mode="w+")
     # cwd "/": a source checkout as cwd would shadow the built package (which holds sonar_ring.msg)
-    graph = subprocess.Popen(command, cwd="/", env=environment, stdout=subprocess.DEVNULL, stderr=errors, text=True)
+    processes = [subprocess.Popen([sys.executable, "-c", placement + f"from {module} import main; main()",
+                                   "--ros-args", "-p", "source:=topic", "-p", f"layout:={LAYOUT}",
+                                   "-p", "use_odometry:=false", "--log-level", "error"],
+                                  cwd="/", env=environment, stdout=subprocess.DEVNULL, stderr=errors, text=True)
+                 for module in modules]
     context = rclpy.Context()
     rclpy.init(context=context, domain_id=domain)
     arrived: dict[int, int] = {}
@@ -192,7 +217,7 @@ def _session(echoes: EchoArrays, plan: Plan, cpu: int | None, ladder: bool, doma
         executor.add_node(node)
         deadline = time.monotonic() + 30.0
         while sender.get_subscription_count() < 1 or node.count_publishers("markers") < 1:
-            if graph.poll() is not None or time.monotonic() > deadline:
+            if any(process.poll() is not None for process in processes) or time.monotonic() > deadline:
                 errors.seek(0)
                 raise RuntimeError(f"the graph did not start: {errors.read().strip() or 'no output'}")
             executor.spin_once(timeout_sec=0.1)
@@ -235,11 +260,13 @@ def _session(echoes: EchoArrays, plan: Plan, cpu: int | None, ladder: bool, doma
             sustained = rate
     finally:
         context.try_shutdown()
-        graph.terminate()
-        try:
-            graph.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            graph.kill()
+        for process in processes:
+            process.terminate()
+        for process in processes:
+            try:
+                process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                process.kill()
         errors.close()
     return {"latency_median_ms": median, "latency_p99_ms": p99, "rate_hz": LATENCY_RATE, "pings": len(stamps),
             "dropped": len(stamps) - received, "max_sustained_rate_hz": sustained, "ladder": steps,

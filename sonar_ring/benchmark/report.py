@@ -449,6 +449,13 @@ def _graph_section(results: Results) -> list[str]:
     elif any_cpu:
         lines.append(f"- latency at {any_cpu['rate_hz']:g} Hz over {any_cpu['pings']} pings on any CPU: "
                      f"{_latency(any_cpu)}; dropped {any_cpu['dropped']}")
+    separate = graph.get("separate")
+    if separate and "error" in separate:
+        lines.append(f"- latency with one process per node: {separate['error']}")
+    elif separate:
+        lines.append(f"- latency at {separate['rate_hz']:g} Hz over {separate['pings']} pings with one process per "
+                     f"node (the launch file's default), on any CPU: {_latency(separate)}; dropped "
+                     f"{separate['dropped']}")
     lines.append(f"- highest sustained ping rate {_placement(graph)}: {_sustained(graph)}")
     if graph.get("node_latency_ms"):
         lines.append("- node compute per message (median, /diagnostics): " + ", ".join(
