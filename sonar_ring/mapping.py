@@ -577,14 +577,14 @@ class MapCounts:
 
 @dataclass(frozen=True, eq=False)
 class Sightings:
-    """The usable landmarks of one ping in ``odom``, with their lines of sight (:meth:`LandmarkMap.screen`).
+    """The usable landmarks of one ping in ``odom``, with their lines of sight (:meth:`LandmarkMap.usable_sightings`).
 
     Attributes
     ----------
     offered, invalid, not_finite, degenerate : int
-        Landmarks screened, and those left out as in :class:`MapCounts`.
+        Landmarks offered, and those left out as in :class:`MapCounts`.
     rows : ndarray of int, shape (N,)
-        Index of each sighting among the landmarks screened.
+        Index of each sighting among the landmarks offered.
     landmark_class : ndarray of uint8, shape (N,)
     position : ndarray, shape (N, 2)
         ``G``, m.
@@ -707,8 +707,8 @@ def _line_of_sight(normal, position, anchor, distance):
 
 
 @kernel
-def _screen_rows(landmark_class, valid, position, covariance, segment, normal, sensor_x, sensor_y, sighting_variance):
-    """:meth:`LandmarkMap._screen` of L landmarks in ``odom`` seen from ``(sensor_x, sensor_y)``.
+def _usable_rows(landmark_class, valid, position, covariance, segment, normal, sensor_x, sensor_y, sighting_variance):
+    """:meth:`LandmarkMap._usable_sightings` of L landmarks in ``odom`` seen from ``(sensor_x, sensor_y)``.
 
     A landmark is usable when valid, finite and within :data:`MAX_COORDINATE`
     (position, segment, covariance, a plane's normal; the covariance's entries
@@ -1120,7 +1120,7 @@ class LandmarkMap:
 
     def update(self, landmarks: Landmarks, sensor_pose, models: PointModels | None = None,
                explained=None) -> Placed:
-        """Add one ping's landmarks, already in ``odom``: :meth:`screen`, then :meth:`add`; where each went.
+        """Add one ping's landmarks, already in ``odom``: :meth:`usable_sightings`, then :meth:`add`; where each went.
 
         Parameters
         ----------
@@ -1147,27 +1147,27 @@ class LandmarkMap:
             If ``landmarks`` is not a :class:`Landmarks` with consistent shapes or
             ``sensor_pose`` is not three numbers.  Bad data is counted, never raised.
         """
-        return self.add(self.screen(landmarks, sensor_pose, models, explained))
+        return self.add(self.usable_sightings(landmarks, sensor_pose, models, explained))
 
-    def screen(self, landmarks: Landmarks, sensor_pose, models: PointModels | None = None,
-               explained=None) -> Sightings | None:
+    def usable_sightings(self, landmarks: Landmarks, sensor_pose, models: PointModels | None = None,
+                         explained=None) -> Sightings | None:
         """The usable landmarks of one ping as sightings, the others counted by kind; None for a bad pose.
 
         Uses the map's settings, never its entries, so any map with the same
         settings gives the same sightings.  Parameters and errors as :meth:`update`.
         """
-        _check_landmarks(landmarks, "LandmarkMap.screen")
-        pose = _pose(sensor_pose, "LandmarkMap.screen")
+        _check_landmarks(landmarks, "LandmarkMap.usable_sightings")
+        pose = _pose(sensor_pose, "LandmarkMap.usable_sightings")
         if not (np.all(np.isfinite(pose)) and np.all(np.abs(pose[:2]) <= MAX_COORDINATE)):
             return None
         explained = np.zeros(len(landmarks), bool) if explained is None else np.asarray(explained, dtype=bool)
         if explained.shape != (len(landmarks),):
-            raise ValueError(f"LandmarkMap.screen: explained must have shape ({len(landmarks)},), "
+            raise ValueError(f"LandmarkMap.usable_sightings: explained must have shape ({len(landmarks)},), "
                              f"got {explained.shape}")
-        return self._screen(landmarks, pose[:2], models, explained)
+        return self._usable_sightings(landmarks, pose[:2], models, explained)
 
     def add(self, sightings: Sightings | None) -> Placed:
-        """Associate and fuse one ping's sightings (:meth:`screen`); None counts a rejected ping.
+        """Associate and fuse one ping's sightings (:meth:`usable_sightings`); None counts a rejected ping.
 
         Returns where each usable sighting went (:class:`Placed`).
         """
@@ -1254,14 +1254,14 @@ class LandmarkMap:
         self._next_uid += count
         return uids
 
-    def _screen(self, landmarks: Landmarks, sensor: np.ndarray, models: PointModels | None,
-                explained: np.ndarray) -> Sightings:
+    def _usable_sightings(self, landmarks: Landmarks, sensor: np.ndarray, models: PointModels | None,
+                          explained: np.ndarray) -> Sightings:
         """The usable landmarks, with the unusable ones counted by kind (and their point models, if given)."""
         # Copies (np.array) in the types load_kernels compiled, whatever arrays the caller's landmarks hold
         # (a read-only one is another type to numba); the kernel only reads them.
         position = np.array(landmarks.position, dtype=float)
         segment = np.array(landmarks.segment, dtype=float)
-        keep, covariance, information, normal, distance, counts = _screen_rows(
+        keep, covariance, information, normal, distance, counts = _usable_rows(
             np.array(landmarks.landmark_class, dtype=np.uint8), np.array(landmarks.valid, dtype=bool), position,
             np.array(landmarks.covariance, dtype=float), segment, np.array(landmarks.normal, dtype=float),
             sensor[0], sensor[1], self.sighting_sigma ** 2)

@@ -474,8 +474,8 @@ def test_update_is_deterministic():
         assert_array_equal(getattr(snapshots[0], name), getattr(snapshots[1], name))
 
 
-def test_screening_needs_the_settings_not_the_entries():
-    """``sonar-ring process`` screens in other processes with a map of the same settings."""
+def test_usable_sightings_need_the_settings_not_the_entries():
+    """Any map of the same settings gives the same usable sightings, whatever its entries."""
     rng = np.random.default_rng(12)
     mapped, fresh, whole = LandmarkMap(), LandmarkMap(), LandmarkMap()
     drive(mapped, np.random.default_rng(11), np.arange(0.0, 1.0, STEP), UNKNOWN, UNKNOWN)
@@ -483,12 +483,12 @@ def test_screening_needs_the_settings_not_the_entries():
     landmarks = sightings(rng, np.array([1.0, 0.0]), [[1.0, WALL_Y], CORNER_POINT, [2.0, 0.5]], [PLANE, CORNER, EDGE])
     landmarks = replace(landmarks, valid=np.array([True, True, False]))
     pose = [1.0, 0.0, 0.0]
-    screened = mapped.screen(landmarks, pose)
-    for name in (field.name for field in fields(screened)):
-        assert_array_equal(getattr(screened, name), getattr(fresh.screen(landmarks, pose), name))
-    assert (screened.offered, screened.invalid, screened.landmark_class.size) == (3, 1, 2)
-    assert mapped.screen(landmarks, [np.nan, 0.0, 0.0]) is None
-    mapped.add(screened)
+    usable = mapped.usable_sightings(landmarks, pose)
+    for name in (field.name for field in fields(usable)):
+        assert_array_equal(getattr(usable, name), getattr(fresh.usable_sightings(landmarks, pose), name))
+    assert (usable.offered, usable.invalid, usable.landmark_class.size) == (3, 1, 2)
+    assert mapped.usable_sightings(landmarks, [np.nan, 0.0, 0.0]) is None
+    mapped.add(usable)
     whole.update(landmarks, pose)
     assert mapped.counts == whole.counts
     for name in (field.name for field in fields(Landmarks)):
