@@ -73,8 +73,8 @@ class MapperSettings:
         Frame names (REP 105).
     max_points, max_walls : int
         Capacities of the map.
-    gate : float
-        Mahalanobis gate for association.
+    gate_chi2 : float
+        The association gate, a squared Mahalanobis distance (:class:`~sonar_ring.mapping.LandmarkMap`).
     min_observations : int
         Sightings an entry needs before it is published.
     slam_settings : SlamSettings
@@ -100,7 +100,7 @@ class MapperSettings:
     odom_frame: str = "odom"
     max_points: int = 2000
     max_walls: int = 500
-    gate: float = 9.21
+    gate_chi2: float = 9.21
     min_observations: int = 2
     slam_settings: SlamSettings = field(default_factory=SlamSettings)
     pose_history: int | None = 500
@@ -125,7 +125,7 @@ class MapBuilder:
         self.health = health
         self.history = PoseHistory(settings.pose_history)
         self._pending: deque = deque()
-        front = dict(max_points=settings.max_points, max_walls=settings.max_walls, gate=settings.gate,
+        front = dict(max_points=settings.max_points, max_walls=settings.max_walls, gate_chi2=settings.gate_chi2,
                      min_support_pings=settings.min_support_pings, min_support_travel=settings.min_support_travel)
         self.slam = LandmarkSlam(settings.slam_settings, front) if settings.slam else None
         self._odom_map = None if settings.slam else LandmarkMap(**front)
