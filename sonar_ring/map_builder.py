@@ -28,7 +28,7 @@ detail, count)`` and ``note(reason, count)``: the node's
 ``sightings degenerate`` (problems), ``multipath explained``, ``impossible``,
 ``explained away``, ``sightings ambiguous``, ``sightings dropped``,
 ``sightings evicted`` (notes); with SLAM also ``odometry_jump`` (a new map
-segment starts) and ``no_landmarks`` (a stretch of travel without a confirmed
+session starts) and ``no_landmarks`` (a stretch of travel without a confirmed
 landmark) as problems.  :meth:`MapBuilder.not_persistent` says how many
 entries are held back.  Nothing raises on bad data.
 """
@@ -213,7 +213,7 @@ class MapBuilder:
             report = self.slam.add_ping(landmarks, odometry, stamp * 1e-9, offset, models, explained)
             self.robot_pose = report.pose
             if report.fault:
-                self.health.problem(report.fault.replace(" ", "_"), f"{report.fault}: a new map segment starts")
+                self.health.problem(report.fault.replace(" ", "_"), f"{report.fault}: a new map session starts")
             lost = self.slam.lost(stamp * 1e-9)
             if lost and not self._lost:
                 self.health.problem("no_landmarks", f"no known landmark for {self.slam.settings.lost_after:g} s")
@@ -248,7 +248,7 @@ class MapBuilder:
     def _count_sightings(self) -> None:
         """What the map refused or left out since the last ping, on ``health``."""
         counts = self.landmark_map.counts
-        if self.slam is not None and counts.pings < self._counts.pings:  # a new segment's map starts at zero
+        if self.slam is not None and counts.pings < self._counts.pings:  # a new session's map starts at zero
             self._counts = MapCounts()
         for reason in SIGHTING_PROBLEMS:
             self.health.problem(f"sightings {reason}", count=getattr(counts, reason) - getattr(self._counts, reason))
@@ -260,7 +260,7 @@ class MapBuilder:
 
     @property
     def landmark_map(self) -> LandmarkMap:
-        """The map of landmarks: SLAM's front end (its current segment's), or the odom-frame map."""
+        """The map of landmarks: SLAM's front end (its current session's), or the odom-frame map."""
         return self.slam.front if self.slam is not None else self._odom_map
 
     def snapshot(self) -> Landmarks:

@@ -47,7 +47,7 @@ lap's landmarks associates with them (the gates include the pose's
 uncertainty), which closes the loop without duplicating them.
 
 Faults never raise: an odometry increment faster than ``max_speed`` or
-``max_turn_rate`` (a slip, a pushed robot) starts a new **segment** -- a new
+``max_turn_rate`` (a slip, a pushed robot) starts a new **session** -- a new
 map from that pose on, never merged with the old one -- and is reported, as is
 a stretch of ``lost_after`` seconds of travel without a confirmed landmark.
 
@@ -146,7 +146,7 @@ class SlamReport:
     keyframe : bool
         Whether the ping made a keyframe (and the graph was updated).
     fault : str
-        Empty, or why a new segment started (``odometry jump``).
+        Empty, or why a new session started (``odometry jump``).
     """
 
     pose: np.ndarray
@@ -268,10 +268,10 @@ class LandmarkSlam:
     def __init__(self, settings: SlamSettings = SlamSettings(), front_end: dict | None = None):
         self.settings = settings
         self._front_end = dict(front_end or {})
-        self.segments = 0
-        self._start_segment()
+        self.sessions = 0
+        self._start_session()
 
-    def _start_segment(self) -> None:
+    def _start_session(self) -> None:
         parameters = gtsam.ISAM2Params()
         parameters.setRelinearizeThreshold(self.settings.relinearize_threshold)
         parameters.relinearizeSkip = self.settings.relinearize_skip
@@ -290,7 +290,7 @@ class LandmarkSlam:
         self._last_time = None
         self._last_seen_time = None
         self._ping = 0
-        self.segments += 1
+        self.sessions += 1
 
     # ------------------------------------------------------------------ per ping
 
@@ -303,7 +303,7 @@ class LandmarkSlam:
         for edge or corner, and a decided point's measurement.  ``explained``
         (L,) marks the landmarks the caller explained against :meth:`snapshot`
         at :meth:`pose_at` (:mod:`sonar_ring.explain`); a ping that starts a
-        new segment ignores it (the map it was explained by is gone).
+        new session ignores it (the map it was explained by is gone).
 
         Returns what it did (:class:`SlamReport`).  Never raises on bad data:
         the front end counts unusable landmarks; a non-finite pose skips the ping.
@@ -312,7 +312,7 @@ class LandmarkSlam:
         offset = np.asarray(sensor_offset, dtype=float)
         fault = self._check_odometry(odometry, time)
         if fault:
-            self._start_segment()
+            self._start_session()
         if self._keyframe < 0:
             self._first_keyframe(odometry, time)
         elif self._is_keyframe(odometry):
@@ -459,7 +459,7 @@ class LandmarkSlam:
                 or self._pings_since_keyframe >= s.keyframe_pings)
 
     def _first_keyframe(self, odometry: np.ndarray, time: float) -> None:
-        """The segment's first keyframe: ``map`` equals ``odom`` there (a tight prior); its clock for :meth:`lost`."""
+        """The session's first keyframe: ``map`` equals ``odom`` there (a tight prior); its clock for :meth:`lost`."""
         self._last_seen_time = time
         key = gtsam.symbol(POSE, 0)
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -602,7 +602,7 @@ class LandmarkSlam:
         return compose(pose, inverse(self._last_odometry))
 
     def lost(self, time: float) -> bool:
-        """Whether no confirmed landmark was seen for ``lost_after`` s up to ``time`` (since the segment began)."""
+        """Whether no confirmed landmark was seen for ``lost_after`` s up to ``time`` (since the session began)."""
         return self._last_seen_time is not None and time - self._last_seen_time > self.settings.lost_after
 
 
