@@ -130,7 +130,7 @@ class MapBuilder:
         self.slam = LandmarkSlam(settings.slam_settings, front) if settings.slam else None
         self._odom_map = None if settings.slam else LandmarkMap(**front)
         self._counts = MapCounts()
-        self._lost = False
+        self._no_landmarks = False
         self.changed = False
         self.robot_pose = None
         """The robot's pose in the map's frame ``(x, y, yaw)`` at the latest ping mapped, None before the first."""
@@ -214,10 +214,11 @@ class MapBuilder:
             self.robot_pose = report.pose
             if report.fault:
                 self.health.problem(report.fault.replace(" ", "_"), f"{report.fault}: a new map session starts")
-            lost = self.slam.lost(stamp * 1e-9)
-            if lost and not self._lost:
-                self.health.problem("no_landmarks", f"no known landmark for {self.slam.settings.lost_after:g} s")
-            self._lost = lost
+            no_landmarks = self.slam.no_landmarks(stamp * 1e-9)
+            if no_landmarks and not self._no_landmarks:
+                self.health.problem("no_landmarks",
+                                    f"no known landmark for {self.slam.settings.no_landmarks_after:g} s")
+            self._no_landmarks = no_landmarks
         self._count_sightings()
         self.latest_stamp = stamp
         self.changed = True

@@ -49,7 +49,7 @@ uncertainty), which closes the loop without duplicating them.
 Faults never raise: an odometry increment faster than ``max_speed`` or
 ``max_turn_rate`` (a slip, a pushed robot) starts a new **session** -- a new
 map from that pose on, never merged with the old one -- and is reported, as is
-a stretch of ``lost_after`` seconds of travel without a confirmed landmark.
+a stretch of ``no_landmarks_after`` seconds of travel without a confirmed landmark.
 
 Frames (REP 105): ``map`` (the estimate's frame; it starts equal to ``odom`` at
 the first ping), ``odom`` (the odometry's), the robot (``base_link``) and the
@@ -102,7 +102,7 @@ class SlamSettings:
         (m) of an end of its seen extent (:meth:`LandmarkSlam.published`).
     max_speed, max_turn_rate : float
         Odometry increments beyond these (m/s, rad/s, with the ping interval) are a fault.
-    lost_after : float
+    no_landmarks_after : float
         Seconds of travel without a confirmed landmark after which the SLAM says so.
     smoother_lag : float
         Seconds of keyframes the smoother keeps; older ones are marginalised.
@@ -127,7 +127,7 @@ class SlamSettings:
     relinearize_skip: int = 10
     max_speed: float = 2.0
     max_turn_rate: float = 4.0
-    lost_after: float = 5.0
+    no_landmarks_after: float = 5.0
     smoother_lag: float = 60.0
 
 
@@ -459,7 +459,7 @@ class LandmarkSlam:
                 or self._pings_since_keyframe >= s.keyframe_pings)
 
     def _first_keyframe(self, odometry: np.ndarray, time: float) -> None:
-        """The session's first keyframe: ``map`` equals ``odom`` there (a tight prior); its clock for :meth:`lost`."""
+        """The session's first keyframe: ``map`` = ``odom`` there (a tight prior); clock of :meth:`no_landmarks`."""
         self._last_seen_time = time
         key = gtsam.symbol(POSE, 0)
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -601,9 +601,9 @@ class LandmarkSlam:
         pose, _ = self.pose()
         return compose(pose, inverse(self._last_odometry))
 
-    def lost(self, time: float) -> bool:
-        """Whether no confirmed landmark was seen for ``lost_after`` s up to ``time`` (since the session began)."""
-        return self._last_seen_time is not None and time - self._last_seen_time > self.settings.lost_after
+    def no_landmarks(self, time: float) -> bool:
+        """Whether no confirmed landmark was seen for ``no_landmarks_after`` s up to ``time`` (in this session)."""
+        return self._last_seen_time is not None and time - self._last_seen_time > self.settings.no_landmarks_after
 
 
 def _without_bearing(sight: np.ndarray, covariance: np.ndarray, sigma: float) -> np.ndarray:

@@ -442,9 +442,9 @@ def test_nan_data_never_raises_and_explains_nothing():
     assert np.all(explained.label[:3] == NONE) and np.all(np.isnan(explained.residual[:3]))
     assert np.any(explained.label == MULTIPATH)
     # A NaN pose covariance explains nothing.
-    lost = Tolerance(sigma_path=SIGMA_PATH, pose_covariance=np.full((3, 3), np.nan))
-    prediction = predict(walls, points, placement, RING, ping.group, ping.transmitter, lost, paths=measured)
-    assert np.all(match(prediction, RING, ping.group, ping.transmitter, measured, lost).label == NONE)
+    unknown_pose = Tolerance(sigma_path=SIGMA_PATH, pose_covariance=np.full((3, 3), np.nan))
+    prediction = predict(walls, points, placement, RING, ping.group, ping.transmitter, unknown_pose, paths=measured)
+    assert np.all(match(prediction, RING, ping.group, ping.transmitter, measured, unknown_pose).label == NONE)
     # NaN reflection points are never impossible.
     assert not impossible(np.full((1, 2, 2), np.nan), placement, RING, [0], [0], walls, 0.0)[0]
     assert_array_equal(impossible(np.empty((0, 2, 2)), placement, RING, [], [], walls, 0.0), [])
