@@ -81,7 +81,7 @@ can give one for the channel; every test follows from the path's existence, so
 none drops a path that exists (the tests compare pruned and unpruned
 predictions on random poses), and each has a slack of 1e-9 against rounding:
 
-* **range**: every reflection of a path within the window ``D`` lies within
+* **range**: every reflection of a path within the receive window ``D`` lies within
   ``D / 2 + rho`` of ``S`` (``|S - A| <= |T - A| + rho`` and ``|S - A| <= rho + |A - B| +
   |B - R|``; summed, ``2 |S - A| <= D + 2 rho``): entries farther away are dropped;
 * **beam**: the last reflection lies in a receiver's acceptance cone, widened by
@@ -265,7 +265,7 @@ class Explanation:
 
 
 def predict(walls, points, placement: Placement, layout: Layout, group, transmitter, tolerance: Tolerance, *,
-            paths=None, window: float | None = None, junction: float = JUNCTION, prune: bool = True) -> Prediction:
+            paths=None, max_path: float | None = None, junction: float = JUNCTION, prune: bool = True) -> Prediction:
     """The paths of the map, double and single bounces, for the channels of one ping's echo rows.
 
     Parameters
@@ -291,8 +291,8 @@ def predict(walls, points, placement: Placement, layout: Layout, group, transmit
         the paths that can match a row of their channel (:func:`match`) are
         kept -- what can matter for this ping -- and only they are tested for
         beams and blocking.  Not given, every path.
-    window : float, optional
-        Longest path the receivers report, m; default ``2 * layout.max_range``.
+    max_path : float, optional
+        Longest path the receivers report (the receive window), m; default ``2 * layout.max_range``.
     junction : float
         m: see :data:`JUNCTION`.
     prune : bool
@@ -309,14 +309,14 @@ def predict(walls, points, placement: Placement, layout: Layout, group, transmit
     _check_placement(placement, layout, "predict")
     row_paths = np.empty((group.size, layout.receivers_per_group)) if paths is None else _row_paths(
         paths, group.size, layout, "predict")
-    window = 2.0 * layout.max_range if window is None else float(window)
+    max_path = 2.0 * layout.max_range if max_path is None else float(max_path)
     start, direction, normal, length = image_method.wall_frames(walls)
     excluded_pair, excluded_point = image_method.junctions(walls, points, junction)
     (kind, first, second, path_group, path_slot, path, jacobian, first_point, last_point,
      channel_start) = image_method.map_paths(
         start, direction, normal, length, walls, points, excluded_pair, excluded_point, placement.tx, placement.rx,
         placement.tx_axis, placement.rx_axis, layout.plan.height_offset, layout.group_transmitters,
-        group * layout.group_transmitters.shape[1] + slot, row_paths, placement.pose, window, layout.beam_half_angle,
+        group * layout.group_transmitters.shape[1] + slot, row_paths, placement.pose, max_path, layout.beam_half_angle,
         tolerance.pose_covariance, tolerance.xy_sigma, tolerance.yaw_sigma, tolerance.sigma_path, tolerance.sigma_speed,
         tolerance.sigma_map, tolerance.gate_sigmas, layout.isotropic_emitter, prune, paths is not None)
     return Prediction(group=path_group, slot=path_slot, kind=kind, first=first, second=second, path=path,

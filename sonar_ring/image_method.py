@@ -360,14 +360,14 @@ def junctions(walls, points, gap):
 
 @kernel
 def map_paths(start, direction, normal, length, walls, points, excluded_pair, excluded_point, tx, rx, tx_axis,
-              rx_axis, height_offset, transmitter, row_channel, row_paths, pose, window, acceptance, pose_covariance,
+              rx_axis, height_offset, transmitter, row_channel, row_paths, pose, max_path, acceptance, pose_covariance,
               xy_sigma, yaw_sigma, sigma_path, sigma_speed, sigma_map, gate_sigmas, isotropic, prune, gated):
     """The paths, double and single bounces, a map of walls and points sends to one ping's channels' receivers.
 
     The engine of :func:`sonar_ring.explain.predict`, whose docstring gives the
     model, the margins and the pruning.  Paths exist as :func:`double_bounces`
-    says (within the extent margin of the segments), fit the ``window`` (3-D
-    length with ``height_offset``), arrive within the widened acceptance angle
+    says (within the extent margin of the segments), fit the receive window
+    ``max_path`` (3-D length with ``height_offset``), arrive within the widened acceptance angle
     (and leave a directional transmitter within it), and have no leg that a
     wall crosses away from the leg's reflecting ends and the wall's own.  Two
     passes: the candidates that pass the pruning (and, where ``gated``, come
@@ -402,8 +402,8 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
         Where ``gated``, the rows' measured paths, m, NaN where not heard.
     pose : ndarray, shape (3,)
         The sensor's pose (x, y, yaw), m and rad.
-    window : float
-        Longest 3-D path, m.
+    max_path : float
+        Longest 3-D path the receivers report (the receive window), m.
     acceptance : float
         Acceptance half-angle of the transducers, rad.
     pose_covariance : ndarray, shape (3, 3)
@@ -475,7 +475,7 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
             ends[w, 0, axis] = start[w, axis] - extent_margin * direction[w, axis]
             ends[w, 1, axis] = start[w, axis] + (length[w] + extent_margin) * direction[w, axis]
     # Range: entries farther than this from the centre give no path.
-    reach = 0.5 * window + spread + _SLACK
+    reach = 0.5 * max_path + spread + _SLACK
     wall_near = np.ones(n_walls, dtype=np.bool_)
     point_near = np.ones(n_points, dtype=np.bool_)
     # Beam: an entry's paths arrive within ``acceptance + yaw_margin + position_margin / distance`` of a
@@ -695,7 +695,7 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
                     near_count += 1
             count = near_count
 
-    # Pass 2: each candidate's geometry, window and derivative; where gated, whether a row of its channel is
+    # Pass 2: each candidate's geometry, receive window and derivative; where gated, whether a row of its channel is
     # within the gate of it (the Mahalanobis distance of :func:`match_rows`); then beams and blocking.
     out_kind = np.empty(count, dtype=np.int64)
     out_first = np.empty(count, dtype=np.int64)
@@ -738,7 +738,7 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
             first_point[kept_count, k, 0], first_point[kept_count, k, 1] = first_x, first_y
             last_point[kept_count, k, 0], last_point[kept_count, k, 1] = last_x, last_y
             distance = math.sqrt(h ** 2 + height_offset[g, m, k] ** 2)
-            path[kept_count, k] = distance if exists and distance <= window else np.nan
+            path[kept_count, k] = distance if exists and distance <= max_path else np.nan
             for axis in range(3):
                 jacobian[kept_count, k, axis] = 0.0
             if not np.isfinite(path[kept_count, k]):

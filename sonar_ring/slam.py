@@ -165,7 +165,7 @@ class _Confirmed:
 
 
 @dataclass
-class _Window:
+class _SinceKeyframe:
     """The sightings since the latest keyframe, in its robot frame, a tuple of arrays per ping.
 
     The entry uid (n,), whether it is a wall (n,), the measurement (n, 2) -- a point's position, a wall's foot
@@ -278,7 +278,7 @@ class LandmarkSlam:
         self._smoother = gtsam.IncrementalFixedLagSmoother(self.settings.smoother_lag, parameters)
         self.front = LandmarkMap(**self._front_end)
         self._confirmed: dict[int, _Confirmed] = {}
-        self._window = _Window()
+        self._since_keyframe = _SinceKeyframe()
         self._keyframe = -1  # index of the latest keyframe
         self._keyframe_odometry = None  # its odometry pose
         self._keyframe_pose = None  # its estimate in map
@@ -436,7 +436,7 @@ class LandmarkSlam:
         if ranged.any():
             covariance[ranged] = _without_bearing(position[ranged] - frame[:2], covariance[ranged],
                                                   self.settings.undecided_bearing_sigma)
-        self._window.pings.append((uids.copy(), wall, position, _inverse(covariance)))
+        self._since_keyframe.pings.append((uids.copy(), wall, position, _inverse(covariance)))
 
     def _follow_renames(self, renamed: dict) -> None:
         """Entries that live on under another uid keep their record (a wall absorbing a confirmed one inherits it).
@@ -448,7 +448,7 @@ class LandmarkSlam:
             record = self._confirmed.pop(old, None)
             if record is not None and new not in self._confirmed and (record.kind == WALL) == (new in walls):
                 self._confirmed[new] = record
-            self._window.rename(old, new)
+            self._since_keyframe.rename(old, new)
 
     # ------------------------------------------------------------------ keyframes
 
@@ -473,7 +473,7 @@ class LandmarkSlam:
         self._pings_since_keyframe = 0
 
     def _add_keyframe(self, odometry: np.ndarray, time: float) -> None:
-        """Odometry to a new keyframe at this ping, the window's measurements, promotions; update the estimate."""
+        """Odometry to a new keyframe at this ping, the sightings since the last, promotions; update the estimate."""
         previous, key = gtsam.symbol(POSE, self._keyframe), gtsam.symbol(POSE, self._keyframe + 1)
         step = relative_pose(self._keyframe_odometry, odometry)
         graph, values, timestamps = gtsam.NonlinearFactorGraph(), gtsam.Values(), {key: time, previous: time}
@@ -492,7 +492,7 @@ class LandmarkSlam:
         self._keyframe_covariance = self._smoother.marginalCovariance(key)
         self._keyframe_odometry, self._keyframe_time = odometry.copy(), time
         self._pings_since_keyframe = 0
-        self._window.pings.clear()
+        self._since_keyframe.pings.clear()
         self._write_back(estimate)
 
     def _add_measurements(self, pose_key: int, graph, values) -> None:
@@ -500,11 +500,11 @@ class LandmarkSlam:
 
         Only a persistent wall or fixed point is confirmed (module docstring).
         """
-        if not self._window.pings:
+        if not self._since_keyframe.pings:
             return
         entries = self.front.entries()
         by_uid = {uid: index for index, uid in enumerate(entries.uid.tolist())}
-        uids, is_wall, measurement, covariance = self._window.fused()
+        uids, is_wall, measurement, covariance = self._since_keyframe.fused()
         for uid, wall, position, spread in zip(uids.tolist(), is_wall.tolist(), measurement, covariance,
                                                strict=True):
             index = by_uid.get(uid)
