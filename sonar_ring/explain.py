@@ -60,17 +60,17 @@ are compared with a predicted path's ``d_k`` through the Mahalanobis distance
 * ``sigma_map``: the position error of a map entry; each of a path's two
   reflectors moved by it changes every receiver's path by up to twice as much.
 
-A path matches a row when ``r <= gate``.  Under Gaussian errors a true match
+A path matches a row when ``r <= gate_sigmas``.  Under Gaussian errors a true match
 fails a gate of 4 with probability 6e-5 (one receiver heard the row), 3.4e-4
 (two) or 1.1e-3 (three).
 
 The same uncertainty widens what :func:`predict` keeps: a transducer's position
 in the map is uncertain by ``sigma_position = sqrt(max eig Sigma_xy) + rho
 sigma_yaw`` (``rho`` the transducers' largest distance from ``S``), so a bounce may
-lie ``gate (sigma_position + sigma_map)`` beyond a segment's ends, a path may
-arrive ``gate (sigma_yaw + (2 sigma_position + sigma_map) / distance)`` outside
+lie ``gate_sigmas (sigma_position + sigma_map)`` beyond a segment's ends, a path may
+arrive ``gate_sigmas (sigma_yaw + (2 sigma_position + sigma_map) / distance)`` outside
 the acceptance angle, and a wall blocks a leg only where it crosses it farther
-than ``gate (sigma_position + sigma_map)`` from the leg's reflecting ends and
+than ``gate_sigmas (sigma_position + sigma_map)`` from the leg's reflecting ends and
 from the wall's own ends (:func:`impossible` likewise, by its ``margin``).  All
 are 0 for an exact pose and map.
 
@@ -81,7 +81,7 @@ can give one for the channel; every test follows from the path's existence, so
 none drops a path that exists (the tests compare pruned and unpruned
 predictions on random poses), and each has a slack of 1e-9 against rounding:
 
-* **range**: every reflection of a path within the window ``D`` lies within
+* **range**: every reflection of a path within the receive window ``D`` lies within
   ``D / 2 + rho`` of ``S`` (``|S - A| <= |T - A| + rho`` and ``|S - A| <= rho + |A - B| +
   |B - R|``; summed, ``2 |S - A| <= D + 2 rho``): entries farther away are dropped;
 * **beam**: the last reflection lies in a receiver's acceptance cone, widened by
@@ -152,22 +152,23 @@ class Tolerance:
         Relative standard deviation of the speed of sound (0.0035: 0.35 %).
     sigma_map : float
         Standard deviation of a map entry's position, m.
-    gate : float
-        Largest Mahalanobis distance of a match (> 0).
+    gate_sigmas : float
+        Largest Mahalanobis distance of a match, not squared: standard deviations (> 0).
     """
 
     sigma_path: float
     pose_covariance: np.ndarray = field(default_factory=lambda: np.zeros((3, 3)))
     sigma_speed: float = 0.0
     sigma_map: float = 0.0
-    gate: float = 4.0
+    gate_sigmas: float = 4.0
 
     def __post_init__(self):
         covariance = np.asarray(self.pose_covariance, dtype=float)
         if covariance.shape != (3, 3):
             raise ValueError(f"Tolerance: pose_covariance must have shape (3, 3), got {covariance.shape}")
         object.__setattr__(self, "pose_covariance", covariance)
-        for name, low_open in (("sigma_path", True), ("sigma_speed", False), ("sigma_map", False), ("gate", True)):
+        for name, low_open in (("sigma_path", True), ("sigma_speed", False), ("sigma_map", False),
+                               ("gate_sigmas", True)):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and math.isfinite(value) and (value > 0 or not low_open)
                     and value >= 0):
@@ -264,7 +265,7 @@ class Explanation:
 
 
 def predict(walls, points, placement: Placement, layout: Layout, group, transmitter, tolerance: Tolerance, *,
-            paths=None, window: float | None = None, junction: float = JUNCTION, prune: bool = True) -> Prediction:
+            paths=None, max_path: float | None = None, junction: float = JUNCTION, prune: bool = True) -> Prediction:
     """The paths of the map, double and single bounces, for the channels of one ping's echo rows.
 
     Parameters
@@ -290,8 +291,8 @@ def predict(walls, points, placement: Placement, layout: Layout, group, transmit
         the paths that can match a row of their channel (:func:`match`) are
         kept -- what can matter for this ping -- and only they are tested for
         beams and blocking.  Not given, every path.
-    window : float, optional
-        Longest path the receivers report, m; default ``2 * layout.max_range``.
+    max_path : float, optional
+        Longest path the receivers report (the receive window), m; default ``2 * layout.max_range``.
     junction : float
         m: see :data:`JUNCTION`.
     prune : bool
@@ -308,16 +309,16 @@ def predict(walls, points, placement: Placement, layout: Layout, group, transmit
     _check_placement(placement, layout, "predict")
     row_paths = np.empty((group.size, layout.receivers_per_group)) if paths is None else _row_paths(
         paths, group.size, layout, "predict")
-    window = 2.0 * layout.max_range if window is None else float(window)
+    max_path = 2.0 * layout.max_range if max_path is None else float(max_path)
     start, direction, normal, length = image_method.wall_frames(walls)
     excluded_pair, excluded_point = image_method.junctions(walls, points, junction)
     (kind, first, second, path_group, path_slot, path, jacobian, first_point, last_point,
      channel_start) = image_method.map_paths(
         start, direction, normal, length, walls, points, excluded_pair, excluded_point, placement.tx, placement.rx,
         placement.tx_axis, placement.rx_axis, layout.plan.height_offset, layout.group_transmitters,
-        group * layout.group_transmitters.shape[1] + slot, row_paths, placement.pose, window, layout.beam_half_angle,
+        group * layout.group_transmitters.shape[1] + slot, row_paths, placement.pose, max_path, layout.beam_half_angle,
         tolerance.pose_covariance, tolerance.xy_sigma, tolerance.yaw_sigma, tolerance.sigma_path, tolerance.sigma_speed,
-        tolerance.sigma_map, tolerance.gate, layout.isotropic_emitter, prune, paths is not None)
+        tolerance.sigma_map, tolerance.gate_sigmas, layout.isotropic_emitter, prune, paths is not None)
     return Prediction(group=path_group, slot=path_slot, kind=kind, first=first, second=second, path=path,
                       jacobian=jacobian, first_point=first_point, last_point=last_point, channel_start=channel_start)
 
@@ -359,10 +360,11 @@ def match(prediction: Prediction, layout: Layout, group, transmitter, paths, tol
     channel = group * layout.group_transmitters.shape[1] + slot
     best, direct, residual, direct_residual = image_method.match_rows(
         channel, paths, prediction.channel_start, prediction.kind, prediction.path, prediction.jacobian,
-        tolerance.pose_covariance, tolerance.sigma_path, tolerance.sigma_speed, tolerance.sigma_map, tolerance.gate)
+        tolerance.pose_covariance, tolerance.sigma_path, tolerance.sigma_speed, tolerance.sigma_map,
+        tolerance.gate_sigmas)
     # An echo that a mapped reflector's own echo explains as well may be that reflector's: not multipath.
-    label = np.where((residual <= tolerance.gate) & ~(direct_wins & (direct_residual <= tolerance.gate)), MULTIPATH,
-                     NONE)
+    label = np.where((residual <= tolerance.gate_sigmas)
+                     & ~(direct_wins & (direct_residual <= tolerance.gate_sigmas)), MULTIPATH, NONE)
     return Explanation(label=label.astype(np.uint8), best=best, residual=residual, direct=direct,
                        direct_residual=direct_residual)
 
@@ -388,7 +390,7 @@ def impossible(points, placement: Placement, layout: Layout, group, transmitter,
         m: a wall crossing a leg within this of the hypothesis' end does not
         count -- the wall the hypothesis lies on (a plane's own wall, the walls
         a corner or a wall's end joins), placed apart from it by noise.  About
-        ``gate`` times the hypothesis' and the map's position uncertainty.
+        ``gate_sigmas`` times the hypothesis' and the map's position uncertainty.
 
     Returns
     -------
@@ -461,8 +463,8 @@ class EchoTests:
         Relative error of the speed of sound the nodes assume (2 K: 0.35 %).
     sigma_map : float
         Position error of a map entry, m.
-    gate : float
-        Mahalanobis distance of a match (:class:`Tolerance`).
+    gate_sigmas : float
+        Largest Mahalanobis distance of a match, not squared (:class:`Tolerance`).
     wall_reach : float
         m: a mapped wall is taken to reach the nearest corner, edge or fixed point
         on its line (within ``wall_tolerance``) beyond an end of its seen extent,
@@ -477,13 +479,14 @@ class EchoTests:
     sigma_path: float = 343e-6
     sigma_speed: float = 0.0035
     sigma_map: float = 0.005
-    gate: float = 4.0
+    gate_sigmas: float = 4.0
     wall_reach: float = 2.0
     wall_tolerance: float = 0.05
     refresh_pings: int = 10
 
     def __post_init__(self):
-        Tolerance(self.sigma_path, sigma_speed=self.sigma_speed, sigma_map=self.sigma_map, gate=self.gate)
+        Tolerance(self.sigma_path, sigma_speed=self.sigma_speed, sigma_map=self.sigma_map,
+                  gate_sigmas=self.gate_sigmas)
 
 
 @dataclass(frozen=True)
@@ -645,7 +648,7 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     the tolerance; :func:`match` labels multipath (an entry's own echo does
     not save it if the entry was seen less than the double bounce's:
     :func:`_multipath_of_the_less_seen`), :func:`impossible` the rest whose
-    legs cross a wall's seen extent (margin: ``gate`` times the landmark's and
+    legs cross a wall's seen extent (margin: ``gate_sigmas`` times the landmark's and
     the map's position error).  A layout whose groups have several
     transmitters (whose landmark does not say which one sent) is not tested.
 
@@ -677,16 +680,16 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     if rows.size == 0:
         return nothing
     in_map = in_map.select(rows)
-    tolerance = Tolerance(tests.sigma_path, sensor_covariance, tests.sigma_speed, tests.sigma_map, tests.gate)
+    tolerance = Tolerance(tests.sigma_path, sensor_covariance, tests.sigma_speed, tests.sigma_map, tests.gate_sigmas)
     group = in_map.group.astype(np.int64)
     transmitter = np.zeros(rows.size, np.int64)
     paths = landmark_paths(in_map, placement, layout)
     prediction = predict(known.walls, known.points, placement, layout, group, transmitter, tolerance, paths=paths)
     explanation = match(prediction, layout, group, transmitter, paths, tolerance, direct_wins=False)
-    multipath = _multipath_of_the_less_seen(prediction, explanation, tests.gate, known.wall_support,
+    multipath = _multipath_of_the_less_seen(prediction, explanation, tests.gate_sigmas, known.wall_support,
                                             known.point_support)
     spread = np.sqrt(np.maximum(np.linalg.eigvalsh(np.asarray(in_map.covariance, dtype=float))[:, -1], 0.0))
-    margin = tests.gate * np.hypot(spread, tests.sigma_map)
+    margin = tests.gate_sigmas * np.hypot(spread, tests.sigma_map)
     blocked = impossible(reflection_points(in_map, placement, layout, transmitter), placement, layout, group,
                          transmitter, known.seen, np.where(np.isfinite(margin), margin, 0.0)) & ~multipath
     out = Explained(np.zeros(count, bool), np.zeros(count, bool))
@@ -694,7 +697,7 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     return out
 
 
-def _multipath_of_the_less_seen(prediction: Prediction, explanation: Explanation, gate: float, wall_support,
+def _multipath_of_the_less_seen(prediction: Prediction, explanation: Explanation, gate_sigmas: float, wall_support,
                                 point_support) -> np.ndarray:
     """Which rows are multipath, where an echo matches both a double bounce and a mapped entry's own echo.
 
@@ -706,8 +709,8 @@ def _multipath_of_the_less_seen(prediction: Prediction, explanation: Explanation
     ``wall_support``, ``point_support``: the observations of the walls and the
     points :func:`predict` was given, (W,), (P,).
     """
-    double = explanation.residual <= gate
-    direct = explanation.direct_residual <= gate
+    double = explanation.residual <= gate_sigmas
+    direct = explanation.direct_residual <= gate_sigmas
     both = np.flatnonzero(double & direct)
     if not both.size:
         return double

@@ -360,14 +360,14 @@ def junctions(walls, points, gap):
 
 @kernel
 def map_paths(start, direction, normal, length, walls, points, excluded_pair, excluded_point, tx, rx, tx_axis,
-              rx_axis, height_offset, transmitter, row_channel, row_paths, pose, window, acceptance, pose_covariance,
-              xy_sigma, yaw_sigma, sigma_path, sigma_speed, sigma_map, gate, isotropic, prune, gated):
+              rx_axis, height_offset, transmitter, row_channel, row_paths, pose, max_path, acceptance, pose_covariance,
+              xy_sigma, yaw_sigma, sigma_path, sigma_speed, sigma_map, gate_sigmas, isotropic, prune, gated):
     """The paths, double and single bounces, a map of walls and points sends to one ping's channels' receivers.
 
     The engine of :func:`sonar_ring.explain.predict`, whose docstring gives the
     model, the margins and the pruning.  Paths exist as :func:`double_bounces`
-    says (within the extent margin of the segments), fit the ``window`` (3-D
-    length with ``height_offset``), arrive within the widened acceptance angle
+    says (within the extent margin of the segments), fit the receive window
+    ``max_path`` (3-D length with ``height_offset``), arrive within the widened acceptance angle
     (and leave a directional transmitter within it), and have no leg that a
     wall crosses away from the leg's reflecting ends and the wall's own.  Two
     passes: the candidates that pass the pruning (and, where ``gated``, come
@@ -402,17 +402,17 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
         Where ``gated``, the rows' measured paths, m, NaN where not heard.
     pose : ndarray, shape (3,)
         The sensor's pose (x, y, yaw), m and rad.
-    window : float
-        Longest 3-D path, m.
+    max_path : float
+        Longest 3-D path the receivers report (the receive window), m.
     acceptance : float
         Acceptance half-angle of the transducers, rad.
     pose_covariance : ndarray, shape (3, 3)
     xy_sigma, yaw_sigma : float
         The pose's position error along its worst direction (m) and its yaw error (rad).
-    sigma_path, sigma_speed, sigma_map, gate : float
+    sigma_path, sigma_speed, sigma_map, gate_sigmas : float
         The tolerance (:class:`sonar_ring.explain.Tolerance`); where ``gated``,
         a path is kept only if some row of its channel is within Mahalanobis
-        distance ``gate`` of it (:func:`match_rows`).
+        distance ``gate_sigmas`` of it (:func:`match_rows`).
     isotropic, prune, gated : bool
         An isotropic emitter (no transmit beam); prune (:mod:`sonar_ring.explain`,
         "Pruning"); keep only paths near a measured row.
@@ -444,9 +444,9 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
         for k in range(receivers):
             spread = max(spread, math.hypot(rx[g, k, 0] - pose[0], rx[g, k, 1] - pose[1]))
     position = xy_sigma + spread * yaw_sigma
-    extent_margin = gate * (position + sigma_map)
-    yaw_margin = gate * yaw_sigma
-    position_margin = gate * (2.0 * position + sigma_map)
+    extent_margin = gate_sigmas * (position + sigma_map)
+    yaw_margin = gate_sigmas * yaw_sigma
+    position_margin = gate_sigmas * (2.0 * position + sigma_map)
     # The largest variance of a receiver's path but for the speed's term: |J_xy| <= 2, |J_yaw| <= 2 spread.
     fixed_variance = sigma_path ** 2 + 4.0 * position ** 2 + 8.0 * sigma_map ** 2
     # The rows of each channel (a counting sort), and the channels that have rows.
@@ -475,7 +475,7 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
             ends[w, 0, axis] = start[w, axis] - extent_margin * direction[w, axis]
             ends[w, 1, axis] = start[w, axis] + (length[w] + extent_margin) * direction[w, axis]
     # Range: entries farther than this from the centre give no path.
-    reach = 0.5 * window + spread + _SLACK
+    reach = 0.5 * max_path + spread + _SLACK
     wall_near = np.ones(n_walls, dtype=np.bool_)
     point_near = np.ones(n_points, dtype=np.bool_)
     # Beam: an entry's paths arrive within ``acceptance + yaw_margin + position_margin / distance`` of a
@@ -584,7 +584,7 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
     channel = np.empty(capacity, dtype=np.int64)
     horizontal = np.empty((capacity, receivers))
     near_rows = np.zeros(capacity, dtype=np.uint64)
-    low, high = _row_intervals(row_paths, gate, fixed_variance, sigma_speed)
+    low, high = _row_intervals(row_paths, gate_sigmas, fixed_variance, sigma_speed)
     squared = np.empty(receivers)
     image_distance = np.empty(receivers)
     back = np.empty(receivers)
@@ -686,7 +686,7 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
                             near = near and low[n, k] <= squared[k] <= high[n, k]
                     near = near and heard and (not same_start or _differences_near(
                         row_paths, n, horizontal, q, squared, image_distance, rx, g, spread, xy_sigma, yaw_sigma,
-                        sigma_path, sigma_speed, gate))
+                        sigma_path, sigma_speed, gate_sigmas))
                     if near:
                         mask |= np.uint64(1) << np.uint64(min(r - first_row, 63))
                 if mask:
@@ -695,7 +695,7 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
                     near_count += 1
             count = near_count
 
-    # Pass 2: each candidate's geometry, window and derivative; where gated, whether a row of its channel is
+    # Pass 2: each candidate's geometry, receive window and derivative; where gated, whether a row of its channel is
     # within the gate of it (the Mahalanobis distance of :func:`match_rows`); then beams and blocking.
     out_kind = np.empty(count, dtype=np.int64)
     out_first = np.empty(count, dtype=np.int64)
@@ -738,7 +738,7 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
             first_point[kept_count, k, 0], first_point[kept_count, k, 1] = first_x, first_y
             last_point[kept_count, k, 0], last_point[kept_count, k, 1] = last_x, last_y
             distance = math.sqrt(h ** 2 + height_offset[g, m, k] ** 2)
-            path[kept_count, k] = distance if exists and distance <= window else np.nan
+            path[kept_count, k] = distance if exists and distance <= max_path else np.nan
             for axis in range(3):
                 jacobian[kept_count, k, axis] = 0.0
             if not np.isfinite(path[kept_count, k]):
@@ -760,9 +760,9 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
             for r in range(first_row, row_start[channel_id[channel[q]] + 1]):
                 if near or not (near_rows[q] >> np.uint64(min(r - first_row, 63))) & np.uint64(1):
                     continue
-                near = (_near_at_every_receiver(row_paths, row_order[r], path, kept_count, variance, 0, gate)
+                near = (_near_at_every_receiver(row_paths, row_order[r], path, kept_count, variance, 0, gate_sigmas)
                         and _distance2(row_paths, row_order[r], path, jacobian, kept_count, pose_covariance,
-                                       sigma_path, sigma_speed, sigma_map, scratch) <= gate ** 2)
+                                       sigma_path, sigma_speed, sigma_map, scratch) <= gate_sigmas ** 2)
             if not near:
                 continue
         heard = False
@@ -802,23 +802,23 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
 
 
 @kernel
-def _row_intervals(row_paths, gate, fixed_variance, sigma_speed):
+def _row_intervals(row_paths, gate_sigmas, fixed_variance, sigma_speed):
     """The squared 3-D path lengths near each row at each receiver, ``low`` and ``high`` (N, K), m^2.
 
-    Near: ``|measured - d| <= gate sqrt(fixed_variance + sigma_speed^2 d^2)``, a
+    Near: ``|measured - d| <= gate_sigmas sqrt(fixed_variance + sigma_speed^2 d^2)``, a
     quadratic inequality in ``d`` whose roots bound an interval (none above when
-    ``gate sigma_speed >= 1``); widened by a slack against rounding.  NaN rows give
+    ``gate_sigmas sigma_speed >= 1``); widened by a slack against rounding.  NaN rows give
     an empty interval.
     """
     low = np.full(row_paths.shape, np.inf)
     high = np.full(row_paths.shape, -np.inf)
-    spread = (gate * sigma_speed) ** 2
+    spread = (gate_sigmas * sigma_speed) ** 2
     for n in range(row_paths.shape[0]):
         for k in range(row_paths.shape[1]):
             measured = row_paths[n, k]
             if not np.isfinite(measured):
                 continue
-            root = math.sqrt(spread * measured ** 2 + (1.0 - spread) * gate ** 2 * fixed_variance)
+            root = math.sqrt(spread * measured ** 2 + (1.0 - spread) * gate_sigmas ** 2 * fixed_variance)
             lowest = max((measured - root) / (1.0 - spread), 0.0) if spread < 1 else 0.0
             highest = (measured + root) / (1.0 - spread) if spread < 1 else np.inf
             low[n, k] = (max(lowest * (1.0 - 1e-12) - _SLACK, 0.0)) ** 2
@@ -828,7 +828,7 @@ def _row_intervals(row_paths, gate, fixed_variance, sigma_speed):
 
 @kernel
 def _differences_near(row_paths, n, horizontal, q, squared, image_distance, rx, g, spread, xy_sigma, yaw_sigma,
-                      sigma_path, sigma_speed, gate):
+                      sigma_path, sigma_speed, gate_sigmas):
     """Whether the differences between row ``n``'s receivers match those of candidate ``q`` within the gate.
 
     For a path that leaves the transmitter the same way for every receiver (its
@@ -839,7 +839,7 @@ def _differences_near(row_paths, n, horizontal, q, squared, image_distance, rx, 
     most ``s_k (|e_k - e_r| rho + b) + 2 rho |s_k - s_r|`` (``s = h / d``, ``e`` the unit
     vectors from X, ``|e_k - e_r| <= 2 b / max |R - X|``, ``b = |R_k - R_r|``, ``rho`` the
     spread), and the map's common error cancels; so the squared difference of the
-    errors is at most ``gate^2 (2 sigma_path^2 + (|dJ_xy| xy_sigma + |dJ_yaw| yaw_sigma)^2
+    errors is at most ``gate_sigmas^2 (2 sigma_path^2 + (|dJ_xy| xy_sigma + |dJ_yaw| yaw_sigma)^2
     + sigma_speed^2 (d_k - d_r)^2)`` for a row within the gate (the Mahalanobis
     distance bounds that of any difference).  ``squared`` (K,): the 3-D lengths squared.
     """
@@ -860,14 +860,14 @@ def _differences_near(row_paths, n, horizontal, q, squared, image_distance, rx, 
         variance = (2.0 * sigma_path ** 2 + (along * xy_sigma + around * yaw_sigma) ** 2
                     + sigma_speed ** 2 * (length - reference_length) ** 2)
         error = (row_paths[n, k] - row_paths[n, reference]) - (length - reference_length)
-        if error ** 2 > gate ** 2 * variance * (1.0 + 1e-9) + _SLACK ** 2:
+        if error ** 2 > gate_sigmas ** 2 * variance * (1.0 + 1e-9) + _SLACK ** 2:
             return False
     return True
 
 
 @kernel
 def match_rows(channel, paths, channel_start, kind, predicted, jacobian, pose_covariance, sigma_path, sigma_speed,
-               sigma_map, gate):
+               sigma_map, gate_sigmas):
     """Each echo row's closest double bounce and closest single bounce of its channel, by Mahalanobis distance.
 
     The engine of :func:`sonar_ring.explain.match`, whose module docstring gives the covariance.
@@ -885,8 +885,8 @@ def match_rows(channel, paths, channel_start, kind, predicted, jacobian, pose_co
     pose_covariance : ndarray, shape (3, 3)
     sigma_path, sigma_speed, sigma_map : float
         m, relative, m.
-    gate : float
-        Paths farther than ``gate`` standard deviations from the row at one of
+    gate_sigmas : float
+        Paths farther than ``gate_sigmas`` standard deviations from the row at one of
         its receivers are not considered (they cannot be within the gate).
 
     Returns
@@ -912,7 +912,7 @@ def match_rows(channel, paths, channel_start, kind, predicted, jacobian, pose_co
             distance[:, n] = np.nan
             continue
         for q in range(channel_start[channel[n]], channel_start[channel[n] + 1]):
-            if not _near_at_every_receiver(paths, n, predicted, q, variance, q, gate):
+            if not _near_at_every_receiver(paths, n, predicted, q, variance, q, gate_sigmas):
                 continue
             squared = _distance2(paths, n, predicted, jacobian, q, pose_covariance, sigma_path, sigma_speed, sigma_map,
                                  scratch)
@@ -941,8 +941,8 @@ def _variances(variance, row, predicted, jacobian, q, pose_covariance, sigma_pat
 
 
 @kernel
-def _near_at_every_receiver(paths, n, predicted, q, variance, row, gate):
-    """Whether path ``q`` reaches every receiver that heard row ``n`` within ``gate`` standard deviations there.
+def _near_at_every_receiver(paths, n, predicted, q, variance, row, gate_sigmas):
+    """Whether path ``q`` reaches every receiver that heard row ``n`` within ``gate_sigmas`` standard deviations there.
 
     ``variance[row]`` (K,) the path's variances: necessary for a Mahalanobis
     distance within the gate, as ``e^T C^-1 e >= e_k^2 / C_kk``.
@@ -951,7 +951,7 @@ def _near_at_every_receiver(paths, n, predicted, q, variance, row, gate):
     for k in range(paths.shape[1]):
         if np.isfinite(paths[n, k]):
             heard = True
-            if not (paths[n, k] - predicted[q, k]) ** 2 <= gate ** 2 * variance[row, k]:
+            if not (paths[n, k] - predicted[q, k]) ** 2 <= gate_sigmas ** 2 * variance[row, k]:
                 return False
     return heard
 

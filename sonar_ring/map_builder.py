@@ -28,7 +28,7 @@ detail, count)`` and ``note(reason, count)``: the node's
 ``sightings degenerate`` (problems), ``multipath explained``, ``impossible``,
 ``explained away``, ``sightings ambiguous``, ``sightings dropped``,
 ``sightings evicted`` (notes); with SLAM also ``odometry_jump`` (a new map
-segment starts) and ``no_landmarks`` (a stretch of travel without a confirmed
+session starts) and ``no_landmarks`` (a stretch of travel without a confirmed
 landmark) as problems.  :meth:`MapBuilder.not_persistent` says how many
 entries are held back.  Nothing raises on bad data.
 """
@@ -73,8 +73,8 @@ class MapperSettings:
         Frame names (REP 105).
     max_points, max_walls : int
         Capacities of the map.
-    gate : float
-        Mahalanobis gate for association.
+    gate_chi2 : float
+        The association gate, a squared Mahalanobis distance (:class:`~sonar_ring.mapping.LandmarkMap`).
     min_observations : int
         Sightings an entry needs before it is published.
     slam_settings : SlamSettings
@@ -100,7 +100,7 @@ class MapperSettings:
     odom_frame: str = "odom"
     max_points: int = 2000
     max_walls: int = 500
-    gate: float = 9.21
+    gate_chi2: float = 9.21
     min_observations: int = 2
     slam_settings: SlamSettings = field(default_factory=SlamSettings)
     pose_history: int | None = 500
@@ -125,12 +125,12 @@ class MapBuilder:
         self.health = health
         self.history = PoseHistory(settings.pose_history)
         self._pending: deque = deque()
-        front = dict(max_points=settings.max_points, max_walls=settings.max_walls, gate=settings.gate,
+        front = dict(max_points=settings.max_points, max_walls=settings.max_walls, gate_chi2=settings.gate_chi2,
                      min_support_pings=settings.min_support_pings, min_support_travel=settings.min_support_travel)
         self.slam = LandmarkSlam(settings.slam_settings, front) if settings.slam else None
         self._odom_map = None if settings.slam else LandmarkMap(**front)
         self._counts = MapCounts()
-        self._lost = False
+        self._no_landmarks = False
         self.changed = False
         self.robot_pose = None
         """The robot's pose in the map's frame ``(x, y, yaw)`` at the latest ping mapped, None before the first."""
@@ -213,11 +213,12 @@ class MapBuilder:
             report = self.slam.add_ping(landmarks, odometry, stamp * 1e-9, offset, models, explained)
             self.robot_pose = report.pose
             if report.fault:
-                self.health.problem(report.fault.replace(" ", "_"), f"{report.fault}: a new map segment starts")
-            lost = self.slam.lost(stamp * 1e-9)
-            if lost and not self._lost:
-                self.health.problem("no_landmarks", f"no known landmark for {self.slam.settings.lost_after:g} s")
-            self._lost = lost
+                self.health.problem(report.fault.replace(" ", "_"), f"{report.fault}: a new map session starts")
+            no_landmarks = self.slam.no_landmarks(stamp * 1e-9)
+            if no_landmarks and not self._no_landmarks:
+                self.health.problem("no_landmarks",
+                                    f"no known landmark for {self.slam.settings.no_landmarks_after:g} s")
+            self._no_landmarks = no_landmarks
         self._count_sightings()
         self.latest_stamp = stamp
         self.changed = True
@@ -248,7 +249,7 @@ class MapBuilder:
     def _count_sightings(self) -> None:
         """What the map refused or left out since the last ping, on ``health``."""
         counts = self.landmark_map.counts
-        if self.slam is not None and counts.pings < self._counts.pings:  # a new segment's map starts at zero
+        if self.slam is not None and counts.pings < self._counts.pings:  # a new session's map starts at zero
             self._counts = MapCounts()
         for reason in SIGHTING_PROBLEMS:
             self.health.problem(f"sightings {reason}", count=getattr(counts, reason) - getattr(self._counts, reason))
@@ -260,7 +261,7 @@ class MapBuilder:
 
     @property
     def landmark_map(self) -> LandmarkMap:
-        """The map of landmarks: SLAM's front end (its current segment's), or the odom-frame map."""
+        """The map of landmarks: SLAM's front end (its current session's), or the odom-frame map."""
         return self.slam.front if self.slam is not None else self._odom_map
 
     def snapshot(self) -> Landmarks:

@@ -47,7 +47,7 @@ Association (one array operation per ping)
 ------------------------------------------
 Candidates are entries within ``search_radius`` of the sighting (a point's latest
 sighting, a wall's segment).  ``d^2``, the Mahalanobis distance of the innovation
-with covariance ``C_sighting + C_entry``, must pass ``gate`` (chi-square, 2 dof):
+with covariance ``C_sighting + C_entry``, must pass ``gate_chi2`` (chi-square, 2 dof):
 
 * CORNER / EDGE sighting -- points of its class, UNKNOWN points, and points
   named CORNER by motion alone; point model;
@@ -59,7 +59,7 @@ Among the candidates within the gate a sighting joins the one with the smallest
 ``d^2 + ln det C - 2 ln n`` (minus twice the log of its likelihood times a prior
 proportional to the entry's sightings ``n``, so a well-known entry beats a vague or
 young one); several sightings of a ping may join one entry (overlapping receiver
-groups).  A sighting outside every gate but within ``new_entry_gate`` of some entry
+groups).  A sighting outside every gate but within ``new_entry_gate_chi2`` of some entry
 is dropped as ambiguous, so the tails of a known landmark's sightings do not start
 duplicates.  The other unmatched sightings are clustered within the ping
 (classified ones lead, UNKNOWN ones may join a leader of any class) and each
@@ -256,7 +256,7 @@ def _pairs_within(query, points, radius):
 
 
 @kernel
-def _gated_scores(innovation, covariance, observations, distance, with_distance, gate):
+def _gated_scores(innovation, covariance, observations, distance, with_distance, gate_chi2):
     """Mahalanobis ``d^2`` of innovations (K, 2) with covariances (K, 2, 2), and the association scores (K,).
 
     The score ``d^2 + ln det C - 2 ln n`` is minus twice the log of the sighting's
@@ -267,7 +267,7 @@ def _gated_scores(innovation, covariance, observations, distance, with_distance,
     later sightings away).  Line innovations pass ``distance`` (``r``, used where
     ``with_distance``): the map from a sighting's point to its line coordinates
     has determinant ``1 / r``, so ``+ 2 ln r`` puts their scores on the point
-    scale.  The score is inf where ``d^2`` does not pass ``gate``.
+    scale.  The score is inf where ``d^2`` does not pass ``gate_chi2``.
     """
     d2 = _mahalanobis2(innovation, covariance)
     score = np.empty(d2.size)
@@ -276,14 +276,14 @@ def _gated_scores(innovation, covariance, observations, distance, with_distance,
         score[k] = d2[k] + np.log(determinant) - 2.0 * np.log(observations[k])
         if with_distance:
             score[k] += 2.0 * np.log(distance[k])
-        if not d2[k] <= gate:
+        if not d2[k] <= gate_chi2:
             score[k] = np.inf
     return d2, score
 
 
 @kernel
 def _point_scores(rows, slots, seen_class, position, covariance, normal, distance, entry_class, by_motion, mean,
-                  information, observations, anchor, line, line_information, extent, map_sigma, gate):
+                  information, observations, anchor, line, line_information, extent, map_sigma, gate_chi2):
     """:meth:`LandmarkMap._point_distances` of sightings ``rows`` (of the sightings' arrays) against points ``slots``.
 
     A sighting is tried as a point where the classes allow (not a plane; the
@@ -296,7 +296,7 @@ def _point_scores(rows, slots, seen_class, position, covariance, normal, distanc
     as_point = (seen != PLANE) & ((entry == UNKNOWN) | (seen == UNKNOWN) | (seen == entry) | by_motion[slots])
     d2, score = _gated_scores(position[rows] - mean[slots],
                               covariance[rows] + _point_entry_covariance(information[slots], map_sigma),
-                              observations[slots], np.zeros(0), False, gate)
+                              observations[slots], np.zeros(0), False, gate_chi2)
     d2 = np.where(as_point, d2, np.inf)
     score = np.where(as_point, score, np.inf)
     as_line = np.flatnonzero((entry == UNKNOWN) & ((seen == UNKNOWN) | (seen == PLANE)))
@@ -309,7 +309,7 @@ def _point_scores(rows, slots, seen_class, position, covariance, normal, distanc
         line_covariance = (_sandwich(jacobian, covariance[line_rows])
                            + _line_entry_covariance(line_information[open_slots], extent[open_slots], map_sigma))
         line_d2, line_score = _gated_scores(innovation, line_covariance, observations[open_slots],
-                                            distance[line_rows], True, gate)
+                                            distance[line_rows], True, gate_chi2)
         d2[as_line] = np.minimum(d2[as_line], line_d2)
         score[as_line] = np.minimum(score[as_line], line_score)
     return d2, score
@@ -317,7 +317,7 @@ def _point_scores(rows, slots, seen_class, position, covariance, normal, distanc
 
 @kernel
 def _wall_scores(rows, slots, position, covariance, normal, distance, anchor, line, information, tangent, extent,
-                 observations, map_sigma, radius, gate):
+                 observations, map_sigma, radius, gate_chi2):
     """Sightings ``rows`` (of the sightings' arrays) near walls ``slots``, and their line ``d^2`` and scores.
 
     A pair is a candidate where the sighting lies within ``radius`` of the wall's
@@ -344,7 +344,8 @@ def _wall_scores(rows, slots, position, covariance, normal, distance, anchor, li
     innovation[:, 0] = _wrap(innovation[:, 0])
     line_covariance = (_sandwich(jacobian, covariance[pair_rows])
                        + _line_entry_covariance(information[pair_walls], extent[pair_walls], map_sigma))
-    d2, score = _gated_scores(innovation, line_covariance, observations[pair_walls], distance[pair_rows], True, gate)
+    d2, score = _gated_scores(innovation, line_covariance, observations[pair_walls], distance[pair_rows], True,
+                              gate_chi2)
     return pair_rows, pair_walls, d2, score
 
 
@@ -536,7 +537,7 @@ class MapCounts:
         Entries removed because the map came to explain their sightings (:meth:`LandmarkMap.update`).
     ambiguous : int
         Sightings outside every entry's gate but inside some entry's
-        ``new_entry_gate``: neither fused nor allowed to start an entry.
+        ``new_entry_gate_chi2``: neither fused nor allowed to start an entry.
     fused : int
         Sightings merged into an entry (including into one started in the same ping).
     created : int
@@ -577,14 +578,14 @@ class MapCounts:
 
 @dataclass(frozen=True, eq=False)
 class Sightings:
-    """The usable landmarks of one ping in ``odom``, with their lines of sight (:meth:`LandmarkMap.screen`).
+    """The usable landmarks of one ping in ``odom``, with their lines of sight (:meth:`LandmarkMap.usable_sightings`).
 
     Attributes
     ----------
     offered, invalid, not_finite, degenerate : int
-        Landmarks screened, and those left out as in :class:`MapCounts`.
+        Landmarks offered, and those left out as in :class:`MapCounts`.
     rows : ndarray of int, shape (N,)
-        Index of each sighting among the landmarks screened.
+        Index of each sighting among the landmarks offered.
     landmark_class : ndarray of uint8, shape (N,)
     position : ndarray, shape (N, 2)
         ``G``, m.
@@ -707,8 +708,8 @@ def _line_of_sight(normal, position, anchor, distance):
 
 
 @kernel
-def _screen_rows(landmark_class, valid, position, covariance, segment, normal, sensor_x, sensor_y, sighting_variance):
-    """:meth:`LandmarkMap._screen` of L landmarks in ``odom`` seen from ``(sensor_x, sensor_y)``.
+def _usable_rows(landmark_class, valid, position, covariance, segment, normal, sensor_x, sensor_y, sighting_variance):
+    """:meth:`LandmarkMap._usable_sightings` of L landmarks in ``odom`` seen from ``(sensor_x, sensor_y)``.
 
     A landmark is usable when valid, finite and within :data:`MAX_COORDINATE`
     (position, segment, covariance, a plane's normal; the covariance's entries
@@ -1017,14 +1018,14 @@ class LandmarkMap:
         the same place): ``map_sigma^2 I`` is added to a point's covariance, and an
         independent ``map_sigma`` across each end of a wall, for gating and in
         :meth:`snapshot`.
-    gate : float
-        Mahalanobis gate ``d^2`` for association and wall merging; default the
-        99 % point of chi-square with 2 dof.
-    new_entry_gate : float
+    gate_chi2 : float
+        The gate of association and wall merging, a squared Mahalanobis distance
+        ``d^2`` (a chi-square value, 2 dof); default the 99 % point.
+    new_entry_gate_chi2 : float
         A sighting starts a new entry only if its ``d^2`` from every candidate
-        exceeds this (default the 99.99 % point); between ``gate`` and it the
+        exceeds this (default the 99.99 % point); between ``gate_chi2`` and it the
         sighting is dropped as ambiguous, so gate misses of a known landmark do not
-        start duplicates.  At least ``gate``.
+        start duplicates.  At least ``gate_chi2``.
     decision_threshold : float
         ``|chi2_corner - chi2_plane|`` needed to resolve an UNKNOWN point by motion
         (twice the log likelihood ratio; 9.21 is 100:1).
@@ -1056,11 +1057,12 @@ class LandmarkMap:
     ------
     ValueError
         If a capacity is not an integer >= 1, a sigma is negative or not finite,
-        another parameter is not positive and finite, or ``new_entry_gate < gate``.
+        another parameter is not positive and finite, or ``new_entry_gate_chi2 < gate_chi2``.
     """
 
     def __init__(self, *, max_points: int = 1000, max_walls: int = 200, sighting_sigma: float = 0.002,
-                 map_sigma: float = 0.001, gate: float = CHI2_2DOF_99, new_entry_gate: float = CHI2_2DOF_9999,
+                 map_sigma: float = 0.001, gate_chi2: float = CHI2_2DOF_99,
+                 new_entry_gate_chi2: float = CHI2_2DOF_9999,
                  decision_threshold: float = CHI2_2DOF_99, min_separation: float = 25.0, min_baseline: float = 0.1,
                  search_radius: float = 0.5, wall_point_spacing: float = 0.05,
                  curvature_threshold: float = CURVATURE_THRESHOLD, min_support_pings: int = 5,
@@ -1069,8 +1071,8 @@ class LandmarkMap:
                             ("min_support_pings", min_support_pings)):
             if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
                 raise ValueError(f"LandmarkMap: {name} must be an integer >= 1, got {value!r}")
-        numbers = {"sighting_sigma": sighting_sigma, "map_sigma": map_sigma, "gate": gate,
-                   "new_entry_gate": new_entry_gate, "decision_threshold": decision_threshold,
+        numbers = {"sighting_sigma": sighting_sigma, "map_sigma": map_sigma, "gate_chi2": gate_chi2,
+                   "new_entry_gate_chi2": new_entry_gate_chi2, "decision_threshold": decision_threshold,
                    "min_separation": min_separation, "min_baseline": min_baseline, "search_radius": search_radius,
                    "wall_point_spacing": wall_point_spacing, "curvature_threshold": curvature_threshold,
                    "min_support_travel": min_support_travel}
@@ -1080,14 +1082,15 @@ class LandmarkMap:
             may_be_zero = name.endswith("sigma") or name == "min_support_travel"
             if value < 0 or (value == 0 and not may_be_zero):
                 raise ValueError(f"LandmarkMap: {name} must be {'>= 0' if may_be_zero else '> 0'}, got {value!r}")
-        if new_entry_gate < gate:
-            raise ValueError(f"LandmarkMap: new_entry_gate ({new_entry_gate}) must be at least gate ({gate})")
+        if new_entry_gate_chi2 < gate_chi2:
+            raise ValueError(f"LandmarkMap: new_entry_gate_chi2 ({new_entry_gate_chi2}) must be at least "
+                             f"gate_chi2 ({gate_chi2})")
         self.max_points = int(max_points)
         self.max_walls = int(max_walls)
         self.sighting_sigma = float(sighting_sigma)
         self.map_sigma = float(map_sigma)
-        self.gate = float(gate)
-        self.new_entry_gate = float(new_entry_gate)
+        self.gate_chi2 = float(gate_chi2)
+        self.new_entry_gate_chi2 = float(new_entry_gate_chi2)
         self.decision_threshold = float(decision_threshold)
         self.min_separation = float(min_separation)
         self.min_baseline = float(min_baseline)
@@ -1120,7 +1123,7 @@ class LandmarkMap:
 
     def update(self, landmarks: Landmarks, sensor_pose, models: PointModels | None = None,
                explained=None) -> Placed:
-        """Add one ping's landmarks, already in ``odom``: :meth:`screen`, then :meth:`add`; where each went.
+        """Add one ping's landmarks, already in ``odom``: :meth:`usable_sightings`, then :meth:`add`; where each went.
 
         Parameters
         ----------
@@ -1147,27 +1150,27 @@ class LandmarkMap:
             If ``landmarks`` is not a :class:`Landmarks` with consistent shapes or
             ``sensor_pose`` is not three numbers.  Bad data is counted, never raised.
         """
-        return self.add(self.screen(landmarks, sensor_pose, models, explained))
+        return self.add(self.usable_sightings(landmarks, sensor_pose, models, explained))
 
-    def screen(self, landmarks: Landmarks, sensor_pose, models: PointModels | None = None,
-               explained=None) -> Sightings | None:
+    def usable_sightings(self, landmarks: Landmarks, sensor_pose, models: PointModels | None = None,
+                         explained=None) -> Sightings | None:
         """The usable landmarks of one ping as sightings, the others counted by kind; None for a bad pose.
 
         Uses the map's settings, never its entries, so any map with the same
         settings gives the same sightings.  Parameters and errors as :meth:`update`.
         """
-        _check_landmarks(landmarks, "LandmarkMap.screen")
-        pose = _pose(sensor_pose, "LandmarkMap.screen")
+        _check_landmarks(landmarks, "LandmarkMap.usable_sightings")
+        pose = _pose(sensor_pose, "LandmarkMap.usable_sightings")
         if not (np.all(np.isfinite(pose)) and np.all(np.abs(pose[:2]) <= MAX_COORDINATE)):
             return None
         explained = np.zeros(len(landmarks), bool) if explained is None else np.asarray(explained, dtype=bool)
         if explained.shape != (len(landmarks),):
-            raise ValueError(f"LandmarkMap.screen: explained must have shape ({len(landmarks)},), "
+            raise ValueError(f"LandmarkMap.usable_sightings: explained must have shape ({len(landmarks)},), "
                              f"got {explained.shape}")
-        return self._screen(landmarks, pose[:2], models, explained)
+        return self._usable_sightings(landmarks, pose[:2], models, explained)
 
     def add(self, sightings: Sightings | None) -> Placed:
-        """Associate and fuse one ping's sightings (:meth:`screen`); None counts a rejected ping.
+        """Associate and fuse one ping's sightings (:meth:`usable_sightings`); None counts a rejected ping.
 
         Returns where each usable sighting went (:class:`Placed`).
         """
@@ -1254,14 +1257,14 @@ class LandmarkMap:
         self._next_uid += count
         return uids
 
-    def _screen(self, landmarks: Landmarks, sensor: np.ndarray, models: PointModels | None,
-                explained: np.ndarray) -> Sightings:
+    def _usable_sightings(self, landmarks: Landmarks, sensor: np.ndarray, models: PointModels | None,
+                          explained: np.ndarray) -> Sightings:
         """The usable landmarks, with the unusable ones counted by kind (and their point models, if given)."""
         # Copies (np.array) in the types load_kernels compiled, whatever arrays the caller's landmarks hold
         # (a read-only one is another type to numba); the kernel only reads them.
         position = np.array(landmarks.position, dtype=float)
         segment = np.array(landmarks.segment, dtype=float)
-        keep, covariance, information, normal, distance, counts = _screen_rows(
+        keep, covariance, information, normal, distance, counts = _usable_rows(
             np.array(landmarks.landmark_class, dtype=np.uint8), np.array(landmarks.valid, dtype=bool), position,
             np.array(landmarks.covariance, dtype=float), segment, np.array(landmarks.normal, dtype=float),
             sensor[0], sensor[1], self.sighting_sigma ** 2)
@@ -1304,7 +1307,7 @@ class LandmarkMap:
         p = self._points
         return _point_scores(rows, slots, s.landmark_class, s.position, s.covariance, s.normal, s.distance,
                              p.landmark_class, p.by_motion, p.mean, p.information, p.observations, p.anchor, p.line,
-                             p.line_information, p.extent, self.map_sigma, self.gate)
+                             p.line_information, p.extent, self.map_sigma, self.gate_chi2)
 
     def _associate(self, s: Sightings) -> np.ndarray:
         """Best entry for each sighting, all sightings against the whole map at once.
@@ -1328,7 +1331,7 @@ class LandmarkMap:
             w = self._walls
             row, walls, d2, score = _wall_scores(line_like, slots, s.position, s.covariance, s.normal, s.distance,
                                                  w.anchor, w.line, w.information, w.tangent, w.extent, w.observations,
-                                                 self.map_sigma, self.search_radius, self.gate)
+                                                 self.map_sigma, self.search_radius, self.gate_chi2)
             rows.append(row)
             targets.append(self.max_points + walls)
             distances.append(d2)
@@ -1338,7 +1341,7 @@ class LandmarkMap:
             row, candidate, d2, score = (np.concatenate(a) for a in (rows, targets, distances, scores))
             nearest = np.full(count, np.inf)
             np.minimum.at(nearest, row, d2)
-            target[nearest <= self.new_entry_gate] = _AMBIGUOUS
+            target[nearest <= self.new_entry_gate_chi2] = _AMBIGUOUS
             inside = np.isfinite(score)
             row, candidate, score = row[inside], candidate[inside], score[inside]
             order = np.lexsort((candidate, score, row))
@@ -1376,7 +1379,7 @@ class LandmarkMap:
         position, covariance, seen = s.position[order], s.covariance[order], s.landmark_class[order]
         lead, member = _pairs_within(position, position, self.search_radius)  # by leader, each with itself
         joins = ((_mahalanobis2(position[lead] - position[member], covariance[lead] + covariance[member])
-                  <= self.gate) & ((seen[member] == seen[lead]) | (seen[member] == UNKNOWN)))
+                  <= self.gate_chi2) & ((seen[member] == seen[lead]) | (seen[member] == UNKNOWN)))
         lead, member = lead[joins], member[joins]
         first = np.searchsorted(lead, np.arange(order.size + 1))
         cluster = np.full(order.size, -1)
@@ -1693,7 +1696,7 @@ class LandmarkMap:
             if keep.size == 0:
                 return
             d2, gap, *_ = self._wall_matches(keep, other)
-            hits = np.flatnonzero((d2 <= self.gate) & (gap <= self.search_radius))
+            hits = np.flatnonzero((d2 <= self.gate_chi2) & (gap <= self.search_radius))
             survivors = []
             for k in hits[np.argsort(d2[hits], kind="stable")]:
                 a, b = keep[k], other[k]

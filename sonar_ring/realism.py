@@ -589,18 +589,18 @@ class World:
         simulator, r = self.simulator, self.realism
         placement = simulator.place(pose)
         speed = air_speed(simulator.scene, r, time)
-        window = simulator.max_path
+        max_path = simulator.max_path
         listened = speed / self.ping_rate
         if r.late_echoes:
-            reflections = simulator.reflections(placement, max_path=listened + window)
-            own = reflections.take(reflections.path <= min(listened, window))
+            reflections = simulator.reflections(placement, max_path=listened + max_path)
+            own = reflections.take(reflections.path <= min(listened, max_path))
         else:
             own = simulator.reflections(placement)
         heard = [simulator.measure(own, self.noise, self._rng, speed)]
         source = self._first_source
         families = multipath_paths(simulator, placement, r.multipath_gain, source) if r.multipath_gain else []
         if families:  # a scene of one wall and no edge has no second-order path
-            paths = [simulator.hear(family, placement, min(listened, window) if r.late_echoes else window)
+            paths = [simulator.hear(family, placement, min(listened, max_path) if r.late_echoes else max_path)
                      for family in families]
             heard.append(simulator.measure(Heard.concatenate(paths), self.noise, self._streams["multipath"], speed))
             source += sum(len(family.source) for family in families)

@@ -970,8 +970,8 @@ class Simulator:
         path = np.sqrt(paths.horizontal ** 2 + self._dz ** 2)
         in_point = np.broadcast_to(paths.in_point, shape + (2,))
         receive_angle = _angle_off_axis(in_point - rx[None, :, None, :, :], placement.rx_axis)
-        window = self.max_path if max_path is None else max_path
-        candidate = paths.exists & (path <= window) & (np.abs(receive_angle) <= acceptance)
+        max_path = self.max_path if max_path is None else max_path
+        candidate = paths.exists & (path <= max_path) & (np.abs(receive_angle) <= acceptance)
         if self.layout.isotropic_emitter:
             transmit_angle = np.zeros(shape)
         else:

@@ -47,9 +47,9 @@ lap's landmarks associates with them (the gates include the pose's
 uncertainty), which closes the loop without duplicating them.
 
 Faults never raise: an odometry increment faster than ``max_speed`` or
-``max_turn_rate`` (a slip, a pushed robot) starts a new **segment** -- a new
+``max_turn_rate`` (a slip, a pushed robot) starts a new **session** -- a new
 map from that pose on, never merged with the old one -- and is reported, as is
-a stretch of ``lost_after`` seconds of travel without a confirmed landmark.
+a stretch of ``no_landmarks_after`` seconds of travel without a confirmed landmark.
 
 Frames (REP 105): ``map`` (the estimate's frame; it starts equal to ``odom`` at
 the first ping), ``odom`` (the odometry's), the robot (``base_link``) and the
@@ -102,7 +102,7 @@ class SlamSettings:
         (m) of an end of its seen extent (:meth:`LandmarkSlam.published`).
     max_speed, max_turn_rate : float
         Odometry increments beyond these (m/s, rad/s, with the ping interval) are a fault.
-    lost_after : float
+    no_landmarks_after : float
         Seconds of travel without a confirmed landmark after which the SLAM says so.
     smoother_lag : float
         Seconds of keyframes the smoother keeps; older ones are marginalised.
@@ -127,7 +127,7 @@ class SlamSettings:
     relinearize_skip: int = 10
     max_speed: float = 2.0
     max_turn_rate: float = 4.0
-    lost_after: float = 5.0
+    no_landmarks_after: float = 5.0
     smoother_lag: float = 60.0
 
 
@@ -146,7 +146,7 @@ class SlamReport:
     keyframe : bool
         Whether the ping made a keyframe (and the graph was updated).
     fault : str
-        Empty, or why a new segment started (``odometry jump``).
+        Empty, or why a new session started (``odometry jump``).
     """
 
     pose: np.ndarray
@@ -165,7 +165,7 @@ class _Confirmed:
 
 
 @dataclass
-class _Window:
+class _SinceKeyframe:
     """The sightings since the latest keyframe, in its robot frame, a tuple of arrays per ping.
 
     The entry uid (n,), whether it is a wall (n,), the measurement (n, 2) -- a point's position, a wall's foot
@@ -268,17 +268,17 @@ class LandmarkSlam:
     def __init__(self, settings: SlamSettings = SlamSettings(), front_end: dict | None = None):
         self.settings = settings
         self._front_end = dict(front_end or {})
-        self.segments = 0
-        self._start_segment()
+        self.sessions = 0
+        self._start_session()
 
-    def _start_segment(self) -> None:
+    def _start_session(self) -> None:
         parameters = gtsam.ISAM2Params()
         parameters.setRelinearizeThreshold(self.settings.relinearize_threshold)
         parameters.relinearizeSkip = self.settings.relinearize_skip
         self._smoother = gtsam.IncrementalFixedLagSmoother(self.settings.smoother_lag, parameters)
         self.front = LandmarkMap(**self._front_end)
         self._confirmed: dict[int, _Confirmed] = {}
-        self._window = _Window()
+        self._since_keyframe = _SinceKeyframe()
         self._keyframe = -1  # index of the latest keyframe
         self._keyframe_odometry = None  # its odometry pose
         self._keyframe_pose = None  # its estimate in map
@@ -290,7 +290,7 @@ class LandmarkSlam:
         self._last_time = None
         self._last_seen_time = None
         self._ping = 0
-        self.segments += 1
+        self.sessions += 1
 
     # ------------------------------------------------------------------ per ping
 
@@ -303,7 +303,7 @@ class LandmarkSlam:
         for edge or corner, and a decided point's measurement.  ``explained``
         (L,) marks the landmarks the caller explained against :meth:`snapshot`
         at :meth:`pose_at` (:mod:`sonar_ring.explain`); a ping that starts a
-        new segment ignores it (the map it was explained by is gone).
+        new session ignores it (the map it was explained by is gone).
 
         Returns what it did (:class:`SlamReport`).  Never raises on bad data:
         the front end counts unusable landmarks; a non-finite pose skips the ping.
@@ -312,7 +312,7 @@ class LandmarkSlam:
         offset = np.asarray(sensor_offset, dtype=float)
         fault = self._check_odometry(odometry, time)
         if fault:
-            self._start_segment()
+            self._start_session()
         if self._keyframe < 0:
             self._first_keyframe(odometry, time)
         elif self._is_keyframe(odometry):
@@ -436,7 +436,7 @@ class LandmarkSlam:
         if ranged.any():
             covariance[ranged] = _without_bearing(position[ranged] - frame[:2], covariance[ranged],
                                                   self.settings.undecided_bearing_sigma)
-        self._window.pings.append((uids.copy(), wall, position, _inverse(covariance)))
+        self._since_keyframe.pings.append((uids.copy(), wall, position, _inverse(covariance)))
 
     def _follow_renames(self, renamed: dict) -> None:
         """Entries that live on under another uid keep their record (a wall absorbing a confirmed one inherits it).
@@ -448,7 +448,7 @@ class LandmarkSlam:
             record = self._confirmed.pop(old, None)
             if record is not None and new not in self._confirmed and (record.kind == WALL) == (new in walls):
                 self._confirmed[new] = record
-            self._window.rename(old, new)
+            self._since_keyframe.rename(old, new)
 
     # ------------------------------------------------------------------ keyframes
 
@@ -459,7 +459,7 @@ class LandmarkSlam:
                 or self._pings_since_keyframe >= s.keyframe_pings)
 
     def _first_keyframe(self, odometry: np.ndarray, time: float) -> None:
-        """The segment's first keyframe: ``map`` equals ``odom`` there (a tight prior); its clock for :meth:`lost`."""
+        """The session's first keyframe: ``map`` = ``odom`` there (a tight prior); clock of :meth:`no_landmarks`."""
         self._last_seen_time = time
         key = gtsam.symbol(POSE, 0)
         graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
@@ -473,7 +473,7 @@ class LandmarkSlam:
         self._pings_since_keyframe = 0
 
     def _add_keyframe(self, odometry: np.ndarray, time: float) -> None:
-        """Odometry to a new keyframe at this ping, the window's measurements, promotions; update the estimate."""
+        """Odometry to a new keyframe at this ping, the sightings since the last, promotions; update the estimate."""
         previous, key = gtsam.symbol(POSE, self._keyframe), gtsam.symbol(POSE, self._keyframe + 1)
         step = relative_pose(self._keyframe_odometry, odometry)
         graph, values, timestamps = gtsam.NonlinearFactorGraph(), gtsam.Values(), {key: time, previous: time}
@@ -492,7 +492,7 @@ class LandmarkSlam:
         self._keyframe_covariance = self._smoother.marginalCovariance(key)
         self._keyframe_odometry, self._keyframe_time = odometry.copy(), time
         self._pings_since_keyframe = 0
-        self._window.pings.clear()
+        self._since_keyframe.pings.clear()
         self._write_back(estimate)
 
     def _add_measurements(self, pose_key: int, graph, values) -> None:
@@ -500,11 +500,11 @@ class LandmarkSlam:
 
         Only a persistent wall or fixed point is confirmed (module docstring).
         """
-        if not self._window.pings:
+        if not self._since_keyframe.pings:
             return
         entries = self.front.entries()
         by_uid = {uid: index for index, uid in enumerate(entries.uid.tolist())}
-        uids, is_wall, measurement, covariance = self._window.fused()
+        uids, is_wall, measurement, covariance = self._since_keyframe.fused()
         for uid, wall, position, spread in zip(uids.tolist(), is_wall.tolist(), measurement, covariance,
                                                strict=True):
             index = by_uid.get(uid)
@@ -601,9 +601,9 @@ class LandmarkSlam:
         pose, _ = self.pose()
         return compose(pose, inverse(self._last_odometry))
 
-    def lost(self, time: float) -> bool:
-        """Whether no confirmed landmark was seen for ``lost_after`` s up to ``time`` (since the segment began)."""
-        return self._last_seen_time is not None and time - self._last_seen_time > self.settings.lost_after
+    def no_landmarks(self, time: float) -> bool:
+        """Whether no confirmed landmark was seen for ``no_landmarks_after`` s up to ``time`` (in this session)."""
+        return self._last_seen_time is not None and time - self._last_seen_time > self.settings.no_landmarks_after
 
 
 def _without_bearing(sight: np.ndarray, covariance: np.ndarray, sigma: float) -> np.ndarray:

@@ -75,7 +75,7 @@ def test_the_command_line_prints_one_line_and_exits_1(tmp_path, capsys, argument
     ("localiser", "layout:={bad}", r"{bad}: field 'frequency_hz' must be a finite number > 0"),
     ("driver", "scene:={bad_scene}", r"{bad_scene}: field 'temperature_c' must be a number"),
     ("driver", "device:=usb://ring", r"device 'usb://ring': scheme must be serial://, udp:// or tcp://"),
-    ("mapper", "gate:=1000.0", r"parameter gate: .*out of range"),
+    ("mapper", "gate_chi2:=1000.0", r"parameter gate_chi2: .*out of range"),
     ("localiser", "models:=[plane,wall]", r"parameter models must be a non-empty subset of .*got \['plane', 'wall'\]"),
 ], ids=["layout", "scene", "device", "range", "choice"])
 def test_a_node_refuses_to_start_with_one_log_line_and_status_1(tmp_path, node, setting, expected):

@@ -250,7 +250,8 @@ def _labels(pose_error, tolerance, step=6):
         labelled = explained.label == MULTIPATH
         counts["multipath"] += np.count_nonzero(multipath)
         counts["labelled"] += np.count_nonzero(multipath & labelled)
-        counts["direct_also"] += np.count_nonzero(multipath & ~labelled & (explained.direct_residual <= tolerance.gate))
+        counts["direct_also"] += np.count_nonzero(multipath & ~labelled
+                                                  & (explained.direct_residual <= tolerance.gate_sigmas))
         counts["direct"] += np.count_nonzero(ping.truth_origin == DIRECT)
         counts["false"] += np.count_nonzero((ping.truth_origin == DIRECT) & labelled)
     return counts
@@ -414,7 +415,8 @@ def test_error_handling():
         impossible(np.ones((1, 2, 2)), placement, RING, one, one, walls, -1.0)
     with pytest.raises(ValueError, match="pose_covariance must have shape"):
         Tolerance(sigma_path=1e-3, pose_covariance=np.eye(2))
-    for field, value in (("sigma_path", 0.0), ("gate", math.nan), ("sigma_map", -1.0), ("sigma_speed", math.inf)):
+    for field, value in (("sigma_path", 0.0), ("gate_sigmas", math.nan), ("sigma_map", -1.0),
+                         ("sigma_speed", math.inf)):
         with pytest.raises(ValueError, match=f"field '{field}'"):
             Tolerance(**{"sigma_path": 1e-3, field: value})
 
@@ -440,9 +442,9 @@ def test_nan_data_never_raises_and_explains_nothing():
     assert np.all(explained.label[:3] == NONE) and np.all(np.isnan(explained.residual[:3]))
     assert np.any(explained.label == MULTIPATH)
     # A NaN pose covariance explains nothing.
-    lost = Tolerance(sigma_path=SIGMA_PATH, pose_covariance=np.full((3, 3), np.nan))
-    prediction = predict(walls, points, placement, RING, ping.group, ping.transmitter, lost, paths=measured)
-    assert np.all(match(prediction, RING, ping.group, ping.transmitter, measured, lost).label == NONE)
+    unknown_pose = Tolerance(sigma_path=SIGMA_PATH, pose_covariance=np.full((3, 3), np.nan))
+    prediction = predict(walls, points, placement, RING, ping.group, ping.transmitter, unknown_pose, paths=measured)
+    assert np.all(match(prediction, RING, ping.group, ping.transmitter, measured, unknown_pose).label == NONE)
     # NaN reflection points are never impossible.
     assert not impossible(np.full((1, 2, 2), np.nan), placement, RING, [0], [0], walls, 0.0)[0]
     assert_array_equal(impossible(np.empty((0, 2, 2)), placement, RING, [], [], walls, 0.0), [])

@@ -120,7 +120,7 @@ def test_transform_landmarks_round_trip_and_empty():
 def test_corner_fusion_is_information_weighted_and_shrinks_like_one_over_n():
     rng = np.random.default_rng(1)
     # No floors and no gating, so the map must equal the batch information-form estimate.
-    landmark_map = LandmarkMap(sighting_sigma=0.0, map_sigma=0.0, gate=1e6, new_entry_gate=1e6)
+    landmark_map = LandmarkMap(sighting_sigma=0.0, map_sigma=0.0, gate_chi2=1e6, new_entry_gate_chi2=1e6)
     positions, informations = [], []
     for n, x in enumerate(np.arange(0.0, 1.2, STEP), start=1):
         sensor = np.array([x, 0.0])
@@ -136,7 +136,7 @@ def test_corner_fusion_is_information_weighted_and_shrinks_like_one_over_n():
         assert fused.observations[0] == n
     assert landmark_map.counts.fused == 39 and len(landmark_map) == 1
     # From one place every sighting has the same covariance C: the fused one is C / n.
-    standing = LandmarkMap(sighting_sigma=0.0, map_sigma=0.0, gate=1e6, new_entry_gate=1e6)
+    standing = LandmarkMap(sighting_sigma=0.0, map_sigma=0.0, gate_chi2=1e6, new_entry_gate_chi2=1e6)
     single = sighting_covariance(np.zeros(2), CORNER_POINT)
     for n in range(1, 31):
         standing.update(sightings(rng, np.zeros(2), [CORNER_POINT], [CORNER]), [0, 0, 0])
@@ -474,8 +474,8 @@ def test_update_is_deterministic():
         assert_array_equal(getattr(snapshots[0], name), getattr(snapshots[1], name))
 
 
-def test_screening_needs_the_settings_not_the_entries():
-    """``sonar-ring process`` screens in other processes with a map of the same settings."""
+def test_usable_sightings_need_the_settings_not_the_entries():
+    """Any map of the same settings gives the same usable sightings, whatever its entries."""
     rng = np.random.default_rng(12)
     mapped, fresh, whole = LandmarkMap(), LandmarkMap(), LandmarkMap()
     drive(mapped, np.random.default_rng(11), np.arange(0.0, 1.0, STEP), UNKNOWN, UNKNOWN)
@@ -483,12 +483,12 @@ def test_screening_needs_the_settings_not_the_entries():
     landmarks = sightings(rng, np.array([1.0, 0.0]), [[1.0, WALL_Y], CORNER_POINT, [2.0, 0.5]], [PLANE, CORNER, EDGE])
     landmarks = replace(landmarks, valid=np.array([True, True, False]))
     pose = [1.0, 0.0, 0.0]
-    screened = mapped.screen(landmarks, pose)
-    for name in (field.name for field in fields(screened)):
-        assert_array_equal(getattr(screened, name), getattr(fresh.screen(landmarks, pose), name))
-    assert (screened.offered, screened.invalid, screened.landmark_class.size) == (3, 1, 2)
-    assert mapped.screen(landmarks, [np.nan, 0.0, 0.0]) is None
-    mapped.add(screened)
+    usable = mapped.usable_sightings(landmarks, pose)
+    for name in (field.name for field in fields(usable)):
+        assert_array_equal(getattr(usable, name), getattr(fresh.usable_sightings(landmarks, pose), name))
+    assert (usable.offered, usable.invalid, usable.landmark_class.size) == (3, 1, 2)
+    assert mapped.usable_sightings(landmarks, [np.nan, 0.0, 0.0]) is None
+    mapped.add(usable)
     whole.update(landmarks, pose)
     assert mapped.counts == whole.counts
     for name in (field.name for field in fields(Landmarks)):
@@ -518,10 +518,10 @@ def test_error_handling():
         LandmarkMap(min_support_pings=0)
     with pytest.raises(ValueError, match="min_support_travel"):
         LandmarkMap(min_support_travel=-0.1)
-    with pytest.raises(ValueError, match="gate"):
-        LandmarkMap(gate=-1.0)
-    with pytest.raises(ValueError, match="new_entry_gate"):
-        LandmarkMap(gate=20.0, new_entry_gate=10.0)
+    with pytest.raises(ValueError, match="gate_chi2"):
+        LandmarkMap(gate_chi2=-1.0)
+    with pytest.raises(ValueError, match="new_entry_gate_chi2"):
+        LandmarkMap(gate_chi2=20.0, new_entry_gate_chi2=10.0)
     with pytest.raises(ValueError, match="sighting_sigma"):
         LandmarkMap(sighting_sigma=float("nan"))
     assert landmark_map.counts == MapCounts()

@@ -105,7 +105,7 @@ def test_a_loop_closes_without_duplicates():
     assert rms < 0.02 and final < 0.02 and odometry_final > 5 * final, (rms, final, odometry_rms, odometry_final)
 
 
-def test_an_odometry_jump_starts_a_new_segment_and_a_stretch_without_landmarks_is_reported():
+def test_an_odometry_jump_starts_a_new_session_and_a_stretch_without_landmarks_is_reported():
     truth = np.array([[1.0 + 0.01 * k, 1.0, math.radians(-135)] for k in range(80)])
     landmarks, _ = labelled_pings(CORNER_ROOM, truth)
     health = Counts()
@@ -115,8 +115,8 @@ def test_an_odometry_jump_starts_a_new_segment_and_a_stretch_without_landmarks_i
         stamp = int(1e9 + k * 1e9 / RING.ping_rate)
         builder.add_odometry(stamp, odometry)
         assert builder.add_ping(stamp, found)
-    assert health.problems["odometry_jump"] == 1 and builder.slam.segments == 2
-    assert len(builder.snapshot()) < 3  # the new segment does not hold the old map's landmarks
+    assert health.problems["odometry_jump"] == 1 and builder.slam.sessions == 2
+    assert len(builder.snapshot()) < 3  # the new session does not hold the old map's landmarks
     # now nothing to see for a while: the SLAM says so once
     later = int(1e9 + 80 * 1e9 / RING.ping_rate)
     for k in range(1, 300):

@@ -125,11 +125,11 @@ def new_builder() -> MapBuilder:
 
 
 def _map_sizes(builder: MapBuilder) -> dict:
-    """Entries of the front end, entries in the SLAM's graph, SLAM segments."""
+    """Entries of the front end, entries in the SLAM's graph, SLAM sessions."""
     slam = builder.slam
     return {"entries": int(builder.landmark_map.entries().uid.size),
             "confirmed": int(slam.confirmed.size) if slam is not None else 0,
-            "segments": int(slam.segments) if slam is not None else 0}
+            "sessions": int(slam.sessions) if slam is not None else 0}
 
 
 # --------------------------------------------------------------------------- 1. per ping
@@ -189,7 +189,7 @@ class PerPing:
     lap : int
         Pings per lap.
     sizes : dict
-        Map entries, entries in the graph and segments at the end (:func:`_map_sizes`).
+        Map entries, entries in the graph and sessions at the end (:func:`_map_sizes`).
     problems : dict
         What the builder refused, by reason.
     load : tuple of float
@@ -467,13 +467,13 @@ def _memory_table(run: dict, rows: int = 13) -> list[str]:
     samples = run["samples"]
     picked = sorted({round(i) for i in np.linspace(0, len(samples) - 1, min(rows, len(samples)))})
     lines = ["| simulated | pings | resident set | `add_ping` since the reading before: median / p99 "
-             "| map entries / in the graph | SLAM segments | wall time |",
+             "| map entries / in the graph | SLAM sessions | wall time |",
              "|---|---|---|---|---|---|---|"]
     for index in picked:
         s = samples[index]
         timing = "—" if not np.isfinite(s["median_ms"]) else f"{s['median_ms']:.2f} / {s['p99_ms']:.2f} ms"
         lines.append(f"| {s['minute']:.1f} min | {s['ping']} | {_mib(s['rss'])} | {timing} | {s['entries']} / "
-                     f"{s['confirmed']} | {s['segments']} | {s['wall'] / 60:.1f} min |")
+                     f"{s['confirmed']} | {s['sessions']} | {s['wall'] / 60:.1f} min |")
     return lines
 
 
@@ -524,7 +524,7 @@ def section(result: PerPing, run: dict, speed: dict, settings: dict, seconds: fl
         "`explain_landmarks`) and `LandmarkSlam.add_ping` for the run; the rest is the curvature models and the "
         "bookkeeping. Median / p99 per column (they do not add up). At the end: "
         f"{result.sizes.get('entries', 0)} map entries, {result.sizes.get('confirmed', 0)} in the graph, "
-        f"{result.sizes.get('segments', 0)} segment(s); refused: {_problems(result.problems)}; load average at the "
+        f"{result.sizes.get('sessions', 0)} session(s); refused: {_problems(result.problems)}; load average at the "
         f"end {_load(result.load)}.",
         "",
         *_per_ping_table(result),

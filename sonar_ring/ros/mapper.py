@@ -79,8 +79,8 @@ SLAM_PARAMS = [
           high=100.0, read_only=True),
     Param(SLAM_PREFIX + "max_turn_rate", SlamSettings.max_turn_rate, "faster odometry turns are a fault, rad/s",
           low=0.1, high=100.0, read_only=True),
-    Param(SLAM_PREFIX + "lost_after", SlamSettings.lost_after, "seconds without a known landmark before a warning",
-          low=0.1, high=3600.0, read_only=True),
+    Param(SLAM_PREFIX + "no_landmarks_after", SlamSettings.no_landmarks_after,
+          "seconds without a known landmark before a warning (no_landmarks)", low=0.1, high=3600.0, read_only=True),
     Param(SLAM_PREFIX + "smoother_lag", SlamSettings.smoother_lag,
           "seconds of keyframes the smoother keeps (older ones are marginalised: memory stays flat)", low=1.0,
           high=3600.0, read_only=True),
@@ -96,8 +96,9 @@ ECHO_TESTS_PARAMS = [
           "relative error of the speed of sound the nodes assume", low=0.0, high=0.1, read_only=True),
     Param(ECHO_TESTS_PREFIX + "sigma_map", EchoTests.sigma_map, "position error of a map entry, m", low=0.0,
           high=1.0, read_only=True),
-    Param(ECHO_TESTS_PREFIX + "gate", EchoTests.gate, "Mahalanobis distance of a match to a predicted path",
-          low=0.5, high=20.0, read_only=True),
+    Param(ECHO_TESTS_PREFIX + "gate_sigmas", EchoTests.gate_sigmas,
+          "largest Mahalanobis distance (not squared) of a match to a predicted path", low=0.5, high=20.0,
+          read_only=True),
 ]
 
 PARAMS = [
@@ -119,8 +120,8 @@ PARAMS = [
     Param("max_points", 2000, "map capacity for corners, edges and unresolved points", low=1, high=100000,
           read_only=True),
     Param("max_walls", 500, "map capacity for walls", low=1, high=100000, read_only=True),
-    Param("gate", 9.21, "Mahalanobis gate d^2 for association (9.21: 99 % for 2 dof)", low=0.5, high=100.0,
-          read_only=True),
+    Param("gate_chi2", 9.21, "association gate, a squared Mahalanobis distance d^2 (9.21: 99 % for 2 dof)",
+          low=0.5, high=100.0, read_only=True),
     Param("echo_tests", True, "explain each ping's landmarks by the map (multipath, impossible) before mapping them "
           "and publish only entries that persist; false: map every echo", read_only=True),
     Param("min_support_pings", MapperSettings.min_support_pings,
@@ -144,8 +145,9 @@ def mapper_settings(values: dict) -> MapperSettings:
                           layout=load_layout(values["layout"]),
                           fixed_pose=tuple(values["fixed_pose"]), sensor_offset=tuple(values["sensor_offset"]),
                           map_frame=values["map_frame"], odom_frame=values["odom_frame"],
-                          max_points=values["max_points"], max_walls=values["max_walls"], gate=values["gate"],
-                          min_observations=values["min_observations"], slam_settings=slam,
+                          max_points=values["max_points"], max_walls=values["max_walls"],
+                          gate_chi2=values["gate_chi2"], min_observations=values["min_observations"],
+                          slam_settings=slam,
                           echo_tests=tests if values["echo_tests"] else None,
                           min_support_pings=values["min_support_pings"],
                           min_support_travel=values["min_support_travel"])
