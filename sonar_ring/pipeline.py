@@ -96,17 +96,17 @@ def localise_ping(layout: Layout, echoes: EchoArrays, settings: Settings = Setti
     models, model_class = _model_codes(tuple(settings.models))
     # The types the kernel is compiled for (astype copies): a message's uint16 groups and uint8 transmitters
     # become int64, and TOFs C-contiguous float64 whatever order or flags the caller's array has.
-    *fields, lost, covariance_paths = solvers.localise_ping_rows(
+    *fields, first_order, covariance_paths = solvers.localise_ping_rows(
         layout.transmitters, layout.receivers, layout.groups, echoes.transmitter.astype(np.int64),
         echoes.group.astype(np.int64), echoes.tof.astype(float, order="C"), float(echoes.speed_of_sound),
         settings.vertical_correction, float(settings.sigma_tof), float(settings.sigma_speed), models, model_class)
     hypotheses = Landmarks(*fields)
-    if lost.size:
+    if first_order.size:
         # Near the border of the solvable region (|d2 - d1| close to the baseline) a sigma point can
         # fall outside it while the estimate is valid: first-order covariance there.
         group_receivers = layout.group_receivers()
-        for index in np.unique(lost // count):
-            entries = lost[lost // count == index]
+        for index in np.unique(first_order // count):
+            entries = first_order[first_order // count == index]
             rows = entries - index * count
             receivers = group_receivers[echoes.group[rows], :, :2]
             estimate = localise.PointEstimate(hypotheses.position[entries], np.ones(rows.size, dtype=bool),

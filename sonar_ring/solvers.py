@@ -411,8 +411,8 @@ def localise_rows(tx, rx1, rx2, paths, dz, vertical, sigma_tof, speed, sigma_spe
     ``position``, ``normal`` (the plane's, towards the sensor) (M N, 2),
     ``covariance`` (M N, 2, 2) and ``segment`` (M N, 2, 2) (the plane's reflection
     points, else the position twice), all 0 where the reason is not OK; the
-    rows' path covariance (N, 2, 2); and ``lost`` (M N,), valid entries whose
-    sigma points left the solvable region, with a covariance still to compute.
+    rows' path covariance (N, 2, 2); and ``first_order`` (M N,), valid entries whose
+    sigma points left the solvable region: their covariance is still to compute, to first order.
     """
     count = paths.shape[0]
     d1, d2 = np.empty(count), np.empty(count)
@@ -439,7 +439,7 @@ def localise_rows(tx, rx1, rx2, paths, dz, vertical, sigma_tof, speed, sigma_spe
     reason = np.empty(size, dtype=np.uint8)
     position, normal = np.zeros((size, 2)), np.zeros((size, 2))
     covariance, segment = np.zeros((size, 2, 2)), np.zeros((size, 2, 2))
-    lost = np.zeros(size, dtype=np.bool_)
+    first_order = np.zeros(size, dtype=np.bool_)
     for index in range(len(models)):
         model = models[index]
         for row in range(count):
@@ -449,13 +449,13 @@ def localise_rows(tx, rx1, rx2, paths, dz, vertical, sigma_tof, speed, sigma_spe
                 continue
             position[entry] = solved_position[model, row]
             covariance[entry] = solved_covariance[model, row]
-            lost[entry] = not np.all(np.isfinite(covariance[entry]))
+            first_order[entry] = not np.all(np.isfinite(covariance[entry]))
             if model == PLANE_SOLVER:
                 normal[entry, 0], normal[entry, 1] = -plane_normal[row, 0], -plane_normal[row, 1]
                 segment[entry] = reflection[row]
             else:
                 segment[entry, 0] = segment[entry, 1] = position[entry]
-    return reason, position, normal, covariance, segment, covariance_paths, lost
+    return reason, position, normal, covariance, segment, covariance_paths, first_order
 
 
 @kernel
@@ -473,7 +473,7 @@ def localise_ping_rows(transmitters, receivers, groups, transmitter, group, tof,
     in its order -- ``landmark_class``, ``position``, ``normal``, ``covariance``,
     ``confidence`` (0), ``segment``, ``observations`` (1), ``group``, ``echo`` (the
     row), ``valid`` and ``reason`` -- then the entries whose covariance is still to
-    compute (``lost`` of :func:`localise_rows`, ascending) and the rows' path
+    compute (``first_order`` of :func:`localise_rows`, ascending) and the rows' path
     covariance (N, 2, 2).  The arrays' shapes are the caller's to check; an index
     outside the layout raises ``ValueError``.
     """
@@ -490,7 +490,7 @@ def localise_ping_rows(transmitters, receivers, groups, transmitter, group, tof,
             tx[row, axis], rx1[row, axis], rx2[row, axis] = source[axis], first[axis], second[axis]
         paths[row, 0], paths[row, 1] = speed * tof[row, 0], speed * tof[row, 1]
         dz[row, 0], dz[row, 1] = source[2] - first[2], source[2] - second[2]
-    reason, position, normal, covariance, segment, covariance_paths, lost = localise_rows(
+    reason, position, normal, covariance, segment, covariance_paths, first_order = localise_rows(
         tx, rx1, rx2, paths, dz, vertical, sigma_tof, speed, sigma_speed, models)
     size = len(models) * count
     landmark_class = np.empty(size, dtype=np.uint8)
@@ -502,7 +502,7 @@ def localise_ping_rows(transmitters, receivers, groups, transmitter, group, tof,
             entry_group[index * count + row] = group[row]
             echo[index * count + row] = row
     return (landmark_class, position, normal, covariance, np.zeros(size, dtype=np.float32), segment,
-            np.ones(size, dtype=np.uint32), entry_group, echo, reason == OK, reason, np.flatnonzero(lost),
+            np.ones(size, dtype=np.uint32), entry_group, echo, reason == OK, reason, np.flatnonzero(first_order),
             covariance_paths)
 
 
