@@ -17,17 +17,15 @@ from the seeds, so a rerun reproduces the file except for the timing line.
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from sonar_ring.benchmark.environment import machine
+from sonar_ring.device_clock import DeviceClock
 
-from sonar_ring.benchmark.environment import machine  # noqa: E402
-from sonar_ring.device_clock import DeviceClock  # noqa: E402
+ROOT = Path(__file__).resolve().parents[1]
 
 RESULT = ROOT / "bench" / "results" / "device_clock.md"
 FIGURE = ROOT / "bench" / "plots" / "device_clock_error.png"

@@ -59,5 +59,5 @@ def _confidence(margin):
 
 
 def load_kernels() -> None:
-    """Load the compiled confidence now instead of at the first decision (the classifier node, at start)."""
+    """Load the compiled confidence now instead of at the first decision (the localiser node, at start)."""
     confidence_from_margin(np.zeros(1))

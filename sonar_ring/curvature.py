@@ -178,7 +178,7 @@ def point_models(layout: Layout, landmarks: Landmarks, rows=None) -> PointModels
     are solved again from those paths (:func:`sonar_ring.localise.corner`,
     :func:`~sonar_ring.localise.edge`).  The paths' covariance is recovered
     from the landmark's (less the discrepancy ``g g^T``, ``g`` the models'
-    difference, that the classifier adds to an UNKNOWN landmark's) through its
+    difference, that :func:`sonar_ring.pipeline.classify_ping` adds to an UNKNOWN landmark's) through its
     model's Jacobian, and carried to each model through that model's
     (:func:`sonar_ring.uncertainty.position_jacobian`), plus the arc's
     second-order spread (:func:`with_arc_spread`).

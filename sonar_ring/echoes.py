@@ -157,9 +157,9 @@ class Screened:
 def screen_ping(echoes: EchoArrays, layout) -> Screened:
     """Keep what is usable of a ping for ``layout``; count the rest by reason.
 
-    Every entry point (the driver's hardware and topic sources, the localiser,
-    the classifier) screens pings with this one function, so they agree on what
-    a usable echo row is, and on the row indices of what they keep.
+    Every entry point (the driver's sources, the localiser) screens pings with
+    this one function, through :func:`sonar_ring.ping_stage.check_ping`, so they
+    agree on what a usable echo row is.
 
     Whole-ping rejections (the ping cannot be read at all):
     ``mismatched_rows`` (its arrays do not have one row per echo, or the

@@ -3,7 +3,7 @@
 A :class:`Landmarks` holds L landmarks -- planes, corners, edges or unknown
 reflectors -- as arrays whose first axis is the landmark.  It mirrors the
 ``sonar_ring/LandmarkArray`` message field for field, so the ROS layer converts
-it without a loop, and the core (localiser, classifier, mapper) works on it with
+it without a loop, and the core (localisation, classification, mapping) works on it with
 numpy.
 
 Frames and units: positions in metres in one frame (the sensor frame for

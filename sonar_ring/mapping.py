@@ -3,7 +3,7 @@
 The map's frame is ``odom`` without SLAM, ``map`` as SLAM's front end
 (:mod:`sonar_ring.slam`); below, ``odom`` stands for either.  The mapper core
 behind the ``mapper`` node (numpy only).  Per ping the node turns the
-classifier's landmarks from the sensor frame into ``odom`` with
+labelled landmarks from the sensor frame into ``odom`` with
 :func:`transform_landmarks` and hands them to :meth:`LandmarkMap.update` with the
 sensor pose; :meth:`LandmarkMap.snapshot` (landmarks) and :meth:`LandmarkMap.points`
 (costmap points) give the map to publish.
@@ -99,8 +99,8 @@ a decision is ``1 - exp(-|Delta| / 2)``, one minus the inverse likelihood ratio
 (0.99 at the default threshold 9.21, a ratio of 100).  An edge placed with the
 corner model also stays put, so motion makes such a point a fixed point,
 CORNER_OR_EDGE, until the wavefront's curvature over its sightings tells an edge
-from a corner (:mod:`sonar_ring.curvature`); an EDGE or CORNER sighting from the
-classifier names it at once.
+from a corner (:mod:`sonar_ring.curvature`); an EDGE or CORNER sighting (labelled
+by the ping's own evidence) names it at once.
 
 Memory
 ------

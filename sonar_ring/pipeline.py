@@ -38,7 +38,7 @@ localiser's ``sigma_speed`` default)."""
 
 @dataclass(frozen=True)
 class Settings:
-    """What the localiser and classifier do; the nodes' parameters map onto it.
+    """What the localiser node does to a ping, localisation and labelling; its parameters map onto it.
 
     Attributes
     ----------
@@ -193,8 +193,9 @@ def classify_ping(layout: Layout, echoes: EchoArrays, hypotheses: Landmarks,
 def load_kernels() -> None:
     """Load the compiled part of :func:`classify_ping` now instead of at the first ping.
 
-    The classifier node and the workers of ``sonar-ring process`` call it at start,
-    with :func:`sonar_ring.ring_consistency.load_kernels` on a ring.
+    :meth:`sonar_ring.ping_stage.PingStage.load_kernels` calls it (the localiser node and the
+    workers of ``sonar-ring process``, at start), with
+    :func:`sonar_ring.ring_consistency.load_kernels` on a ring.
     """
     _picks(np.zeros(1, dtype=np.uint8), np.zeros(1, dtype=np.int64), np.ones(1, dtype=bool),
            np.zeros(1, dtype=np.uint8), np.zeros(1))

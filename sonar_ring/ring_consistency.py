@@ -258,7 +258,7 @@ def load_kernels() -> None:
     """Load the compiled consistency kernels now instead of at the first classification.
 
     Loading starts numba and reads the cached machine code; a process that
-    classifies on a deadline pays that at start: the classifier node, so its first
+    classifies on a deadline pays that at start: the localiser node, so its first
     ping is not late, and the workers of ``sonar-ring process``, while the main
     process opens the bag.  Runs each kernel with the argument types of production
     (``test_compiled`` checks that a ping compiles nothing more): the fits through

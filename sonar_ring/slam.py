@@ -1,7 +1,7 @@
 """Landmark SLAM: the robot's pose in ``map`` from its odometry and the landmarks it maps (GTSAM, iSAM2).
 
 The mapper's core when ``slam`` is on.  Per ping, :meth:`LandmarkSlam.add_ping`
-takes the classifier's landmarks (sensor frame) and the robot's odometry pose
+takes the labelled landmarks (sensor frame) and the robot's odometry pose
 (``odom``) at the ping, and:
 
 1. **predicts** the robot's pose in ``map`` from the latest keyframe's estimate

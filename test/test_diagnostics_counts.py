@@ -1,6 +1,6 @@
 """Every node's ``inputs`` and ``published`` on /diagnostics are what a listener on its topics received.
 
-The four nodes run as separate nodes in one executor (each takes its pings
+The three nodes run as separate nodes in one executor (each takes its pings
 from DDS, as separate processes do), the driver reading a UDP device that this
 test feeds, one frame in 50 ms; the mapper places pings at ``fixed_pose`` and
 publishes its map ten times a second.  One frame is a ping the driver refuses

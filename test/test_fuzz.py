@@ -113,7 +113,7 @@ def pings(draw):
 
 @FUZZ
 @given(pings(), st.floats(1e-8, 1e-4), st.booleans())
-def test_a_ping_through_screening_localiser_and_classifier(layout_and_ping, sigma_tof, vertical):
+def test_a_ping_through_screening_localisation_and_labelling(layout_and_ping, sigma_tof, vertical):
     layout, echoes = layout_and_ping
     screened = screen_ping(echoes, layout)
     if screened.echoes is None:

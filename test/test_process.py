@@ -1,6 +1,6 @@
 """``sonar-ring record-sim`` and ``sonar-ring process``: bags in, bags out, the live graph's messages exactly.
 
-The live comparison runs the demo (all four nodes and the recorder process) for
+The live comparison runs the demo (all three nodes and the recorder process) for
 a few tens of pings, processes its echo bag offline and compares every
 per-ping output message field by field, and the final map.
 """
