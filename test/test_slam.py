@@ -105,6 +105,26 @@ def test_a_loop_closes_without_duplicates():
     assert rms < 0.02 and final < 0.02 and odometry_final > 5 * final, (rms, final, odometry_rms, odometry_final)
 
 
+def test_between_two_marginals_a_keyframe_holds_the_last_one_turned_into_its_frame():
+    truth = np.array([[1.0 + 0.01 * k, 1.0, math.radians(-135)] for k in range(130)])
+    landmarks, _ = labelled_pings(CORNER_ROOM, truth)
+    slam = LandmarkSlam(SlamSettings(covariance_every=5))
+    kept = {}
+    for k, (found, pose) in enumerate(zip(landmarks, truth, strict=True)):
+        if slam.add_ping(found, pose, k / RING.ping_rate).keyframe and slam._keyframe > 0:
+            key = gtsam.symbol("x", slam._keyframe)
+            kept[slam._keyframe] = (slam._keyframe_covariance.copy(), slam._keyframe_odometry.copy(),
+                                    slam._smoother.marginalCovariance(key))
+    assert len(kept) >= 10
+    for index, (covariance, odometry, marginal) in kept.items():
+        if index % 5 == 0:
+            assert_allclose(covariance, marginal, rtol=1e-9)
+        elif index - 1 in kept:
+            adjoint = gtsam.Pose2(*relative_pose(kept[index - 1][1], odometry)).inverse().AdjointMap()
+            assert_allclose(covariance, adjoint @ kept[index - 1][0] @ adjoint.T, rtol=1e-9, atol=1e-15)
+            assert np.all(np.linalg.eigvalsh(covariance) > 0)
+
+
 def test_an_odometry_jump_starts_a_new_session_and_a_stretch_without_landmarks_is_reported():
     truth = np.array([[1.0 + 0.01 * k, 1.0, math.radians(-135)] for k in range(80)])
     landmarks, _ = labelled_pings(CORNER_ROOM, truth)
