@@ -331,7 +331,7 @@ _LAYOUT_FIELDS = {"ring": _COMMON_FIELDS + ("ring",),
 def _known_fields(mapping: dict, allowed, where: str) -> None:
     unknown = sorted(set(mapping) - set(allowed), key=str)
     if unknown:
-        raise LayoutError(f"{where}: unknown field '{unknown[0]}' (expected some of {sorted(allowed)})")
+        raise LayoutError(f"{where}: unknown field {unknown[0]!r} (expected some of {sorted(allowed)})")
 
 
 def _layout_from_mapping(m: dict, where: str) -> Layout:

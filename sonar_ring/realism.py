@@ -276,9 +276,9 @@ def scene_realism(scene: Scene, name: str, overrides=None, where: str = "realism
 
 def _replaced(realism: Realism, overrides, where: str) -> Realism:
     overrides = dict(overrides or {})
-    unknown = sorted(set(overrides) - set(RANGES))
+    unknown = sorted(set(overrides) - set(RANGES), key=str)
     if unknown:
-        raise SceneError(f"{where}: unknown field '{unknown[0]}' (expected some of {sorted(RANGES)})")
+        raise SceneError(f"{where}: unknown field {unknown[0]!r} (expected some of {sorted(RANGES)})")
     try:
         return replace(realism, **{key: _number(value) for key, value in overrides.items()})
     except ValueError as error:

@@ -299,7 +299,8 @@ def _point(value, where, field, size=2):
 def _scene_from_mapping(m: dict, where: str) -> Scene:
     unknown = set(m) - _SCENE_KEYS
     if unknown:
-        raise SceneError(f"{where}: unknown field '{sorted(unknown)[0]}' (expected some of {sorted(_SCENE_KEYS)})")
+        first = sorted(unknown, key=str)[0]
+        raise SceneError(f"{where}: unknown field {first!r} (expected some of {sorted(_SCENE_KEYS)})")
     temperature = _number(m.get("temperature_c", 20.0), where, "temperature_c", low=-273.15, low_open=True)
     humidity = _number(m.get("relative_humidity", 0.0), where, "relative_humidity", low=0.0, high=100.0)
     reflectivity = dict(DEFAULT_REFLECTIVITY)
@@ -325,7 +326,7 @@ def _scene_from_mapping(m: dict, where: str) -> Scene:
         kind = item["type"]
         extra = set(item) - _REFLECTOR_KEYS[kind]
         if extra:
-            raise SceneError(f"{here}: unknown field '{sorted(extra)[0]}' for a {kind} "
+            raise SceneError(f"{here}: unknown field {sorted(extra, key=str)[0]!r} for a {kind} "
                              f"(expected {sorted(_REFLECTOR_KEYS[kind])})")
         name = str(item.get("name", f"{kind}{k}"))
         if name in names:

@@ -26,6 +26,7 @@ LAYOUT_CASES = [
      r"unknown field 'max_range_m' \(expected some of \['aperture_radius', "),
     ("unknown nested field", RING.replace("separation:", "spacing: 0.04\n  separation:", 1),
      r"ring: unknown field 'spacing' \(expected some of \['emitter_height', 'pairs', 'separation', 'tiers'\]\)"),
+    ("unknown field with a line break", RING + '"odd\\nkey": 1\n', r"unknown field 'odd\\nkey' \(expected some of "),
     ("not YAML", "kind: ring\n  frequency_hz: [40000\n", r"not valid YAML \(.*line 2"),
     ("not a mapping", "- kind\n- ring\n", r"expected a mapping of fields at the top level, got list"),
 ]
@@ -38,6 +39,7 @@ SCENE_CASES = [
      r"field 'relative_humidity' must be a number >= 0.0 and <= 100.0, got 145.0"),
     ("endless lap", ROOM.replace("speed: 0.3", "speed: 1.0e-9"),
      r"trajectory: field 'speed' must make one lap last at most 3600 s \(the path is 12.4 m long\), got 1e-09"),
+    ("unknown fields of two types", ROOM + "5: five\nzz: z\n", r"unknown field 5 \(expected some of "),
     ("not YAML", "reflectors: [{type: wall\n", r"not valid YAML"),
     ("not a mapping", "just a sentence\n", r"expected a mapping of fields at the top level, got str"),
 ]
