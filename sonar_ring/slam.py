@@ -115,8 +115,8 @@ class SlamSettings:
         iSAM2's: a variable is relinearised when its estimate moved this much (m, rad), checked every
         ``relinearize_skip`` updates.
     covariance_every : int
-        Keyframes between two marginal covariances from the smoother; the keyframes between carry the last
-        one forward through their odometry (:meth:`LandmarkSlam._add_keyframe`).
+        Keyframes between two marginal covariances from the smoother; the keyframes between hold the last
+        one, turned into their own frame (:meth:`LandmarkSlam._add_keyframe`).
     """
 
     keyframe_distance: float = 0.1

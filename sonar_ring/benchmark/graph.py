@@ -17,7 +17,7 @@ then on any CPU, as the scheduler places it, for the latency again.  On one
 CPU its middleware threads hand a ping to its executor without waking the
 other core, and no migration leaves its code in the other core's cache.
 Then the nodes run once more, each in its own process, as the launch file
-starts them by default (:func:`separate_processes`): every hop crosses DDS.
+starts them by default (:func:`_latency_on_any_cpu`): every hop crosses DDS.
 Needs ROS 2 (rclpy and the built ``sonar_ring`` messages).
 """
 
@@ -111,7 +111,7 @@ def run(quick: bool = False) -> dict:
         ``any_cpu``: the latency figures (the same first five keys) with the
         graph on any CPU, ``{"error": why}`` if that run failed, or None when
         this process may use one CPU only; ``separate``: the same figures with
-        one process per node (:func:`separate_processes`), or ``{"error": why}``;
+        one process per node (:func:`_latency_on_any_cpu`), or ``{"error": why}``;
         ``rows_per_ping`` and ``note`` (what was measured).
     """
     plan = QUICK if quick else FULL
@@ -119,20 +119,10 @@ def run(quick: bool = False) -> dict:
     echoes = benchmark_echoes(layout, np.random.default_rng(0))
     allowed = sorted(os.sched_getaffinity(0))
     cpu = allowed[-1]
-    domain = 100 + os.getpid() % 99  # apart from other graphs on this machine; the second run on the next one
+    domain = 100 + os.getpid() % 99  # apart from other graphs on this machine; each later run on the next one
     pinned = _session(echoes, plan, cpu, ladder=True, domain=domain)
-    any_cpu = None
-    if len(allowed) > 1:
-        try:
-            unpinned = _session(echoes, plan, None, ladder=False, domain=domain + 1)
-            any_cpu = {key: unpinned[key] for key in ("latency_median_ms", "latency_p99_ms", "rate_hz", "pings",
-                                                      "dropped")}
-        except Exception as exc:  # the pinned figures stand on their own
-            any_cpu = {"error": f"failed: {exc}"}
-    try:
-        separate = separate_processes(quick)
-    except Exception as exc:  # the graph's own figures stand on their own
-        separate = {"error": f"failed: {exc}"}
+    any_cpu = _latency_on_any_cpu(echoes, plan, domain + 1) if len(allowed) > 1 else None
+    separate = _latency_on_any_cpu(echoes, plan, domain + 2, separate=True)
     placement = f"on CPU {cpu}" + (", then on any CPU" if len(allowed) > 1 else " (the only one it may use)")
     return {
         **pinned, "cpu": cpu, "any_cpu": any_cpu, "separate": separate, "rows_per_ping": echoes.n_echoes,
@@ -142,15 +132,16 @@ def run(quick: bool = False) -> dict:
     }
 
 
-def separate_processes(quick: bool = False) -> dict:
-    """The latency with each node in its own process, as the launch file starts them by default, on any CPU.
+def _latency_on_any_cpu(echoes: EchoArrays, plan: Plan, domain: int, separate: bool = False) -> dict:
+    """The latency figures of :func:`_session` on any CPU (:func:`run`'s ``any_cpu`` keys), or ``{"error": why}``.
 
-    The keys of :func:`run`'s ``any_cpu``.  The pings cross DDS between the
-    nodes too, so this is the graph's latency as a user's launch gives it.
+    ``separate``: one process per node, as the launch file starts them by
+    default, so the pings cross DDS between the nodes too.
     """
-    plan = QUICK if quick else FULL
-    echoes = benchmark_echoes(load_layout(LAYOUT), np.random.default_rng(0))
-    result = _session(echoes, plan, None, ladder=False, domain=100 + (os.getpid() + 2) % 99, separate=True)
+    try:
+        result = _session(echoes, plan, None, ladder=False, domain=domain, separate=separate)
+    except Exception as exc:  # the pinned figures stand on their own
+        return {"error": f"failed: {exc}"}
     return {key: result[key] for key in ("latency_median_ms", "latency_p99_ms", "rate_hz", "pings", "dropped")}
 
 

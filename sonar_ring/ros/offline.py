@@ -19,7 +19,7 @@ bag time with its echoes' header, and the map at ``map_rate`` ticks of bag time
 
 The localiser's work on a ping needs nothing of other pings
 (:class:`~sonar_ring.ping_stage.PingStage`), so ``process`` runs it on batches
-of pings at once (:func:`ping_outputs`) and hands the batches to worker
+of pings at once (:class:`LocaliserWork`) and hands the batches to worker
 processes; the header check, the mapper and the file I/O stay in order in the
 main process.
 
@@ -182,52 +182,61 @@ class PingOutput:
     labelled: Landmarks | None = None
 
 
-def ping_outputs(stage: PingStage, pings: list[tuple[Header, EchoArrays]], marker_lifetime: float
-                 ) -> list[PingOutput]:
-    """Check, localise, label and draw decoded Echoes messages as the localiser does, one output per message.
+@dataclass(frozen=True)
+class LocaliserWork:
+    """What the localiser node does to a ping, as ``process`` runs it: its stage, and the markers' lifetime (s).
 
-    ``pings`` holds each message's header and arrays (:func:`~sonar_ring.ros.convert.echoes_from_cdr`).
-    The checked pings go through :meth:`~sonar_ring.ping_stage.PingStage.label_many`
-    together, which gives each ping what the node gives it alone.
+    It needs no other ping, so it runs in worker processes (:func:`ordered_map`);
+    a ping's output does not depend on where it ran.
     """
-    counts = [Counts() for _ in pings]
-    checked = [check_ping(echoes, stage.layout, count, stamp_ns(header))
-               for (header, echoes), count in zip(pings, counts, strict=True)]
-    usable = [index for index, echoes in enumerate(checked) if echoes is not None]
-    # The messages carry the arrays' own dtypes, so the node's message round trips are lossless and skipped.
-    labels = dict(zip(usable, stage.label_many([checked[i] for i in usable]), strict=True))
-    outputs = []
-    for index, ((header, _), count) in enumerate(zip(pings, counts, strict=True)):
-        if index not in labels:
-            outputs.append(PingOutput(dict(count.problems), dict(count.notes)))
-            continue
-        hypotheses, labelled = labels[index]
-        data = (serialize_landmarks(hypotheses, header),
-                serialize_landmarks(labelled, header),
-                serialize_markers(landmark_markers(labelled, "landmarks", marker_lifetime), header))
-        per_class = np.bincount(labelled.landmark_class, minlength=len(CLASS_NAMES))
-        outputs.append(PingOutput(dict(count.problems), dict(count.notes), data, per_class, labelled))
-    return outputs
+
+    stage: PingStage
+    marker_lifetime: float
+
+    def outputs(self, pings: list[tuple[Header, EchoArrays]]) -> list[PingOutput]:
+        """Check, localise, label and draw decoded Echoes messages as the localiser does, one output per message.
+
+        ``pings`` holds each message's header and arrays (:func:`~sonar_ring.ros.convert.echoes_from_cdr`).
+        The checked pings go through :meth:`~sonar_ring.ping_stage.PingStage.label_many`
+        together, which gives each ping what the node gives it alone.
+        """
+        counts = [Counts() for _ in pings]
+        checked = [check_ping(echoes, self.stage.layout, count, stamp_ns(header))
+                   for (header, echoes), count in zip(pings, counts, strict=True)]
+        usable = [index for index, echoes in enumerate(checked) if echoes is not None]
+        # The messages carry the arrays' own dtypes, so the node's message round trips are lossless and skipped.
+        labels = dict(zip(usable, self.stage.label_many([checked[i] for i in usable]), strict=True))
+        outputs = []
+        for index, ((header, _), count) in enumerate(zip(pings, counts, strict=True)):
+            if index not in labels:
+                outputs.append(PingOutput(dict(count.problems), dict(count.notes)))
+                continue
+            hypotheses, labelled = labels[index]
+            data = (serialize_landmarks(hypotheses, header),
+                    serialize_landmarks(labelled, header),
+                    serialize_markers(landmark_markers(labelled, "landmarks", self.marker_lifetime), header))
+            per_class = np.bincount(labelled.landmark_class, minlength=len(CLASS_NAMES))
+            outputs.append(PingOutput(dict(count.problems), dict(count.notes), data, per_class, labelled))
+        return outputs
 
 
-_worker_stage: tuple[PingStage, float] | None = None
-"""The stage of this worker process and the markers' lifetime, s (set by :func:`_start_worker`)."""
+_worker: LocaliserWork | None = None
+"""The work of this worker process (set by :func:`_start_worker`)."""
 
 
-def _start_worker(stage: PingStage, marker_lifetime: float) -> None:
-    global _worker_stage
-    _worker_stage = stage, marker_lifetime
-    stage.load_kernels()
+def _start_worker(work: LocaliserWork) -> None:
+    global _worker
+    _worker = work
+    work.stage.load_kernels()
 
 
 def _work(batch: list[bytes]) -> list[PingOutput]:
-    stage, marker_lifetime = _worker_stage
-    return ping_outputs(stage, [echoes_from_cdr(data) for data in batch], marker_lifetime)
+    return _worker.outputs([echoes_from_cdr(data) for data in batch])
 
 
 @contextlib.contextmanager
-def stage_workers(stage: PingStage, marker_lifetime: float, jobs: int):
-    """``jobs - 1`` forked processes that run ``stage`` (a process pool), or None when ``jobs`` is 1.
+def stage_workers(work: LocaliserWork, jobs: int):
+    """``jobs - 1`` forked processes that run ``work`` (a process pool), or None when ``jobs`` is 1.
 
     The workers start at once and load the stage's compiled kernels while this
     process opens the bag and reads the odometry, so the first batch does not
@@ -237,20 +246,19 @@ def stage_workers(stage: PingStage, marker_lifetime: float, jobs: int):
         yield None
         return
     context = multiprocessing.get_context("fork")
-    with ProcessPoolExecutor(jobs - 1, mp_context=context, initializer=_start_worker,
-                             initargs=(stage, marker_lifetime)) as pool:
+    with ProcessPoolExecutor(jobs - 1, mp_context=context, initializer=_start_worker, initargs=(work,)) as pool:
         pool.submit(int)  # the pool forks its workers at the first task
         yield pool
 
 
-def ordered_map(stage: PingStage, marker_lifetime: float, items, workers: ProcessPoolExecutor | None, jobs: int,
-                meanwhile=None, batch: int = 64):
-    """``(item, output)`` for ``(ping, data, item)`` in ``items``, in order: the stage's output.
+def ordered_map(work: LocaliserWork, items, workers: ProcessPoolExecutor | None, jobs: int, meanwhile=None,
+                batch: int = 64):
+    """``(item, output)`` for ``(ping, data, item)`` in ``items``, in order: the work's output.
 
     The output is that of ``ping`` (header and arrays decoded from the serialized
-    message ``data``, :func:`ping_outputs`).
+    message ``data``, :meth:`LocaliserWork.outputs`).
 
-    The stage runs on ``batch`` messages at a time (:func:`ping_outputs`).
+    The work runs on ``batch`` messages at a time.
     Without ``workers`` it runs here; with them (:func:`stage_workers`) the
     batches go to the workers (``jobs - 1`` of them) as serialized messages
     (``data``), while this process, which reads, maps and writes and is the
@@ -263,7 +271,7 @@ def ordered_map(stage: PingStage, marker_lifetime: float, items, workers: Proces
         if meanwhile:
             meanwhile()
         for chunk in chunks:
-            outputs = ping_outputs(stage, [ping for ping, *_ in chunk], marker_lifetime)
+            outputs = work.outputs([ping for ping, *_ in chunk])
             yield from zip([item for *_, item in chunk], outputs, strict=True)
         return
     pending = deque()
@@ -521,10 +529,10 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
             params_file = config_path("params", sensor.name)
         report.params_file = str(params_file or "defaults")
         values = node_values(params_file)
-        stage = PingStage(sensor, localiser.settings_from(values["localiser"]))
-        marker_lifetime = values["localiser"]["marker_lifetime"]
+        work = LocaliserWork(PingStage(sensor, localiser.settings_from(values["localiser"])),
+                             values["localiser"]["marker_lifetime"])
         jobs = jobs or len(os.sched_getaffinity(0))
-        with stage_workers(stage, marker_lifetime, jobs) as workers, BagWriter(out_path, storage) as writer:
+        with stage_workers(work, jobs) as workers, BagWriter(out_path, storage) as writer:
             graphs = {}
             for name, namespace in zip(chosen, namespaces, strict=True):
                 odometry = None
@@ -545,7 +553,7 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
                     bar.update(1)
 
             # The map's kernels load while the workers localise the first batches.
-            for (graph, time_ns, header), output in ordered_map(stage, marker_lifetime, admitted(), workers, jobs,
+            for (graph, time_ns, header), output in ordered_map(work, admitted(), workers, jobs,
                                                                 meanwhile=mapping.load_kernels):
                 graph.take(time_ns, header, output)
             bar.close()
