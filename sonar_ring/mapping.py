@@ -1826,6 +1826,28 @@ class LandmarkMap:
             persistent[found] = self._supported(table)[slots[found]]
         return persistent
 
+    def decided(self, uids) -> np.ndarray:
+        """Which entries ``uids`` (K,) are decided; (K,) bool (False for an entry not in the map).
+
+        Decided: a wall, or a point of a known class -- not UNKNOWN, and not CORNER_OR_EDGE while its
+        sightings carry curvature evidence (:mod:`sonar_ring.curvature`: a ring's) that has not yet told
+        an edge from a corner.  A fixed point whose sensor gives no such evidence (a triad's) is decided
+        as CORNER_OR_EDGE.
+        """
+        decided = np.zeros(len(uids), bool)
+        walls, points = self._slots(self._walls, uids), self._slots(self._points, uids)
+        decided[walls >= 0] = True
+        decided[points >= 0] = self._decided_points()[points[points >= 0]]
+        return decided
+
+    def _decided_points(self) -> np.ndarray:
+        """Which rows of the points table are decided (:meth:`decided`)."""
+        p = self._points
+        # A ring's true corners and edges decide within metres; what stays undecided there is,
+        # in the realistic world, almost only multipath that no model fits.
+        awaiting = (p.landmark_class == CORNER_OR_EDGE) & (p.modelled > 0)
+        return (p.landmark_class != UNKNOWN) & ~awaiting
+
     def _supported(self, table) -> np.ndarray:
         """Which rows of ``table`` have the support of a persistent entry (:meth:`persistent`)."""
         return (table.pings >= self.min_support_pings) & (table.travel >= self.min_support_travel)
@@ -1897,10 +1919,7 @@ class LandmarkMap:
             if persistent:
                 keep &= self._supported(table)
             if decided and table is self._points:
-                # A ring's true corners and edges decide within metres; what stays undecided there is,
-                # in the realistic world, almost only multipath that no model fits.
-                awaiting = (table.landmark_class == CORNER_OR_EDGE) & (table.modelled > 0)
-                keep &= (table.landmark_class != UNKNOWN) & ~awaiting
+                keep &= self._decided_points()
             if only is not None:
                 keep &= np.isin(table.uid, np.asarray(only, dtype=np.int64))
             chosen.append(np.flatnonzero(keep))

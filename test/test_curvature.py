@@ -199,6 +199,7 @@ def test_the_map_decides_as_the_sequential_test():
             # what the mapper publishes: a point its curvature can tell is held back until it does
             published = landmark_map.snapshot(decided=True).landmark_class.tolist()
             assert published == ([] if verdict[run] == CORNER_OR_EDGE else [verdict[run]]), (kind, run)
+            assert landmark_map.decided(landmark_map.entries().uid).tolist() == [verdict[run] != CORNER_OR_EDGE]
 
 
 def test_chi2_quantile_is_wilson_hilferty():

@@ -240,6 +240,9 @@ def test_unknown_sightings_resolve_into_a_wall_and_a_corner_over_motion():
     assert_allclose(np.sort(wall.segment[0, :, 0]), [xs[0], xs[-1]], atol=0.05)
     assert mahalanobis2(corner.position[0] - CORNER_POINT, corner.covariance[0]) <= CHI2_2DOF_3SIGMA
     assert corner.observations[0] + wall.observations[0] + landmark_map.counts.ambiguous == 2 * xs.size
+    # Without curvature evidence (no point models: a triad's sightings) a fixed point is as decided as it gets.
+    uids = landmark_map.entries().uid
+    assert landmark_map.decided(uids).all() and not landmark_map.decided([uids.max() + 1]).any()
 
 
 @pytest.mark.parametrize("motion", ["standing", "towards the wall"])
@@ -350,6 +353,7 @@ def test_classified_sightings_name_unknown_points():
     for _ in range(5):
         landmark_map.update(sightings(rng, sensor, [CORNER_POINT, [0.0, WALL_Y]], [UNKNOWN, UNKNOWN]), [0, 0, 0])
     assert_array_equal(landmark_map.snapshot().landmark_class, [UNKNOWN, UNKNOWN])
+    assert not landmark_map.decided(landmark_map.entries().uid).any()
     landmark_map.update(sightings(rng, sensor, [CORNER_POINT, [0.0, WALL_Y]], [EDGE, PLANE], confidence=0.7),
                         [0, 0, 0])
     snapshot = landmark_map.snapshot()

@@ -13,7 +13,7 @@ from sonar_ring import pipeline
 from sonar_ring.curvature import point_models
 from sonar_ring.echoes import screen_ping
 from sonar_ring.geometry import load_layout
-from sonar_ring.landmarks import CORNER, PLANE, Landmarks
+from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, Landmarks
 from sonar_ring.map_builder import MapBuilder, MapperSettings
 from sonar_ring.ping_stage import Counts, PingStage
 from sonar_ring.poses import compose, relative_pose
@@ -103,6 +103,32 @@ def test_a_loop_closes_without_duplicates():
     rms, final = trajectory_error(estimates, truth)
     odometry_rms, odometry_final = trajectory_error(odometry, truth)
     assert rms < 0.02 and final < 0.02 and odometry_final > 5 * final, (rms, final, odometry_rms, odometry_final)
+
+
+def test_a_fixed_point_enters_the_graph_once_its_curvature_tells_edge_from_corner():
+    # Passing a pole 2 m away, the motion names it a fixed point within half a metre; the wavefront's curvature
+    # tells it an edge a few decimetres later.  Until then it is CORNER_OR_EDGE, as the multipath that no model
+    # fits stays: it must not pull the pose (nor cost the smoother) until it is decided.
+    scene = load_scene({"name": "pole_room", "reflectors": [
+        {"type": "wall", "name": "south", "from": [0.0, 0.0], "to": [4.0, 0.0]},
+        {"type": "wall", "name": "west", "from": [0.0, 3.0], "to": [0.0, 0.0]},
+        {"type": "corner", "name": "sw", "walls": ["south", "west"]},
+        {"type": "edge", "name": "pole", "at": [2.5, 2.2]}]})
+    truth = np.array([[1.0 + 0.01 * k, 0.2, math.radians(45)] for k in range(150)])
+    landmarks, _ = labelled_pings(scene, truth)
+    slam = LandmarkSlam()
+    keyframes_awaiting = 0
+    for k, (found, pose) in enumerate(zip(landmarks, truth, strict=True)):
+        report = slam.add_ping(found, pose, k / RING.ping_rate, models=point_models(RING, found))
+        entries = slam.front.entries()
+        awaiting = (entries.landmark_class == CORNER_OR_EDGE) & slam.front.persistent(entries.uid)
+        keyframes_awaiting += bool(report.keyframe and awaiting.any())
+        assert slam.front.decided(slam.confirmed).all()
+        assert not np.isin(entries.uid[awaiting], slam.confirmed).any()
+    assert keyframes_awaiting >= 2
+    mapped = slam.snapshot()
+    pole = np.flatnonzero(np.hypot(*(mapped.position - [2.5, 2.2]).T) < 0.05)
+    assert mapped.landmark_class[pole].tolist() == [EDGE]
 
 
 def test_between_two_marginals_a_keyframe_holds_the_last_one_turned_into_its_frame():
