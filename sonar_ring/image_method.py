@@ -359,7 +359,7 @@ def junctions(walls, points, gap):
 
 
 @kernel
-def map_paths(start, direction, normal, length, walls, points, excluded_pair, excluded_point, tx, rx, tx_axis,
+def map_paths(start, direction, normal, length, blockers, points, excluded_pair, excluded_point, tx, rx, tx_axis,
               rx_axis, height_offset, transmitter, row_channel, row_paths, pose, max_path, acceptance, pose_covariance,
               xy_sigma, yaw_sigma, sigma_path, sigma_speed, sigma_map, gate_sigmas, isotropic, prune, gated):
     """The paths, double and single bounces, a map of walls and points sends to one ping's channels' receivers.
@@ -379,9 +379,11 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
         The walls as :func:`wall_frames` gives them, m.
     length : ndarray, shape (W,)
         m.
-    walls : ndarray, shape (W, 2, 2)
-        The same walls as segments, which block legs.  Walls of no length or
-        with a non-finite value give no path.
+    blockers : ndarray, shape (B, 2, 2)
+        The segments that block legs, m (the walls' seen extents: a wall grown
+        to where it ends reflects there, but blocks only where it was seen).
+        Walls of no length or with a non-finite value give no path; such
+        blockers block nothing.
     points : ndarray, shape (P, 2)
         Diffracting points, m; non-finite ones give no path.
     excluded_pair : ndarray of bool, shape (W, W)
@@ -433,6 +435,11 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
     n_walls, n_points = start.shape[0], points.shape[0]
     slots, receivers = tx.shape[1], rx.shape[1]
     all_channels = tx.shape[0] * slots
+    blocker_length = np.empty(blockers.shape[0])
+    for b in range(blockers.shape[0]):
+        blocker_length[b] = math.hypot(blockers[b, 1, 0] - blockers[b, 0, 0], blockers[b, 1, 1] - blockers[b, 0, 1])
+        if not blocker_length[b] > 0.0:  # a point or not finite: blocks nothing
+            blocker_length[b] = np.inf
     # The margins (sonar_ring.explain, "Tolerance"): a transducer's position error, the transducers being at
     # most ``spread`` from the pose's position; how far a bounce may lie beyond a segment's ends or a wall's
     # crossing from a leg's or a wall's ends (extent), and the acceptance angle's widening, yaw_margin +
@@ -777,12 +784,12 @@ def map_paths(start, direction, normal, length, walls, points, excluded_pair, ex
                 audible = audible and _accepted(first_x, first_y, tx[g, m, 0], tx[g, m, 1], tx_axis[g, m, 0, 0],
                                                 tx_axis[g, m, 0, 1], acceptance, yaw_margin, position_margin)
             audible = audible and not (
-                _shortened_leg_blocked(tx[g, m, 0], tx[g, m, 1], first_x, first_y, 0.0, extent_margin, walls, length,
-                                       extent_margin)
-                or _shortened_leg_blocked(first_x, first_y, last_x, last_y, extent_margin, extent_margin, walls,
-                                          length, extent_margin)
-                or _shortened_leg_blocked(last_x, last_y, rx[g, k, 0], rx[g, k, 1], extent_margin, 0.0, walls, length,
-                                          extent_margin))
+                _shortened_leg_blocked(tx[g, m, 0], tx[g, m, 1], first_x, first_y, 0.0, extent_margin, blockers,
+                                       blocker_length, extent_margin)
+                or _shortened_leg_blocked(first_x, first_y, last_x, last_y, extent_margin, extent_margin, blockers,
+                                          blocker_length, extent_margin)
+                or _shortened_leg_blocked(last_x, last_y, rx[g, k, 0], rx[g, k, 1], extent_margin, 0.0, blockers,
+                                          blocker_length, extent_margin))
             if audible:
                 heard = True
             else:
