@@ -14,7 +14,9 @@ the map frame (:func:`sonar_ring.simulate.place`), the mapper calls:
   entry's own single-bounce echo; each path exists geometrically, fits the
   receive window, reaches the receiver within its acceptance angle, leaves a
   directional transmitter within it and crosses no mapped wall where it was
-  seen (a grown ghost wall must not hide the double bounces that explain it).  Given the
+  seen, unless that wall was seen less often than the path's reflectors (a
+  ghost wall, grown or not, must not hide the double bounces that explain
+  it).  Given the
   rows' measured paths it keeps only the paths that can match one of them;
 * :func:`match` -- a row is :data:`MULTIPATH` when a predicted double bounce of
   its group and transmitter is within the gate of the paths ``c * tof`` of every
@@ -266,8 +268,8 @@ class Explanation:
 
 
 def predict(walls, points, placement: Placement, layout: Layout, group, transmitter, tolerance: Tolerance, *,
-            paths=None, blockers=None, max_path: float | None = None, junction: float = JUNCTION,
-            prune: bool = True) -> Prediction:
+            paths=None, seen=None, wall_support=None, point_support=None, max_path: float | None = None,
+            junction: float = JUNCTION, prune: bool = True) -> Prediction:
     """The paths of the map, double and single bounces, for the channels of one ping's echo rows.
 
     Parameters
@@ -294,13 +296,20 @@ def predict(walls, points, placement: Placement, layout: Layout, group, transmit
         the paths that can match a row of their channel (:func:`match`) are
         kept -- what can matter for this ping -- and only they are tested for
         beams and blocking.  Not given, every path.
-    blockers : array_like, shape (B, 2, 2), optional
-        The segments that block a path's legs, m; default ``walls``.  The mapper
-        passes the walls' seen extents: a wall grown to where it is taken to end
-        reflects there, but blocks only where it was seen -- a ghost wall grown
+    seen : array_like, shape (W, 2, 2), optional
+        Where each of ``walls`` was seen (its seen extent), m: what blocks a
+        path's legs; default ``walls``.  A wall grown to where it is taken to end
+        reflects there but blocks only where it was seen: a ghost wall grown
         metres to a fixed point would hide the very double bounces that explain
-        it (realistic room: 26 of 129 of a ghost's sightings explained with
-        grown blockers, 106 with seen ones).
+        it (realistic room: 26 of 129 sampled sightings of ghosts explained with
+        the grown walls blocking, 106 with the seen ones).
+    wall_support, point_support : array_like, shape (W,) and (P,), optional
+        How often each wall and point was seen (observations).  Given, a wall
+        blocks a path only if it was seen at least as often as the least seen
+        of the path's reflectors: a ghost wall lies on the legs of the double
+        bounce that makes it (5 of 50 sampled sightings of the ghosts a ghost
+        wall's seen extent still blocked were explained, 36 with this rule).
+        Default: every wall blocks.
     max_path : float, optional
         Longest path the receivers report (the receive window), m; default ``2 * layout.max_range``.
     junction : float
@@ -315,7 +324,11 @@ def predict(walls, points, placement: Placement, layout: Layout, group, transmit
         have, or a placement of another layout.
     """
     walls, points = _map_arrays(walls, points, "predict")
-    blockers = walls if blockers is None else _map_arrays(blockers, points, "predict", "blockers")[0]
+    seen = walls if seen is None else _map_arrays(seen, points, "predict", "seen")[0]
+    wall_support = _support(wall_support, len(walls), "wall_support")
+    point_support = _support(point_support, len(points), "point_support")
+    if seen.shape != walls.shape:
+        raise ValueError(f"predict: seen must have the shape of walls {walls.shape}, got {seen.shape}")
     group, slot = _channels(layout, group, transmitter, "predict")
     _check_placement(placement, layout, "predict")
     row_paths = np.empty((group.size, layout.receivers_per_group)) if paths is None else _row_paths(
@@ -325,7 +338,8 @@ def predict(walls, points, placement: Placement, layout: Layout, group, transmit
     excluded_pair, excluded_point = image_method.junctions(walls, points, junction)
     (kind, first, second, path_group, path_slot, path, jacobian, first_point, last_point,
      channel_start) = image_method.map_paths(
-        start, direction, normal, length, blockers, points, excluded_pair, excluded_point, placement.tx, placement.rx,
+        start, direction, normal, length, seen, points, wall_support, point_support, excluded_pair, excluded_point,
+        placement.tx, placement.rx,
         placement.tx_axis, placement.rx_axis, layout.plan.height_offset, layout.group_transmitters,
         group * layout.group_transmitters.shape[1] + slot, row_paths, placement.pose, max_path, layout.beam_half_angle,
         tolerance.pose_covariance, tolerance.xy_sigma, tolerance.yaw_sigma, tolerance.sigma_path, tolerance.sigma_speed,
@@ -696,7 +710,7 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     transmitter = np.zeros(rows.size, np.int64)
     paths = landmark_paths(in_map, placement, layout)
     prediction = predict(known.walls, known.points, placement, layout, group, transmitter, tolerance, paths=paths,
-                         blockers=known.seen)
+                         seen=known.seen, wall_support=known.wall_support, point_support=known.point_support)
     explanation = match(prediction, layout, group, transmitter, paths, tolerance, direct_wins=False)
     multipath = _multipath_of_the_less_seen(prediction, explanation, tests.gate_sigmas, known.wall_support,
                                             known.point_support)
@@ -778,6 +792,16 @@ def _map_arrays(walls, points, caller: str, name: str = "walls"):
     if points.ndim != 2 or points.shape[1] != 2:
         raise ValueError(f"{caller}: points must have shape (P, 2), got {points.shape}")
     return walls, points
+
+
+def _support(support, count: int, name: str) -> np.ndarray:
+    """Observations of ``count`` entries as a float array (zeros when not given), checked."""
+    if support is None:
+        return np.zeros(count)
+    support = np.ascontiguousarray(support, dtype=float)
+    if support.shape != (count,):
+        raise ValueError(f"predict: {name} must have shape ({count},), got {support.shape}")
+    return support
 
 
 def _channels(layout: Layout, group, transmitter, caller: str):

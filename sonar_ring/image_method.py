@@ -137,8 +137,9 @@ def blocked_legs(starts, ends, walls):
     """
     hit = np.zeros(starts.shape[0], dtype=np.bool_)
     length = _lengths(walls)
+    every_wall = np.zeros(walls.shape[0])  # support 0, least 0: every wall blocks
     for i in range(starts.shape[0]):
-        hit[i] = _leg_blocked(starts[i, 0], starts[i, 1], ends[i, 0], ends[i, 1], walls, length, 0.0)
+        hit[i] = _leg_blocked(starts[i, 0], starts[i, 1], ends[i, 0], ends[i, 1], walls, length, 0.0, every_wall, 0.0)
     return hit
 
 
@@ -152,10 +153,11 @@ def _lengths(walls):
 
 
 @kernel
-def _leg_blocked(x0, y0, x1, y1, walls, length, wall_margin):
+def _leg_blocked(x0, y0, x1, y1, walls, length, wall_margin, support, least):
     """:func:`blocked_legs` for one leg ``(x0, y0) -> (x1, y1)``; ``length`` (W,) the walls' lengths, m.
 
-    Crossings within ``wall_margin`` (m) of a wall's ends do not count (0: every crossing does).
+    Crossings within ``wall_margin`` (m) of a wall's ends do not count (0: every crossing does), nor walls
+    whose ``support`` (W,) is below ``least``.
     """
     rx, ry = x1 - x0, y1 - y0
     # A crossing lies in both segments' bounding boxes: most walls are skipped before the divisions.  The
@@ -163,6 +165,8 @@ def _leg_blocked(x0, y0, x1, y1, walls, length, wall_margin):
     leg_low_x, leg_high_x = min(x0, x1) - _BOX_SLACK, max(x0, x1) + _BOX_SLACK
     leg_low_y, leg_high_y = min(y0, y1) - _BOX_SLACK, max(y0, y1) + _BOX_SLACK
     for w in range(walls.shape[0]):
+        if support[w] < least:
+            continue
         ax, ay = walls[w, 0, 0], walls[w, 0, 1]
         bx, by = walls[w, 1, 0], walls[w, 1, 1]
         if (max(ax, bx) < leg_low_x or min(ax, bx) > leg_high_x or max(ay, by) < leg_low_y
@@ -359,9 +363,10 @@ def junctions(walls, points, gap):
 
 
 @kernel
-def map_paths(start, direction, normal, length, blockers, points, excluded_pair, excluded_point, tx, rx, tx_axis,
-              rx_axis, height_offset, transmitter, row_channel, row_paths, pose, max_path, acceptance, pose_covariance,
-              xy_sigma, yaw_sigma, sigma_path, sigma_speed, sigma_map, gate_sigmas, isotropic, prune, gated):
+def map_paths(start, direction, normal, length, seen_extent, points, wall_support, point_support, excluded_pair,
+              excluded_point, tx, rx, tx_axis, rx_axis, height_offset, transmitter, row_channel, row_paths, pose,
+              max_path, acceptance, pose_covariance, xy_sigma, yaw_sigma, sigma_path, sigma_speed, sigma_map,
+              gate_sigmas, isotropic, prune, gated):
     """The paths, double and single bounces, a map of walls and points sends to one ping's channels' receivers.
 
     The engine of :func:`sonar_ring.explain.predict`, whose docstring gives the
@@ -369,7 +374,11 @@ def map_paths(start, direction, normal, length, blockers, points, excluded_pair,
     says (within the extent margin of the segments), fit the receive window
     ``max_path`` (3-D length with ``height_offset``), arrive within the widened acceptance angle
     (and leave a directional transmitter within it), and have no leg that a
-    wall crosses away from the leg's reflecting ends and the wall's own.  Two
+    wall crosses where it was seen, away from the leg's reflecting ends and
+    the wall's own, if it was seen at least as often as the least seen of the
+    path's reflectors (a ghost must not hide the better-seen entries' double
+    bounce that explains it; the rule of :func:`sonar_ring.explain.match`'s
+    caller for an entry's own echo).  Two
     passes: the candidates that pass the pruning (and, where ``gated``, come
     near a measured row by their lengths); their geometry and tests.
 
@@ -379,13 +388,15 @@ def map_paths(start, direction, normal, length, blockers, points, excluded_pair,
         The walls as :func:`wall_frames` gives them, m.
     length : ndarray, shape (W,)
         m.
-    blockers : ndarray, shape (B, 2, 2)
-        The segments that block legs, m (the walls' seen extents: a wall grown
+    seen_extent : ndarray, shape (W, 2, 2)
+        Where each wall was seen, m: the segment that blocks legs (a wall grown
         to where it ends reflects there, but blocks only where it was seen).
         Walls of no length or with a non-finite value give no path; such
-        blockers block nothing.
+        a seen segment blocks nothing.
     points : ndarray, shape (P, 2)
         Diffracting points, m; non-finite ones give no path.
+    wall_support, point_support : ndarray, shape (W,) and (P,)
+        How often each wall and point was seen (observations); zeros: every wall blocks.
     excluded_pair : ndarray of bool, shape (W, W)
         Wall pairs whose double bounce is not a path to predict (a corner's own echo).
     excluded_point : ndarray of bool, shape (W, P)
@@ -435,11 +446,7 @@ def map_paths(start, direction, normal, length, blockers, points, excluded_pair,
     n_walls, n_points = start.shape[0], points.shape[0]
     slots, receivers = tx.shape[1], rx.shape[1]
     all_channels = tx.shape[0] * slots
-    blocker_length = np.empty(blockers.shape[0])
-    for b in range(blockers.shape[0]):
-        blocker_length[b] = math.hypot(blockers[b, 1, 0] - blockers[b, 0, 0], blockers[b, 1, 1] - blockers[b, 0, 1])
-        if not blocker_length[b] > 0.0:  # a point or not finite: blocks nothing
-            blocker_length[b] = np.inf
+    seen_length = _lengths(seen_extent)
     # The margins (sonar_ring.explain, "Tolerance"): a transducer's position error, the transducers being at
     # most ``spread`` from the pose's position; how far a bounce may lie beyond a segment's ends or a wall's
     # crossing from a leg's or a wall's ends (extent), and the acceptance angle's widening, yaw_margin +
@@ -721,6 +728,16 @@ def map_paths(start, direction, normal, length, blockers, points, excluded_pair,
         g, m = channel_id[channel[q]] // slots, channel_id[channel[q]] % slots
         t = transmitter[g, m]
         a, b = first[q], second[q]
+        if kind[q] == WALL_WALL:
+            least = min(wall_support[a], wall_support[b])
+        elif kind[q] == POINT_WALL:
+            least = min(point_support[a], wall_support[b])
+        elif kind[q] == WALL_POINT:
+            least = min(wall_support[a], point_support[b])
+        elif kind[q] == WALL:
+            least = wall_support[b]
+        else:
+            least = point_support[b]
         reaches = False
         for k in range(receivers):
             if kind[q] == WALL_WALL:
@@ -784,12 +801,12 @@ def map_paths(start, direction, normal, length, blockers, points, excluded_pair,
                 audible = audible and _accepted(first_x, first_y, tx[g, m, 0], tx[g, m, 1], tx_axis[g, m, 0, 0],
                                                 tx_axis[g, m, 0, 1], acceptance, yaw_margin, position_margin)
             audible = audible and not (
-                _shortened_leg_blocked(tx[g, m, 0], tx[g, m, 1], first_x, first_y, 0.0, extent_margin, blockers,
-                                       blocker_length, extent_margin)
-                or _shortened_leg_blocked(first_x, first_y, last_x, last_y, extent_margin, extent_margin, blockers,
-                                          blocker_length, extent_margin)
-                or _shortened_leg_blocked(last_x, last_y, rx[g, k, 0], rx[g, k, 1], extent_margin, 0.0, blockers,
-                                          blocker_length, extent_margin))
+                _shortened_leg_blocked(tx[g, m, 0], tx[g, m, 1], first_x, first_y, 0.0, extent_margin, seen_extent,
+                                       seen_length, extent_margin, wall_support, least)
+                or _shortened_leg_blocked(first_x, first_y, last_x, last_y, extent_margin, extent_margin, seen_extent,
+                                          seen_length, extent_margin, wall_support, least)
+                or _shortened_leg_blocked(last_x, last_y, rx[g, k, 0], rx[g, k, 1], extent_margin, 0.0,
+                                          seen_extent, seen_length, extent_margin, wall_support, least))
             if audible:
                 heard = True
             else:
@@ -1125,20 +1142,22 @@ def _accepted(x, y, transducer_x, transducer_y, axis_x, axis_y, acceptance, yaw_
 
 
 @kernel
-def _shortened_leg_blocked(x0, y0, x1, y1, start_margin, end_margin, walls, length, wall_margin):
+def _shortened_leg_blocked(x0, y0, x1, y1, start_margin, end_margin, walls, length, wall_margin, support, least):
     """Whether a wall crosses the leg ``(x0, y0) -> (x1, y1)``, less the margins at its ends, inside its own.
 
     ``length`` (W,) the walls' lengths, m.  Nothing left of the leg: no;
-    crossings within ``wall_margin`` (m) of the wall's ends do not count.
+    crossings within ``wall_margin`` (m) of the wall's ends do not count, nor walls whose ``support`` (W,) is
+    below ``least``.
     """
     if start_margin == 0.0 and end_margin == 0.0:
-        return _leg_blocked(x0, y0, x1, y1, walls, length, wall_margin)
+        return _leg_blocked(x0, y0, x1, y1, walls, length, wall_margin, support, least)
     dx, dy = x1 - x0, y1 - y0
     leg = math.hypot(dx, dy)
     if not leg > start_margin + end_margin:
         return False
     return _leg_blocked(x0 + start_margin / leg * dx, y0 + start_margin / leg * dy,
-                        x1 - end_margin / leg * dx, y1 - end_margin / leg * dy, walls, length, wall_margin)
+                        x1 - end_margin / leg * dx, y1 - end_margin / leg * dy, walls, length, wall_margin, support,
+                        least)
 
 
 @kernel

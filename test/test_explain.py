@@ -186,31 +186,40 @@ def test_with_the_scene_as_map_the_prediction_is_the_realistic_worlds_multipath(
     assert compared > 1000
 
 
-def test_a_wall_blocks_where_it_was_seen_not_where_it_was_grown():
+def test_a_wall_blocks_where_it_was_seen_if_seen_as_often_as_the_paths_reflectors():
     # A ghost wall seen over half a metre by the east wall, grown across the room to a fixed point it met: it
-    # reflects along its grown length, but blocks only where it was seen, so the room's own double bounces (the
-    # ones that explain the ghost) stay predicted.
+    # reflects along its grown length, but blocks only where it was seen, and only paths whose reflectors it was
+    # seen as often as -- so the room's own double bounces (the ones that explain the ghost) stay predicted.
     ghost = len(ROOM.walls)
     grown, seen = [[0.3, 1.0], [5.7, 1.0]], [[5.2, 1.0], [5.7, 1.0]]
     walls = np.concatenate([ROOM.walls, [grown]])
+    points = ROOM.edges
 
     def by_the_room(prediction):
         return {key: length for key, length in _predicted_paths(prediction).items()
                 if ghost not in ((key[1], key[2]) if key[0] == WALL_WALL else (key[1],) if key[0] == WALL_POINT
                                  else (key[2],))}
 
-    hidden = 0
+    def support(ghost_support):
+        return {"wall_support": np.r_[np.full(len(ROOM.walls), 1000.0), ghost_support],
+                "point_support": np.full(len(points), 1000.0)}
+
+    hidden = {"grown": 0, "seen grown, as often": 0}
     rng = np.random.default_rng(6)
     for x, y in zip(rng.uniform(0.5, 3.0, 12), rng.uniform(2.8, 4.2, 12), strict=True):
         placement = place(RING, [x, y, rng.uniform(-math.pi, math.pi)])
-        room = by_the_room(predict(ROOM.walls, ROOM.edges, placement, RING, ROWS, SLOT, EXACT))
-        blocked_where_seen = by_the_room(predict(walls, ROOM.edges, placement, RING, ROWS, SLOT, EXACT,
-                                                 blockers=np.concatenate([ROOM.walls, [seen]])))
-        assert blocked_where_seen == room
-        blocked_where_grown = by_the_room(predict(walls, ROOM.edges, placement, RING, ROWS, SLOT, EXACT))
-        assert set(blocked_where_grown) <= set(room)
-        hidden += len(room) - len(blocked_where_grown)
-    assert hidden > 100  # what the grown wall would have hidden
+        room = by_the_room(predict(ROOM.walls, points, placement, RING, ROWS, SLOT, EXACT))
+        where_seen = by_the_room(predict(walls, points, placement, RING, ROWS, SLOT, EXACT,
+                                         seen=np.concatenate([ROOM.walls, [seen]])))
+        seen_less = by_the_room(predict(walls, points, placement, RING, ROWS, SLOT, EXACT, **support(999.0)))
+        assert where_seen == room and seen_less == room
+        for case, prediction in (("grown", predict(walls, points, placement, RING, ROWS, SLOT, EXACT)),
+                                 ("seen grown, as often",
+                                  predict(walls, points, placement, RING, ROWS, SLOT, EXACT, **support(1000.0)))):
+            paths = by_the_room(prediction)
+            assert set(paths) <= set(room)
+            hidden[case] += len(room) - len(paths)
+    assert min(hidden.values()) > 100  # what the ghost wall hides where it blocks
 
 
 @pytest.mark.parametrize("tolerance", [EXACT, UNCERTAIN], ids=["exact", "uncertain"])
@@ -419,8 +428,12 @@ def test_error_handling():
         predict(walls[:, 0], points, placement, RING, one, one, EXACT)
     with pytest.raises(ValueError, match="points must have shape"):
         predict(walls, points.T, placement, RING, one, one, EXACT)
-    with pytest.raises(ValueError, match="blockers must have shape"):
-        predict(walls, points, placement, RING, one, one, EXACT, blockers=walls[:, 0])
+    with pytest.raises(ValueError, match="seen must have shape"):
+        predict(walls, points, placement, RING, one, one, EXACT, seen=walls[:, 0])
+    with pytest.raises(ValueError, match="seen must have the shape of walls"):
+        predict(walls, points, placement, RING, one, one, EXACT, seen=walls[:2])
+    with pytest.raises(ValueError, match=r"point_support must have shape \(11,\)"):
+        predict(walls, points, placement, RING, one, one, EXACT, point_support=np.ones(3))
     with pytest.raises(ValueError, match="group must be in 0..47"):
         predict(walls, points, placement, RING, [48], [0], EXACT)
     with pytest.raises(ValueError, match="transmitter 1 is not one of group 0"):
