@@ -324,7 +324,7 @@ def predict(walls, points, placement: Placement, layout: Layout, group, transmit
         have, or a placement of another layout.
     """
     walls, points = _map_arrays(walls, points, "predict")
-    seen = walls if seen is None else _map_arrays(seen, points, "predict", "seen")[0]
+    seen = walls if seen is None else _segments(seen, "predict", "seen")
     wall_support = _support(wall_support, len(walls), "wall_support")
     point_support = _support(point_support, len(points), "point_support")
     if seen.shape != walls.shape:
@@ -441,7 +441,7 @@ def impossible(points, placement: Placement, layout: Layout, group, transmitter,
         raise ValueError(f"impossible: margin must be a number >= 0 or one per hypothesis ({group.size},), "
                          f"got {margin!r}")
     _check_placement(placement, layout, "impossible")
-    walls, _ = _map_arrays(walls, np.empty((0, 2)), "impossible")
+    walls = _segments(walls, "impossible")
     margin = np.full(group.size, float(margin)) if margin.ndim == 0 else np.ascontiguousarray(margin)
     return image_method.reflections_blocked(points, group, slot, placement.tx, placement.rx, walls, margin)
 
@@ -783,12 +783,18 @@ def load_kernels() -> None:
 # --------------------------------------------------------------------------- checks and set-up
 
 
-def _map_arrays(walls, points, caller: str, name: str = "walls"):
+def _segments(segments, caller: str, name: str = "walls") -> np.ndarray:
+    """Wall segments (W, 2, 2) as a contiguous float array, the shape checked."""
+    segments = np.ascontiguousarray(segments, dtype=float)
+    if segments.ndim != 3 or segments.shape[1:] != (2, 2):
+        raise ValueError(f"{caller}: {name} must have shape (W, 2, 2) (segments of two points), got {segments.shape}")
+    return segments
+
+
+def _map_arrays(walls, points, caller: str):
     """The map's walls (W, 2, 2) and points (P, 2) as contiguous float arrays, their shapes checked."""
-    walls = np.ascontiguousarray(walls, dtype=float)
+    walls = _segments(walls, caller)
     points = np.ascontiguousarray(points, dtype=float)
-    if walls.ndim != 3 or walls.shape[1:] != (2, 2):
-        raise ValueError(f"{caller}: {name} must have shape (W, 2, 2) (segments of two points), got {walls.shape}")
     if points.ndim != 2 or points.shape[1] != 2:
         raise ValueError(f"{caller}: points must have shape (P, 2), got {points.shape}")
     return walls, points

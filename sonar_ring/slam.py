@@ -534,18 +534,16 @@ class LandmarkSlam:
             return
         entries = self.front.entries()
         by_uid = {uid: index for index, uid in enumerate(entries.uid.tolist())}
-        decided = self.front.decided(entries.uid)
         uids, is_wall, measurement, covariance = self._since_keyframe.fused()
-        for uid, wall, position, spread in zip(uids.tolist(), is_wall.tolist(), measurement, covariance,
-                                               strict=True):
+        decided, persistent = self.front.decided(uids).tolist(), self.front.persistent(uids).tolist()
+        for uid, wall, position, spread, usable, lasting in zip(uids.tolist(), is_wall.tolist(), measurement,
+                                                                 covariance, decided, persistent, strict=True):
             index = by_uid.get(uid)
-            if index is None or bool(entries.is_wall[index]) != wall:
-                continue
-            if not decided[index]:
+            if index is None or bool(entries.is_wall[index]) != wall or not usable:
                 continue
             kind = WALL if wall else POINT
             if uid not in self._confirmed:
-                if not self.front.persistent([uid])[0]:
+                if not lasting:
                     continue
                 self._confirm(uid, kind, entries, index, values)
             record = self._confirmed[uid]
