@@ -72,13 +72,14 @@ def measure(pings, poses, walls, points, layout, tolerance, prune):
         placement = place(layout, pose)
         measured = ping.tof * ping.speed_of_sound
         points_of_rows = hypotheses(layout, placement, ping)
+        normals = explain.facing(walls, pose[:2])  # every wall seen from here: each crossing counts
         start = time.thread_time()
         prediction = explain.predict(walls, points, placement, layout, ping.group, ping.transmitter, tolerance,
                                      paths=measured, prune=prune)
         predicted = time.thread_time()
         explain.match(prediction, layout, ping.group, ping.transmitter, measured, tolerance)
         matched = time.thread_time()
-        explain.impossible(points_of_rows, placement, layout, ping.group, ping.transmitter, walls, 0.01)
+        explain.impossible(points_of_rows, placement, layout, ping.group, ping.transmitter, walls, normals, 0.01)
         done = time.thread_time()
         stages["predict"].append(predicted - start)
         stages["match"].append(matched - predicted)

@@ -25,8 +25,12 @@ the map frame (:func:`sonar_ring.simulate.place`), the mapper calls:
   wall's echo passing it) may be that reflector's, and its landmark is where the
   map already has one -- it is left to the mapper;
 * :func:`impossible` -- a landmark hypothesis whose straight legs from the
-  transmitter or to its receivers cross a mapped wall is not a reflector there
-  (:func:`reflection_points` gives where the legs end).
+  transmitter or to its receivers cross a mapped wall from the side it was seen
+  from is not a reflector there (:func:`reflection_points` gives where the legs
+  end).  A wall seen from one side is known to reflect on that side only: a
+  hypothesis heard through it from the other side is evidence against the
+  wall, not against the hypothesis (a ghost plane mapped in front of a pillar's
+  face, seen from the far side of the pillar, must not hide the face).
 
 What the map cannot predict is not excluded here: walls it has not seen, or has
 seen shorter than they are, leave their multipath unexplained.  That is for the
@@ -394,8 +398,9 @@ def match(prediction: Prediction, layout: Layout, group, transmitter, paths, tol
                        direct_residual=direct_residual)
 
 
-def impossible(points, placement: Placement, layout: Layout, group, transmitter, walls, margin) -> np.ndarray:
-    """Which landmark hypotheses cannot be reflectors: a straight leg of theirs crosses a mapped wall.
+def impossible(points, placement: Placement, layout: Layout, group, transmitter, walls, normals,
+               margin) -> np.ndarray:
+    """Which landmark hypotheses cannot be reflectors: a straight leg of theirs crosses a mapped wall's front.
 
     Parameters
     ----------
@@ -411,6 +416,9 @@ def impossible(points, placement: Placement, layout: Layout, group, transmitter,
         Receiver group and transmitter of the echo each hypothesis came from.
     walls : array_like, shape (W, 2, 2)
         The map's wall segments, m; non-finite rows are left out.
+    normals : array_like, shape (W, 2)
+        Each wall's normal towards the side it was seen from (its front; any
+        length but zero): a wall blocks only legs that cross it from there.
     margin : float or array_like, shape (L,)
         m: a wall crossing a leg within this of the hypothesis' end does not
         count -- the wall the hypothesis lies on (a plane's own wall, the walls
@@ -421,7 +429,8 @@ def impossible(points, placement: Placement, layout: Layout, group, transmitter,
     -------
     ndarray of bool, shape (L,)
         True where a leg from the transmitter to a reflection point, or from one
-        to its receiver, crosses a mapped wall strictly between its ends.  A
+        to its receiver, crosses a mapped wall strictly between its ends, from
+        the wall's front, the point more than ``margin`` behind it.  A
         hypothesis seen through a gap between mapped walls (a doorway) is not
         impossible.  Non-finite points are never impossible.
 
@@ -429,7 +438,7 @@ def impossible(points, placement: Placement, layout: Layout, group, transmitter,
     ------
     ValueError
         On arrays of the wrong shape, groups or transmitters the layout does not
-        have, or a negative margin.
+        have, a zero or non-finite normal, or a negative margin.
     """
     group, slot = _channels(layout, group, transmitter, "impossible")
     points = np.ascontiguousarray(points, dtype=float)
@@ -442,8 +451,25 @@ def impossible(points, placement: Placement, layout: Layout, group, transmitter,
                          f"got {margin!r}")
     _check_placement(placement, layout, "impossible")
     walls = _segments(walls, "impossible")
+    normals = _unit_normals(normals, walls, "impossible")
     margin = np.full(group.size, float(margin)) if margin.ndim == 0 else np.ascontiguousarray(margin)
-    return image_method.reflections_blocked(points, group, slot, placement.tx, placement.rx, walls, margin)
+    return image_method.reflections_blocked(points, group, slot, placement.tx, placement.rx, walls, normals, margin)
+
+
+def facing(walls, point) -> np.ndarray:
+    """Each wall's unit normal towards ``point``: :func:`impossible`'s ``normals`` of walls all seen from there.
+
+    ``walls`` (W, 2, 2), ``point`` (2,), m; returns (W, 2) (a wall whose line
+    passes through ``point`` gets its left normal).
+    """
+    walls = _segments(walls, "facing")
+    point = np.asarray(point, dtype=float)
+    if point.shape != (2,):
+        raise ValueError(f"facing: point must have shape (2,), got {point.shape}")
+    along = walls[:, 1] - walls[:, 0]
+    left = np.stack([-along[:, 1], along[:, 0]], axis=1) / np.hypot(along[:, 0], along[:, 1])[:, None]
+    side = np.einsum("wi,wi->w", point - walls[:, 0], left)
+    return np.where(side[:, None] < 0.0, -left, left)
 
 
 def reflection_points(landmarks: Landmarks, placement: Placement, layout: Layout, transmitter) -> np.ndarray:
@@ -634,6 +660,8 @@ class KnownMap:
     ----------
     seen : ndarray, shape (W, 2, 2)
         The walls' seen extents, m (what blocks a landmark: :func:`impossible`).
+    normals : ndarray, shape (W, 2)
+        Each wall's unit normal towards the side it was seen from.
     walls : ndarray, shape (W, 2, 2)
         The walls grown to where they end (:func:`walls_to_their_ends`; what reflects a double bounce), m.
     points : ndarray, shape (P, 2)
@@ -643,6 +671,7 @@ class KnownMap:
     """
 
     seen: np.ndarray
+    normals: np.ndarray
     walls: np.ndarray
     points: np.ndarray
     wall_support: np.ndarray
@@ -659,7 +688,8 @@ def known_map(entries: Landmarks, tests: EchoTests) -> KnownMap:
     fixed = np.isin(entries.landmark_class[~wall], (CORNER, EDGE, CORNER_OR_EDGE))
     seen = np.asarray(entries.segment, dtype=float)[wall]
     observations = np.asarray(entries.observations, dtype=float)
-    return KnownMap(seen, walls_to_their_ends(seen, points[fixed], tests.wall_reach, tests.wall_tolerance), points,
+    grown = walls_to_their_ends(seen, points[fixed], tests.wall_reach, tests.wall_tolerance)
+    return KnownMap(seen, np.asarray(entries.normal, dtype=float)[wall], grown, points,
                     observations[wall], observations[~wall])
 
 
@@ -673,7 +703,7 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     the tolerance; :func:`match` labels multipath (an entry's own echo does
     not save it if the entry was seen less than the double bounce's:
     :func:`_multipath_of_the_less_seen`), :func:`impossible` the rest whose
-    legs cross a wall's seen extent (margin: ``gate_sigmas`` times the landmark's and
+    legs cross a wall's seen extent from its front (margin: ``gate_sigmas`` times the landmark's and
     the map's position error).  A layout whose groups have several
     transmitters (whose landmark does not say which one sent) is not tested.
 
@@ -716,8 +746,9 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
                                             known.point_support)
     spread = np.sqrt(np.maximum(np.linalg.eigvalsh(np.asarray(in_map.covariance, dtype=float))[:, -1], 0.0))
     margin = tests.gate_sigmas * np.hypot(spread, tests.sigma_map)
+    margin = np.where(np.isfinite(margin), margin, 0.0)
     blocked = impossible(reflection_points(in_map, placement, layout, transmitter), placement, layout, group,
-                         transmitter, known.seen, np.where(np.isfinite(margin), margin, 0.0)) & ~multipath
+                         transmitter, known.seen, known.normals, margin) & ~multipath
     out = Explained(np.zeros(count, bool), np.zeros(count, bool))
     out.multipath[rows], out.impossible[rows] = multipath, blocked
     return out
@@ -777,7 +808,8 @@ def load_kernels() -> None:
     prediction = predict(walls, points, placement, layout, rows, rows, tolerance, paths=paths)
     match(prediction, layout, rows, rows, paths, tolerance)
     plane = make_landmarks([PLANE], [[1.0, 0.0]], normal=[[0.0, 1.0]])
-    impossible(reflection_points(plane, placement, layout, rows), placement, layout, rows, rows, walls, 0.01)
+    impossible(reflection_points(plane, placement, layout, rows), placement, layout, rows, rows, walls,
+               [[0.0, 1.0], [-1.0, 0.0]], 0.01)
 
 
 # --------------------------------------------------------------------------- checks and set-up
@@ -789,6 +821,18 @@ def _segments(segments, caller: str, name: str = "walls") -> np.ndarray:
     if segments.ndim != 3 or segments.shape[1:] != (2, 2):
         raise ValueError(f"{caller}: {name} must have shape (W, 2, 2) (segments of two points), got {segments.shape}")
     return segments
+
+
+def _unit_normals(normals, walls: np.ndarray, caller: str) -> np.ndarray:
+    """The normals (W, 2) of ``walls`` scaled to unit length, checked (a wall left out may have any)."""
+    normals = np.asarray(normals, dtype=float)
+    if normals.shape != (len(walls), 2):
+        raise ValueError(f"{caller}: normals must have shape ({len(walls)}, 2), one per wall, got {normals.shape}")
+    length = np.hypot(normals[:, 0], normals[:, 1])
+    used = np.isfinite(walls).all(axis=(1, 2))
+    if not (np.isfinite(length[used]).all() and (length[used] > 0).all()):
+        raise ValueError(f"{caller}: normals must be finite and not zero, got {normals!r}")
+    return np.ascontiguousarray(normals / np.where(used, length, 1.0)[:, None])
 
 
 def _map_arrays(walls, points, caller: str):

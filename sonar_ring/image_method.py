@@ -8,7 +8,7 @@ from the scene's walls and edges; the map's explanation of echoes
 (:mod:`sonar_ring.explain`) predicts the same paths from the map's walls and
 points with :func:`map_paths`, which bounces by the same functions, matches
 echoes to them with :func:`match_rows` and tests landmark hypotheses with
-:func:`reflections_blocked`, which blocks by the same test.
+:func:`reflections_blocked`, which blocks by the same test, a wall from its front only.
 
 Walls are vertical planes given as segments ``[[x0, y0], [x1, y1]]``
 (:func:`wall_frames` gives each its start, unit direction, unit normal and
@@ -1034,8 +1034,8 @@ def _distance2(paths, n, predicted, jacobian, q, pose_covariance, sigma_path, si
 
 
 @kernel
-def reflections_blocked(points, group, slot, tx, rx, walls, margin):
-    """Whether a straight leg to or from each hypothesis' reflection points crosses a wall.
+def reflections_blocked(points, group, slot, tx, rx, walls, normal, margin):
+    """Whether a straight leg to or from each hypothesis' reflection points crosses a wall, the point behind it.
 
     Parameters
     ----------
@@ -1047,6 +1047,8 @@ def reflections_blocked(points, group, slot, tx, rx, walls, margin):
         Transmitters and receivers, m.
     walls : ndarray, shape (W, 2, 2)
         m.
+    normal : ndarray, shape (W, 2)
+        Each wall's unit normal towards its front, the side it was seen from.
     margin : ndarray, shape (L,)
         m: a wall the point lies less than this behind (across the wall's line:
         a point uncertain by ``margin`` may be on it), or crossed within this of
@@ -1056,7 +1058,12 @@ def reflections_blocked(points, group, slot, tx, rx, walls, margin):
     -------
     ndarray of bool, shape (L,)
         Some leg transmitter -> point or receiver -> point crosses a wall
-        strictly between its ends, with the point more than ``margin`` behind it.
+        strictly between its ends, from the wall's front, with the point more
+        than ``margin`` behind it.  A leg from behind a wall does not count: a
+        wall seen from one side only is known to reflect there, and a point
+        heard from its other side is evidence against the wall, not against the
+        point (a ghost wall mapped in front of a pillar's face must not hide
+        the face).
     """
     length = _lengths(walls)
     blocked = np.zeros(points.shape[0], dtype=np.bool_)
@@ -1068,17 +1075,18 @@ def reflections_blocked(points, group, slot, tx, rx, walls, margin):
                 continue
             # A corner's, an edge's or an undecided point's legs from the transmitter are one for all receivers.
             same = k > 0 and x == points[n, k - 1, 0] and y == points[n, k - 1, 1]
-            blocked[n] = ((not same and _behind_wall(tx[g, m, 0], tx[g, m, 1], x, y, walls, length, margin[n]))
-                          or _behind_wall(rx[g, k, 0], rx[g, k, 1], x, y, walls, length, margin[n]))
+            blocked[n] = ((not same and _behind_wall(tx[g, m, 0], tx[g, m, 1], x, y, walls, normal, length, margin[n]))
+                          or _behind_wall(rx[g, k, 0], rx[g, k, 1], x, y, walls, normal, length, margin[n]))
     return blocked
 
 
 @kernel
-def _behind_wall(x0, y0, x1, y1, walls, length, margin):
+def _behind_wall(x0, y0, x1, y1, walls, normal, length, margin):
     """Whether the leg from ``(x0, y0)`` to the point ``(x1, y1)`` crosses a wall the point lies ``margin`` behind.
 
-    The crossing must lie strictly inside the leg and at least ``margin`` from the wall's ends; the point's
-    distance from the wall's line, across it, more than ``margin`` (m).
+    The crossing must lie strictly inside the leg and at least ``margin`` from the wall's ends; the point must
+    lie more than ``margin`` (m) behind the wall's line, on the side opposite its ``normal`` (so the leg
+    starts in front of it).
     """
     rx, ry = x1 - x0, y1 - y0
     for w in range(walls.shape[0]):
@@ -1091,7 +1099,7 @@ def _behind_wall(x0, y0, x1, y1, walls, length, margin):
         along_leg = (apx * sy - apy * sx) / denominator
         along_wall = (apx * ry - apy * rx) / denominator
         trim = margin / length[w]
-        behind = abs(sx * (y1 - ay) - sy * (x1 - ax)) / length[w]
+        behind = -((x1 - ax) * normal[w, 0] + (y1 - ay) * normal[w, 1])
         if (along_leg > LEG_END_FRACTION and along_leg < 1.0 and along_wall >= trim and along_wall <= 1.0 - trim
                 and behind > margin):
             return True

@@ -9,7 +9,7 @@ from numpy.testing import assert_allclose, assert_array_equal
 from scipy.optimize import minimize
 
 from sonar_ring import explain, image_method, simulate
-from sonar_ring.explain import MULTIPATH, NONE, Tolerance, impossible, match, predict, reflection_points
+from sonar_ring.explain import MULTIPATH, NONE, Tolerance, facing, impossible, match, predict, reflection_points
 from sonar_ring.geometry import load_layout
 from sonar_ring.image_method import KIND_NAMES, POINT, POINT_WALL, WALL, WALL_POINT, WALL_WALL
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, make_landmarks
@@ -367,6 +367,7 @@ def test_a_point_behind_a_wall_is_impossible_and_one_seen_through_a_doorway_is_n
     pose = np.array([2.4, 2.0, 0.0])
     placement = place(RING, pose)
     walls, _ = _room_map()
+    normals = facing(walls, pose[:2])  # a map of the room seen from here
     cases = {  # point: impossible?
         (1.0, 5.0): True,  # behind the north wall's west part
         (2.45, 5.7): False,  # on the corridor wall, through the doorway
@@ -378,7 +379,7 @@ def test_a_point_behind_a_wall_is_impossible_and_one_seen_through_a_doorway_is_n
     for point, expected in cases.items():
         group = _one_group_facing(pose, point)
         points = np.full((1, 2, 2), point)
-        assert impossible(points, placement, RING, [group], [0], walls, 0.005)[0] == expected, point
+        assert impossible(points, placement, RING, [group], [0], walls, normals, 0.005)[0] == expected, point
 
 
 def test_a_plane_seen_through_a_doorway_and_one_on_its_own_wall_are_possible():
@@ -389,16 +390,32 @@ def test_a_plane_seen_through_a_doorway_and_one_on_its_own_wall_are_possible():
     corridor = make_landmarks([PLANE], [[2.45, 5.7]], normal=[[0.0, -1.0]], group=[group])
     points = reflection_points(corridor, placement, RING, [0])
     assert np.all(np.abs(points[..., 1] - 5.7) < 1e-12) and np.all((2.0 < points[..., 0]) & (points[..., 0] < 2.9))
-    assert not impossible(points, placement, RING, [group], [0], walls, 0.005)[0]
+    assert not impossible(points, placement, RING, [group], [0], walls, facing(walls, pose[:2]), 0.005)[0]
     # The same plane seen where the north wall stands in the way is impossible.
     beside = place(RING, [1.0, 3.0, math.pi / 2])
     shifted = make_landmarks([PLANE], [[1.0, 5.7]], normal=[[0.0, -1.0]], group=[group])
-    assert impossible(reflection_points(shifted, beside, RING, [0]), beside, RING, [group], [0], walls, 0.005)[0]
+    assert impossible(reflection_points(shifted, beside, RING, [0]), beside, RING, [group], [0], walls,
+                      facing(walls, [1.0, 3.0]), 0.005)[0]
     # A plane on its own mapped wall, 1 mm behind it (noise): possible within the margin, not without it.
     east = make_landmarks([PLANE], [[6.001, 3.0]], normal=[[-1.0, 0.0]], group=[_one_group_facing(pose, (6, 3))])
     points = reflection_points(east, placement, RING, [0])
-    assert not impossible(points, placement, RING, east.group, [0], walls, 0.005)[0]
-    assert impossible(points, placement, RING, east.group, [0], walls, 0.0)[0]
+    assert not impossible(points, placement, RING, east.group, [0], walls, facing(walls, pose[:2]), 0.005)[0]
+    assert impossible(points, placement, RING, east.group, [0], walls, facing(walls, pose[:2]), 0.0)[0]
+
+
+def test_a_point_heard_through_a_wall_from_behind_it_is_not_impossible():
+    # A plane mapped at y = 3.0 seen from the south (a double bounce between the pillar's south face and the
+    # south wall looks like one from y = 1): from y = 3.4 the pillar's north face at y = 2.4 lies behind it.
+    wall = np.array([[[3.35, 3.0], [3.85, 3.0]]])
+    pose = np.array([3.6, 3.4, 0.0])
+    placement = place(RING, pose)
+    face = make_landmarks([PLANE], [[3.6, 2.4]], normal=[[0.0, 1.0]], group=[_one_group_facing(pose, (3.6, 2.4))])
+    points = reflection_points(face, placement, RING, [0])
+    seen_from_south, seen_from_north = [[0.0, -1.0]], [[0.0, 1.0]]
+    assert not impossible(points, placement, RING, face.group, [0], wall, seen_from_south, 0.005)[0]
+    assert impossible(points, placement, RING, face.group, [0], wall, seen_from_north, 0.005)[0]
+    # Any length of normal is its direction.
+    assert impossible(points, placement, RING, face.group, [0], wall, [[0.0, 7.0]], 0.005)[0]
 
 
 def test_reflection_points_of_planes_are_where_the_forward_model_reflects():
@@ -423,6 +440,7 @@ def test_reflection_points_of_planes_are_where_the_forward_model_reflects():
 def test_error_handling():
     placement = place(RING, [2.0, 2.0, 0.0])
     walls, points = _room_map()
+    normals = facing(walls, [2.0, 2.0])
     one = np.zeros(1, dtype=int)
     with pytest.raises(ValueError, match="walls must have shape"):
         predict(walls[:, 0], points, placement, RING, one, one, EXACT)
@@ -452,9 +470,17 @@ def test_error_handling():
     with pytest.raises(ValueError, match="prediction is of another layout"):
         match(prediction, load_layout("barshan_kuc_pair"), one, one, np.ones((1, 2)), EXACT)
     with pytest.raises(ValueError, match="points must have shape"):
-        impossible(np.ones((1, 2)), placement, RING, one, one, walls, 0.0)
+        impossible(np.ones((1, 2)), placement, RING, one, one, walls, normals, 0.0)
     with pytest.raises(ValueError, match="margin must be"):
-        impossible(np.ones((1, 2, 2)), placement, RING, one, one, walls, -1.0)
+        impossible(np.ones((1, 2, 2)), placement, RING, one, one, walls, normals, -1.0)
+    with pytest.raises(ValueError, match="normals must have shape"):
+        impossible(np.ones((1, 2, 2)), placement, RING, one, one, walls, normals[1:], 0.0)
+    with pytest.raises(ValueError, match="normals must be finite and not zero"):
+        impossible(np.ones((1, 2, 2)), placement, RING, one, one, walls, 0.0 * normals, 0.0)
+    with pytest.raises(ValueError, match="walls must have shape"):
+        facing(walls[0], [2.0, 2.0])
+    with pytest.raises(ValueError, match="point must have shape"):
+        facing(walls, [2.0, 2.0, 0.0])
     with pytest.raises(ValueError, match="pose_covariance must have shape"):
         Tolerance(sigma_path=1e-3, pose_covariance=np.eye(2))
     for field, value in (("sigma_path", 0.0), ("gate_sigmas", math.nan), ("sigma_map", -1.0),
@@ -488,8 +514,12 @@ def test_nan_data_never_raises_and_explains_nothing():
     prediction = predict(walls, points, placement, RING, ping.group, ping.transmitter, unknown_pose, paths=measured)
     assert np.all(match(prediction, RING, ping.group, ping.transmitter, measured, unknown_pose).label == NONE)
     # NaN reflection points are never impossible.
-    assert not impossible(np.full((1, 2, 2), np.nan), placement, RING, [0], [0], walls, 0.0)[0]
-    assert_array_equal(impossible(np.empty((0, 2, 2)), placement, RING, [], [], walls, 0.0), [])
+    normals = facing(walls, pose[:2])
+    assert not impossible(np.full((1, 2, 2), np.nan), placement, RING, [0], [0], walls, normals, 0.0)[0]
+    assert_array_equal(impossible(np.empty((0, 2, 2)), placement, RING, [], [], walls, normals, 0.0), [])
+    # A wall left out (NaN) may have any normal.
+    assert not impossible(np.full((1, 2, 2), 1.0), placement, RING, [0], [0], [[[np.nan, 0.0], [1.0, 0.0]]],
+                          [[0.0, 0.0]], 0.0)[0]
 
 
 def test_the_kernels_load_with_their_production_types():
