@@ -23,7 +23,8 @@ the map frame (:func:`sonar_ring.simulate.place`), the mapper calls:
   receiver that heard it, and no mapped reflector's own echo is: an echo as long
   as a mapped reflector's own (a pole on the line of sight to a wall: the
   wall's echo passing it) may be that reflector's, and its landmark is where the
-  map already has one -- it is left to the mapper;
+  map already has one -- it is left to the mapper (:func:`explain_landmarks`
+  gives it to the double bounce whose reflectors were both seen more often);
 * :func:`impossible` -- a landmark hypothesis whose straight legs from the
   transmitter or to its receivers cross a mapped wall from the side it was seen
   from is not a reflector there (:func:`reflection_points` gives where the legs
@@ -214,6 +215,8 @@ class Prediction:
     first, second : ndarray of int, shape (Q,)
         The first and the second reflector: rows of the ``walls`` or ``points``
         given to :func:`predict`, as ``kind`` says (the same twice for a single bounce).
+    support : ndarray, shape (Q,)
+        Observations of the less seen of the two (:func:`predict`'s supports; 0 where not given).
     path : ndarray, shape (Q, K)
         3-D path length transmitter -> first -> second -> receiver k, m; NaN where
         receiver k gets no such path.
@@ -230,6 +233,7 @@ class Prediction:
     kind: np.ndarray
     first: np.ndarray
     second: np.ndarray
+    support: np.ndarray
     path: np.ndarray
     jacobian: np.ndarray
     first_point: np.ndarray
@@ -259,6 +263,9 @@ class Explanation:
         Likewise the closest single bounce: a mapped reflector's own echo.
     direct_residual : ndarray, shape (N,)
         Its Mahalanobis distance.
+    double_support : ndarray, shape (N,)
+        The most seen double bounce within the gate, by the observations of its
+        less seen reflector (:attr:`Prediction.support`); -inf where there is none.
     """
 
     label: np.ndarray
@@ -266,6 +273,7 @@ class Explanation:
     residual: np.ndarray
     direct: np.ndarray
     direct_residual: np.ndarray
+    double_support: np.ndarray
 
 
 # --------------------------------------------------------------------------- public functions
@@ -348,8 +356,13 @@ def predict(walls, points, placement: Placement, layout: Layout, group, transmit
         group * layout.group_transmitters.shape[1] + slot, row_paths, placement.pose, max_path, layout.beam_half_angle,
         tolerance.pose_covariance, tolerance.xy_sigma, tolerance.yaw_sigma, tolerance.sigma_path, tolerance.sigma_speed,
         tolerance.sigma_map, tolerance.gate_sigmas, layout.isotropic_emitter, prune, paths is not None)
-    return Prediction(group=path_group, slot=path_slot, kind=kind, first=first, second=second, path=path,
-                      jacobian=jacobian, first_point=first_point, last_point=last_point, channel_start=channel_start)
+    # Observations of each path's less seen reflector: walls' rows first, then points'.
+    entries = np.concatenate([wall_support, point_support])
+    support = np.minimum(entries[np.where((kind == POINT) | (kind == POINT_WALL), len(walls) + first, first)],
+                         entries[np.where((kind == POINT) | (kind == WALL_POINT), len(walls) + second, second)])
+    return Prediction(group=path_group, slot=path_slot, kind=kind, first=first, second=second, support=support,
+                      path=path, jacobian=jacobian, first_point=first_point, last_point=last_point,
+                      channel_start=channel_start)
 
 
 def match(prediction: Prediction, layout: Layout, group, transmitter, paths, tolerance: Tolerance, *,
@@ -387,15 +400,15 @@ def match(prediction: Prediction, layout: Layout, group, transmitter, paths, tol
     if prediction.channel_start.shape != (layout.n_groups * layout.group_transmitters.shape[1] + 1,):
         raise ValueError("match: the prediction is of another layout")
     channel = group * layout.group_transmitters.shape[1] + slot
-    best, direct, residual, direct_residual = image_method.match_rows(
-        channel, paths, prediction.channel_start, prediction.kind, prediction.path, prediction.jacobian,
-        tolerance.pose_covariance, tolerance.sigma_path, tolerance.sigma_speed, tolerance.sigma_map,
-        tolerance.gate_sigmas)
+    best, direct, residual, direct_residual, double_support = image_method.match_rows(
+        channel, paths, prediction.channel_start, prediction.kind, prediction.support, prediction.path,
+        prediction.jacobian, tolerance.pose_covariance, tolerance.sigma_path, tolerance.sigma_speed,
+        tolerance.sigma_map, tolerance.gate_sigmas)
     # An echo that a mapped reflector's own echo explains as well may be that reflector's: not multipath.
     label = np.where((residual <= tolerance.gate_sigmas)
                      & ~(direct_wins & (direct_residual <= tolerance.gate_sigmas)), MULTIPATH, NONE)
     return Explanation(label=label.astype(np.uint8), best=best, residual=residual, direct=direct,
-                       direct_residual=direct_residual)
+                       direct_residual=direct_residual, double_support=double_support)
 
 
 def impossible(points, placement: Placement, layout: Layout, group, transmitter, walls, normals,
@@ -742,8 +755,7 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     prediction = predict(known.walls, known.points, placement, layout, group, transmitter, tolerance, paths=paths,
                          seen=known.seen, wall_support=known.wall_support, point_support=known.point_support)
     explanation = match(prediction, layout, group, transmitter, paths, tolerance, direct_wins=False)
-    multipath = _multipath_of_the_less_seen(prediction, explanation, tests.gate_sigmas, known.wall_support,
-                                            known.point_support)
+    multipath = _multipath_of_the_less_seen(prediction, explanation, tests.gate_sigmas)
     spread = np.sqrt(np.maximum(np.linalg.eigvalsh(np.asarray(in_map.covariance, dtype=float))[:, -1], 0.0))
     margin = tests.gate_sigmas * np.hypot(spread, tests.sigma_map)
     margin = np.where(np.isfinite(margin), margin, 0.0)
@@ -754,8 +766,7 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     return out
 
 
-def _multipath_of_the_less_seen(prediction: Prediction, explanation: Explanation, gate_sigmas: float, wall_support,
-                                point_support) -> np.ndarray:
+def _multipath_of_the_less_seen(prediction: Prediction, explanation: Explanation, gate_sigmas: float) -> np.ndarray:
     """Which rows are multipath, where an echo matches both a double bounce and a mapped entry's own echo.
 
     An echo that a double bounce of entries ``A`` and ``B`` explains and the
@@ -763,29 +774,19 @@ def _multipath_of_the_less_seen(prediction: Prediction, explanation: Explanation
     sight to a wall: the wall's echo passing it) -- unless ``X`` was seen less
     often than both ``A`` and ``B``: a ghost mapped before the map could explain
     it has its own echo in the map, and the better-seen entries explain it.
-    ``wall_support``, ``point_support``: the observations of the walls and the
-    points :func:`predict` was given, (W,), (P,).
+    ``A`` and ``B`` are the most seen double bounce within the gate
+    (:attr:`Explanation.double_support`; one that bounces off ``X`` is seen at
+    most as often as ``X``), not the closest: a ghost plane's double bounces
+    off itself are as close as the true one, and near a wall's end so is the
+    one off the edge there.
     """
     double = explanation.residual <= gate_sigmas
     direct = explanation.direct_residual <= gate_sigmas
     both = np.flatnonzero(double & direct)
-    if not both.size:
-        return double
-    def seen(kind, row, second):
-        """Observations of the first (or ``second``) reflector of prediction rows of ``kind``."""
-        is_point = np.isin(kind, (POINT, WALL_POINT) if second else (POINT, POINT_WALL))
-        out = np.empty(row.size)
-        out[is_point] = point_support[row[is_point]]
-        out[~is_point] = wall_support[row[~is_point]]
-        return out
-
-    best, own = explanation.best[both], explanation.direct[both]
-    kind = prediction.kind[best]
-    first = seen(kind, prediction.first[best], second=False)
-    second = seen(kind, prediction.second[best], second=True)
-    itself = seen(prediction.kind[own], prediction.first[own], second=False)
     out = double & ~direct
-    out[both] = itself < np.minimum(first, second)
+    if both.size:
+        own = explanation.direct[both]
+        out[both] = prediction.support[own] < explanation.double_support[both]
     return out
 
 

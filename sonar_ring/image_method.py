@@ -890,8 +890,8 @@ def _differences_near(row_paths, n, horizontal, q, squared, image_distance, rx, 
 
 
 @kernel
-def match_rows(channel, paths, channel_start, kind, predicted, jacobian, pose_covariance, sigma_path, sigma_speed,
-               sigma_map, gate_sigmas):
+def match_rows(channel, paths, channel_start, kind, support, predicted, jacobian, pose_covariance, sigma_path,
+               sigma_speed, sigma_map, gate_sigmas):
     """Each echo row's closest double bounce and closest single bounce of its channel, by Mahalanobis distance.
 
     The engine of :func:`sonar_ring.explain.match`, whose module docstring gives the covariance.
@@ -904,8 +904,10 @@ def match_rows(channel, paths, channel_start, kind, predicted, jacobian, pose_co
         Measured paths, m; NaN where a receiver heard nothing.
     channel_start : ndarray of int, shape (G * M + 1,)
         The predicted paths of channel i are rows ``channel_start[i]:channel_start[i + 1]`` of
-    kind, predicted, jacobian : ndarray, shape (Q,), (Q, K) and (Q, K, 3)
-        their kinds, 3-D lengths (NaN: not to this receiver) and derivatives by the pose.
+    kind, support : ndarray, shape (Q,)
+        their kinds, the observations of their less seen reflector,
+    predicted, jacobian : ndarray, shape (Q, K) and (Q, K, 3)
+        3-D lengths (NaN: not to this receiver) and derivatives by the pose.
     pose_covariance : ndarray, shape (3, 3)
     sigma_path, sigma_speed, sigma_map : float
         m, relative, m.
@@ -920,12 +922,16 @@ def match_rows(channel, paths, channel_start, kind, predicted, jacobian, pose_co
         reaches every receiver that heard the row within the gate there.
     double_distance, single_distance : ndarray, shape (N,)
         Their Mahalanobis distances; inf where none, NaN where no receiver heard the row.
+    double_support : ndarray, shape (N,)
+        The highest ``support`` of a double bounce within the gate; -inf where none.
     """
     rows = paths.shape[0]
     best = np.full((2, rows), -1, dtype=np.int64)
     distance = np.full((2, rows), np.inf)
+    double_support = np.full(rows, -np.inf)
     scratch = _work_arrays(paths.shape[1])
     variance = np.empty(predicted.shape)
+    gate2 = gate_sigmas ** 2
     for q in range(predicted.shape[0]):
         _variances(variance, q, predicted, jacobian, q, pose_covariance, sigma_path, sigma_speed, sigma_map)
     for n in range(rows):
@@ -943,7 +949,9 @@ def match_rows(channel, paths, channel_start, kind, predicted, jacobian, pose_co
             bounces = 1 if kind[q] == WALL or kind[q] == POINT else 0
             if squared < distance[bounces, n]:
                 distance[bounces, n], best[bounces, n] = squared, q
-    return best[0], best[1], np.sqrt(distance[0]), np.sqrt(distance[1])
+            if bounces == 0 and squared <= gate2 and support[q] > double_support[n]:
+                double_support[n] = support[q]
+    return best[0], best[1], np.sqrt(distance[0]), np.sqrt(distance[1]), double_support
 
 
 @kernel

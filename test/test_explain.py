@@ -354,6 +354,43 @@ def test_the_pose_derivative_is_the_paths_change_with_the_pose():
                         prediction.jacobian[q, k, axis], abs=1e-5)
 
 
+def _one_channel_prediction(kinds, firsts, seconds, supports, paths):
+    """A hand-built prediction: paths of group 0, transmitter 0 only, the same length to every receiver."""
+    count, receivers = len(kinds), RING.receivers_per_group
+    channel_start = np.full(RING.n_groups * RING.group_transmitters.shape[1] + 1, count)
+    channel_start[0] = 0
+    return explain.Prediction(
+        group=np.zeros(count, np.int64), slot=np.zeros(count, np.int64), kind=np.array(kinds, np.int64),
+        first=np.array(firsts, np.int64), second=np.array(seconds, np.int64), support=np.array(supports, float),
+        path=np.repeat(np.array(paths, float)[:, None], receivers, axis=1), jacobian=np.zeros((count, receivers, 3)),
+        first_point=np.zeros((count, receivers, 2)), last_point=np.zeros((count, receivers, 2)),
+        channel_start=channel_start)
+
+
+def test_an_entrys_own_echo_is_multipath_where_a_double_bounce_of_better_seen_entries_within_the_gate_explains_it():
+    # Entry X (wall 0, seen 150 times) explains the echo; so do a double bounce off X itself (the closest) and one
+    # off walls 1 and 2, 1 mm longer: still within the gate of 3 mm of path noise.
+    tolerance = Tolerance(sigma_path=3e-3)
+    echo = np.full((1, RING.receivers_per_group), 4.0)
+
+    def multipath(second_support, rival_path):
+        prediction = _one_channel_prediction(
+            [WALL, WALL_WALL, WALL_WALL], [0, 0, 1], [0, 1, 2], [150, 150, min(1000, second_support)],
+            [4.0, 4.0, rival_path])
+        explanation = match(prediction, RING, [0], [0], echo, tolerance, direct_wins=False)
+        return explanation, explain._multipath_of_the_less_seen(prediction, explanation, tolerance.gate_sigmas)[0]
+
+    explanation, is_multipath = multipath(200, 4.001)
+    assert explanation.best[0] == 1 and explanation.direct[0] == 0  # the closest double bounce is off X
+    assert explanation.double_support[0] == 200 and is_multipath  # the better seen one explains it
+    assert not multipath(100, 4.001)[1]  # seen less than X: X's own echo
+    explanation, is_multipath = multipath(200, 4.1)  # beyond the gate: only the double bounce off X
+    assert explanation.double_support[0] == 150 and not is_multipath
+    # No double bounce within the gate: -inf.
+    far = _one_channel_prediction([WALL, WALL_WALL], [0, 1], [0, 2], [150, 500], [4.0, 4.5])
+    assert match(far, RING, [0], [0], echo, tolerance).double_support[0] == -np.inf
+
+
 # --------------------------------------------------------------------------- impossible
 
 
