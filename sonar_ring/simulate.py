@@ -395,6 +395,9 @@ def _corners(specs, walls, wall_rows):
                              f"(closest ends are {gaps[i, j]:.3g} m apart)")
         arms = np.array([first[1 - i] - first[i], second[1 - j] - second[j]])
         lengths = np.linalg.norm(arms, axis=-1)
+        if not (np.all(np.isfinite(lengths)) and np.all(lengths > 0)):
+            raise SceneError(f"{here}: field 'walls': {pair[0]!r} and {pair[1]!r} must have lengths a float can "
+                             f"hold, got {float(lengths[0])!r} and {float(lengths[1])!r} m")
         arms = arms / lengths[:, None]
         if abs(arms[0] @ arms[1]) > 1e-9:
             angle = math.degrees(math.acos(np.clip(arms[0] @ arms[1], -1, 1)))
