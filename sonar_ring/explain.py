@@ -132,7 +132,6 @@ import numpy as np
 from sonar_ring import image_method
 from sonar_ring.compiled import kernel
 from sonar_ring.geometry import Layout
-from sonar_ring.image_method import POINT, POINT_WALL, WALL_POINT
 from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, Landmarks, make_landmarks
 from sonar_ring.localise import reflector_paths
 from sonar_ring.mapping import transform_landmarks
@@ -348,7 +347,7 @@ def predict(walls, points, placement: Placement, layout: Layout, group, transmit
     max_path = 2.0 * layout.max_range if max_path is None else float(max_path)
     start, direction, normal, length = image_method.wall_frames(walls)
     excluded_pair, excluded_point = image_method.junctions(walls, points, junction)
-    (kind, first, second, path_group, path_slot, path, jacobian, first_point, last_point,
+    (kind, first, second, path_group, path_slot, support, path, jacobian, first_point, last_point,
      channel_start) = image_method.map_paths(
         start, direction, normal, length, seen, points, wall_support, point_support, excluded_pair, excluded_point,
         placement.tx, placement.rx,
@@ -356,10 +355,6 @@ def predict(walls, points, placement: Placement, layout: Layout, group, transmit
         group * layout.group_transmitters.shape[1] + slot, row_paths, placement.pose, max_path, layout.beam_half_angle,
         tolerance.pose_covariance, tolerance.xy_sigma, tolerance.yaw_sigma, tolerance.sigma_path, tolerance.sigma_speed,
         tolerance.sigma_map, tolerance.gate_sigmas, layout.isotropic_emitter, prune, paths is not None)
-    # Observations of each path's less seen reflector: walls' rows first, then points'.
-    entries = np.concatenate([wall_support, point_support])
-    support = np.minimum(entries[np.where((kind == POINT) | (kind == POINT_WALL), len(walls) + first, first)],
-                         entries[np.where((kind == POINT) | (kind == WALL_POINT), len(walls) + second, second)])
     return Prediction(group=path_group, slot=path_slot, kind=kind, first=first, second=second, support=support,
                       path=path, jacobian=jacobian, first_point=first_point, last_point=last_point,
                       channel_start=channel_start)
@@ -479,9 +474,8 @@ def facing(walls, point) -> np.ndarray:
     point = np.asarray(point, dtype=float)
     if point.shape != (2,):
         raise ValueError(f"facing: point must have shape (2,), got {point.shape}")
-    along = walls[:, 1] - walls[:, 0]
-    left = np.stack([-along[:, 1], along[:, 0]], axis=1) / np.hypot(along[:, 0], along[:, 1])[:, None]
-    side = np.einsum("wi,wi->w", point - walls[:, 0], left)
+    start, _, left, _ = image_method.wall_frames(walls)
+    side = np.einsum("wi,wi->w", point - start, left)
     return np.where(side[:, None] < 0.0, -left, left)
 
 

@@ -434,6 +434,8 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
     -------
     kind, first, second, group, slot : ndarray of int, shape (Q,)
         Each path's kind, reflectors (rows of the walls or points) and channel, sorted by channel.
+    support : ndarray, shape (Q,)
+        The observations of its less seen reflector (``wall_support``, ``point_support``).
     path : ndarray, shape (Q, K)
         3-D length to each receiver, m, NaN where that receiver gets none.
     jacobian : ndarray, shape (Q, K, 3)
@@ -716,6 +718,7 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
     out_second = np.empty(count, dtype=np.int64)
     out_group = np.empty(count, dtype=np.int64)
     out_slot = np.empty(count, dtype=np.int64)
+    out_support = np.empty(count)
     path = np.empty((count, receivers))
     jacobian = np.empty((count, receivers, 3))
     first_point = np.empty((count, receivers, 2))
@@ -815,14 +818,14 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
                     jacobian[kept_count, k, axis] = 0.0
         if heard:
             out_kind[kept_count], out_first[kept_count], out_second[kept_count] = kind[q], a, b
-            out_group[kept_count], out_slot[kept_count] = g, m
+            out_group[kept_count], out_slot[kept_count], out_support[kept_count] = g, m, least
             channel_start[channel_id[channel[q]] + 1] += 1
             kept_count += 1
     for i in range(all_channels):
         channel_start[i + 1] += channel_start[i]
     return (out_kind[:kept_count], out_first[:kept_count], out_second[:kept_count], out_group[:kept_count],
-            out_slot[:kept_count], path[:kept_count], jacobian[:kept_count], first_point[:kept_count],
-            last_point[:kept_count], channel_start)
+            out_slot[:kept_count], out_support[:kept_count], path[:kept_count], jacobian[:kept_count],
+            first_point[:kept_count], last_point[:kept_count], channel_start)
 
 
 @kernel
