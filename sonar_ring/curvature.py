@@ -41,11 +41,11 @@ Frames and units: the landmarks' frame (sensor frame per ping), m.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
 import numpy as np
 
-from sonar_ring import localise, uncertainty
+from sonar_ring import solvers
 from sonar_ring.geometry import Layout
 from sonar_ring.landmarks import CORNER, EDGE, UNKNOWN, Landmarks
 
@@ -147,41 +147,22 @@ class PointModels:
                            self.edge_covariance[rows], self.separation_noise[rows], self.valid[rows])
 
 
-def with_arc_spread(position, centre, covariance) -> np.ndarray:
-    """A point sighting's covariance with the second-order spread of its arc; shapes (L, 2), (L, 2), (L, 2, 2).
-
-    A pair's two paths put a point on an arc of radius ``r`` about ``centre``
-    (the middle of the emitter and the pair's receivers): an error ``a``
-    across the line of sight (variance ``s^2``, a large fraction of a degree)
-    also moves the point ``a^2 / (2 r)`` *along* it, which the first-order
-    covariance (a tenth of a millimetre along the line of sight) does not
-    hold.  Its variance ``s^4 / (2 r^2)`` and squared mean ``s^4 / (4 r^2)``
-    are added along the line of sight: without them the model that is true
-    fails its own chi-square over a pass of a few metres.
-    """
-    sight = np.asarray(position, dtype=float) - np.asarray(centre, dtype=float)
-    radius = np.linalg.norm(sight, axis=-1)
-    along = sight / np.where(radius > 0, radius, 1.0)[:, None]
-    across = np.stack([-along[:, 1], along[:, 0]], axis=-1)
-    covariance = np.asarray(covariance, dtype=float)
-    across_variance = np.einsum("li,lij,lj->l", across, covariance, across)
-    spread = np.where(radius > 0, 0.75 * across_variance ** 2 / np.where(radius > 0, radius, 1.0) ** 2, 0.0)
-    return covariance + spread[:, None, None] * along[:, :, None] * along[:, None, :]
-
-
 def point_models(layout: Layout, landmarks: Landmarks, rows=None) -> PointModels:
     """Both models' positions of each point sighting of a single-emitter ring, from the paths it implies.
 
     An UNKNOWN or CORNER landmark was placed by the virtual-image model: its
     virtual image is ``T' = 2G - T`` and its horizontal paths ``|T' - R_k|``;
     an EDGE landmark by the edge model: ``|P - T| + |P - R_k|``.  Both models
-    are solved again from those paths (:func:`sonar_ring.localise.corner`,
-    :func:`~sonar_ring.localise.edge`).  The paths' covariance is recovered
-    from the landmark's (less the discrepancy ``g g^T``, ``g`` the models'
-    difference, that :func:`sonar_ring.pipeline.classify_ping` adds to an UNKNOWN landmark's) through its
-    model's Jacobian, and carried to each model through that model's
-    (:func:`sonar_ring.uncertainty.position_jacobian`), plus the arc's
-    second-order spread (:func:`with_arc_spread`).
+    are solved again from those paths (the closed forms of
+    :func:`sonar_ring.localise.corner` and :func:`~sonar_ring.localise.edge`).
+    The paths' covariance is recovered from the landmark's (less the
+    discrepancy ``g g^T``, ``g`` the models' difference, that
+    :func:`sonar_ring.pipeline.classify_ping` adds to an UNKNOWN landmark's)
+    through its model's Jacobian, and carried to each model through that
+    model's (:func:`sonar_ring.uncertainty.position_jacobian`), plus the arc's
+    second-order spread.  One compiled loop over the sightings
+    (:func:`sonar_ring.solvers.point_model_rows`): the mapper calls this for
+    every ping.
 
     Parameters
     ----------
@@ -207,51 +188,24 @@ def point_models(layout: Layout, landmarks: Landmarks, rows=None) -> PointModels
     index = np.flatnonzero(chosen)
     if layout.kind != "ring" or index.size == 0:
         return models
-    found = _ring_point_models(layout, landmarks.select(index))
-    for name in ("corner", "edge", "corner_covariance", "edge_covariance", "separation_noise", "valid"):
-        getattr(models, name)[index] = getattr(found, name)
+    group = np.asarray(landmarks.group, dtype=np.int64)[index]
+    landmark_class = np.asarray(landmarks.landmark_class)[index]
+    rx = layout.plan.receivers[group]  # (L, 2, 2)
+    found = solvers.point_model_rows(
+        np.ascontiguousarray(layout.plan.transmitters[group, 0]), np.ascontiguousarray(rx[:, 0]),
+        np.ascontiguousarray(rx[:, 1]), np.asarray(landmarks.position, dtype=float)[index], landmark_class == EDGE,
+        landmark_class == UNKNOWN, np.asarray(landmarks.covariance, dtype=float)[index])
+    for field, values in zip(fields(models), found, strict=True):
+        array = getattr(models, field.name)
+        array[index] = values
     return models
 
 
-def _ring_point_models(layout: Layout, landmarks: Landmarks) -> PointModels:
-    """:func:`point_models` of point landmarks of a ring, every one valid in its input."""
-    count = len(landmarks)
-    no_covariance = np.full((count, 2, 2), np.nan)
-    group = np.asarray(landmarks.group, dtype=np.int64)
-    plan = layout.plan
-    tx = plan.transmitters[group, 0]  # (L, 2): the ring's single emitter
-    rx = plan.receivers[group]  # (L, 2, 2)
-    position = np.array(landmarks.position, dtype=float)
-    landmark_class = np.asarray(landmarks.landmark_class)
-    is_edge = landmark_class == EDGE
-    paths = localise.reflector_paths(tx, rx, position, is_edge)
-    corner = localise.corner(tx, rx[:, 0], rx[:, 1], paths[:, 0], paths[:, 1])
-    edge = localise.edge(tx, rx[:, 0], rx[:, 1], paths[:, 0], paths[:, 1])
-    valid = corner.valid & edge.valid
-    gap = np.where(valid[:, None], edge.position - corner.position, 0.0)
-    covariance = np.array(landmarks.covariance, dtype=float)
-    measured = covariance - gap[:, :, None] * gap[:, None, :]
-    # Remove the discrepancy only where what remains is a covariance (its diagonal and determinant positive).
-    usable = ((landmark_class == UNKNOWN) & (measured[:, 0, 0] > 0)
-              & (measured[:, 0, 0] * measured[:, 1, 1] - measured[:, 0, 1] ** 2 > 0))
-    covariance[usable] = measured[usable]
-    corner_jacobian = uncertainty.position_jacobian(corner, tx, rx[:, 0], rx[:, 1])
-    edge_jacobian = uncertainty.position_jacobian(edge, tx, rx[:, 0], rx[:, 1])
-    valid &= np.isfinite(corner_jacobian).all(axis=(1, 2)) & np.isfinite(edge_jacobian).all(axis=(1, 2))
-    own = np.where(is_edge[:, None, None], edge_jacobian, corner_jacobian)
-    solvable = valid & (np.abs(np.linalg.det(np.where(valid[:, None, None], own, np.eye(2)))) > 0)
-    valid &= solvable
-    own_inverse = np.linalg.inv(np.where(valid[:, None, None], own, np.eye(2)))
-    paths_covariance = own_inverse @ covariance @ np.swapaxes(own_inverse, 1, 2)
-    centre = 0.5 * (tx + rx.mean(axis=1))
-    corner_covariance, edge_covariance = no_covariance.copy(), no_covariance.copy()
-    for model, jacobian, out in ((corner, corner_jacobian, corner_covariance), (edge, edge_jacobian, edge_covariance)):
-        carried = jacobian[valid] @ paths_covariance[valid] @ np.swapaxes(jacobian[valid], 1, 2)
-        out[valid] = with_arc_spread(model.position[valid], centre[valid], carried)
-    gap_jacobian = edge_jacobian[valid] - corner_jacobian[valid]
-    gap_covariance = gap_jacobian @ paths_covariance[valid] @ np.swapaxes(gap_jacobian, 1, 2)
-    separation_noise = np.zeros(count)
-    separation_noise[valid] = np.einsum("lij,lji->l", np.linalg.inv(corner_covariance[valid]), gap_covariance)
-    return PointModels(np.where(valid[:, None], corner.position, np.nan),
-                       np.where(valid[:, None], edge.position, np.nan), corner_covariance, edge_covariance,
-                       separation_noise, valid)
+def load_kernels() -> None:
+    """Load :func:`point_models`' compiled loop now instead of at the first ping, with the production argument types.
+
+    One sighting of a point 1 m in front of a pair.
+    """
+    solvers.point_model_rows(np.zeros((1, 2)), np.array([[0.0, 0.02]]), np.array([[0.0, -0.02]]),
+                             np.array([[1.0, 0.0]]), np.zeros(1, dtype=bool), np.ones(1, dtype=bool),
+                             np.tile(1e-6 * np.eye(2), (1, 1, 1)))

@@ -130,6 +130,7 @@ import numpy as np
 
 from sonar_ring.compiled import kernel
 from sonar_ring.curvature import CONSISTENCY_Z, CURVATURE_THRESHOLD, PointModels, chi2_quantile, decide
+from sonar_ring.curvature import load_kernels as load_curvature_kernels
 from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, UNKNOWN, Landmarks, make_landmarks
 
 CHI2_2DOF_99 = 9.2103
@@ -1964,8 +1965,10 @@ def load_kernels() -> None:
     Loading starts numba and reads the cached machine code of each kernel; a
     process that maps on a deadline pays that at start.  A scratch map
     sees two walls, a corner and an unknown reflector from three poses, which
-    takes every kernel's path with the production argument types.
+    takes every kernel's path with the production argument types; the point
+    models the mapper gives it (:func:`sonar_ring.curvature.load_kernels`) too.
     """
+    load_curvature_kernels()
     scratch = LandmarkMap()
     spread = np.array([[-0.02, 0.0], [0.02, 0.0]])
     for x in (0.0, 0.2, 0.4):

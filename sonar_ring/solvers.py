@@ -15,7 +15,11 @@ caller holds its callees, so they share one module: see
   :func:`localise_ping_rows`: a ping's rows with their covariances, as the
   nodes localise them;
 * :func:`horizontal_rows` and :func:`path_covariance_rows`: the vertical
-  correction and the paths' covariance, per entry.
+  correction and the paths' covariance, per entry;
+* :func:`jacobian_rows` (each model's derivative by the paths, for
+  :func:`sonar_ring.uncertainty.position_jacobian`) and :func:`point_model_rows`
+  (both point models of a sighting, for :func:`sonar_ring.curvature.point_models`,
+  which the mapper calls every ping).
 
 The reason codes are defined here, with the checks that set them; the
 geometry, frames and numerics are described in :mod:`sonar_ring.localise`.
@@ -556,3 +560,193 @@ def _path_covariance(d1, d2, sigma_tof, speed, sigma_speed, out):
     out[0, 0] = independent + relative * d1 * d1
     out[0, 1] = out[1, 0] = relative * d1 * d2
     out[1, 1] = independent + relative * d2 * d2
+
+
+# --------------------------------------------------------------------------- first-order uncertainty, both point models
+
+@kernel
+def _unit(x, y):
+    """``(x, y)`` over its length ``sqrt(x^2 + y^2)`` (no overflow at sensor scales)."""
+    length = np.sqrt(x * x + y * y)
+    return x / length, y / length
+
+
+@kernel
+def _jacobian(model, tx_x, tx_y, r1_x, r1_y, r2_x, r2_y, p_x, p_y):
+    """``d position / d (d1, d2)`` of an estimate of ``model`` (index into :data:`SOLVERS`) at ``p``: j00 j01 j10 j11.
+
+    The equations are :func:`sonar_ring.uncertainty.position_jacobian`'s; +inf
+    where the 2 x 2 system is singular (an echo on the receivers' line).
+    """
+    if model == ON_AXIS_SOLVER:
+        u_x, u_y = _unit(r2_x - r1_x, r2_y - r1_y)
+        towards_x, towards_y = _unit(p_x - tx_x, p_y - tx_y)
+        rate = 0.5 / (1.0 + (towards_x * -u_y + towards_y * u_x))
+        return rate * -u_y, rate * -u_y, rate * u_x, rate * u_x
+    if model == EDGE_SOLVER:
+        towards_x, towards_y = _unit(p_x - tx_x, p_y - tx_y)
+        a, b = _unit(p_x - r1_x, p_y - r1_y)
+        c, d = _unit(p_x - r2_x, p_y - r2_y)
+        a, b, c, d = towards_x + a, towards_y + b, towards_x + c, towards_y + d
+        scale = 1.0
+    else:
+        image_x, image_y = (p_x, p_y) if model == VIRTUAL_IMAGE_SOLVER else (2.0 * p_x - tx_x, 2.0 * p_y - tx_y)
+        a, b = _unit(image_x - r1_x, image_y - r1_y)
+        c, d = _unit(image_x - r2_x, image_y - r2_y)
+        scale = 1.0 if model == VIRTUAL_IMAGE_SOLVER else 0.5
+    # The rows [[a, b], [c, d]] are the derivatives of the paths by the position: J is their inverse.
+    determinant = a * d - b * c
+    if determinant == 0:
+        return np.inf, np.inf, np.inf, np.inf
+    return d / determinant * scale, -b / determinant * scale, -c / determinant * scale, a / determinant * scale
+
+
+@kernel
+def jacobian_rows(model, tx, rx1, rx2, position):
+    """:func:`_jacobian` of N entries of flat float64 arrays (N, 2), m: (N, 2, 2), ``J[n, i, k] = d p_i / d d_k``."""
+    jacobian = np.empty((position.shape[0], 2, 2))
+    for n in range(position.shape[0]):
+        (jacobian[n, 0, 0], jacobian[n, 0, 1], jacobian[n, 1, 0], jacobian[n, 1, 1]) = _jacobian(
+            model, tx[n, 0], tx[n, 1], rx1[n, 0], rx1[n, 1], rx2[n, 0], rx2[n, 1], position[n, 0], position[n, 1])
+    return jacobian
+
+
+@kernel
+def _carry(j, s, out):
+    """``J S J^T`` of 2 x 2 arrays into ``out``."""
+    for i in range(2):
+        for k in range(2):
+            out[i, k] = (j[i, 0] * (s[0, 0] * j[k, 0] + s[0, 1] * j[k, 1])
+                         + j[i, 1] * (s[1, 0] * j[k, 0] + s[1, 1] * j[k, 1]))
+
+
+@kernel
+def _arc_spread(p_x, p_y, centre_x, centre_y, covariance):
+    """Add to ``covariance`` (2, 2) the second-order spread of a point sighting's arc about ``centre``.
+
+    A pair's two paths put a point on an arc of radius ``r`` about ``centre``
+    (the middle of the emitter and the pair's receivers): an error ``a``
+    across the line of sight (variance ``s^2``, a large fraction of a degree)
+    also moves the point ``a^2 / (2 r)`` *along* it, which the first-order
+    covariance (a tenth of a millimetre along the line of sight) does not
+    hold.  Its variance ``s^4 / (2 r^2)`` and squared mean ``s^4 / (4 r^2)``
+    are added along the line of sight: without them the model that is true
+    fails its own chi-square over a pass of a few metres.
+    """
+    sight_x, sight_y = p_x - centre_x, p_y - centre_y
+    radius = np.sqrt(sight_x * sight_x + sight_y * sight_y)
+    if not radius > 0:
+        return
+    along_x, along_y = sight_x / radius, sight_y / radius
+    across_x, across_y = -along_y, along_x
+    across_variance = (across_x * (covariance[0, 0] * across_x + covariance[0, 1] * across_y)
+                       + across_y * (covariance[1, 0] * across_x + covariance[1, 1] * across_y))
+    spread = 0.75 * across_variance ** 2 / radius ** 2
+    covariance[0, 0] += spread * along_x * along_x
+    covariance[0, 1] += spread * along_x * along_y
+    covariance[1, 0] += spread * along_y * along_x
+    covariance[1, 1] += spread * along_y * along_y
+
+
+@kernel
+def _inverse(m, out):
+    """The inverse of a 2 x 2 array into ``out``; False (``out`` untouched) where it is singular."""
+    determinant = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
+    if not abs(determinant) > 0:
+        return False
+    out[0, 0], out[0, 1] = m[1, 1] / determinant, -m[0, 1] / determinant
+    out[1, 0], out[1, 1] = -m[1, 0] / determinant, m[0, 0] / determinant
+    return True
+
+
+@kernel
+def point_model_rows(tx, rx1, rx2, position, is_edge, undecided, covariance):
+    """Both point models of L sightings of a single-emitter ring pair: :func:`sonar_ring.curvature.point_models`.
+
+    Parameters
+    ----------
+    tx, rx1, rx2 : ndarray, shape (L, 2)
+        Each sighting's emitter and receivers, m.
+    position : ndarray, shape (L, 2)
+        Its landmark's position, placed by the edge model where ``is_edge``
+        (L,), else by the virtual image's (a corner or an ``undecided`` (L,)
+        point), m.
+    covariance : ndarray, shape (L, 2, 2)
+        The landmark's covariance, m^2 (an undecided one's holds the models'
+        discrepancy ``g g^T``, removed here where what remains is a covariance).
+
+    Returns
+    -------
+    corner, edge : ndarray, shape (L, 2)
+        Both models solved from the paths the landmark implies, m; NaN where not ``valid``.
+    corner_covariance, edge_covariance : ndarray, shape (L, 2, 2)
+        The paths' covariance (the landmark's through the inverse of its
+        model's Jacobian) carried through each model's, plus the arc's spread
+        (:func:`_arc_spread`), m^2; NaN where not valid.
+    separation_noise : ndarray, shape (L,)
+        ``tr(W D)`` (:class:`sonar_ring.curvature.PointModels`); 0 where not valid.
+    valid : ndarray of bool, shape (L,)
+        Both models solved, both Jacobians finite, the landmark's own and the corner model's covariance invertible.
+    """
+    count = position.shape[0]
+    corner = np.full((count, 2), np.nan)
+    edge = np.full((count, 2), np.nan)
+    corner_covariance = np.full((count, 2, 2), np.nan)
+    edge_covariance = np.full((count, 2, 2), np.nan)
+    separation_noise = np.zeros(count)
+    valid = np.zeros(count, dtype=np.bool_)
+    corner_jacobian, edge_jacobian, own_inverse = np.empty((2, 2)), np.empty((2, 2)), np.empty((2, 2))
+    gap_jacobian, paths, measured, gap, weight = (np.empty((2, 2)), np.empty((2, 2)), np.empty((2, 2)),
+                                                  np.empty((2, 2)), np.empty((2, 2)))
+    for n in range(count):
+        tx_x, tx_y, p_x, p_y = tx[n, 0], tx[n, 1], position[n, 0], position[n, 1]
+        r1_x, r1_y, r2_x, r2_y = rx1[n, 0], rx1[n, 1], rx2[n, 0], rx2[n, 1]
+        # The paths the landmark implies (sonar_ring.localise.reflector_paths), solved by both models.
+        if is_edge[n]:
+            out = np.sqrt((p_x - tx_x) ** 2 + (p_y - tx_y) ** 2)
+            d1 = out + np.sqrt((p_x - r1_x) ** 2 + (p_y - r1_y) ** 2)
+            d2 = out + np.sqrt((p_x - r2_x) ** 2 + (p_y - r2_y) ** 2)
+        else:
+            image_x, image_y = 2.0 * p_x - tx_x, 2.0 * p_y - tx_y
+            d1 = np.sqrt((image_x - r1_x) ** 2 + (image_y - r1_y) ** 2)
+            d2 = np.sqrt((image_x - r2_x) ** 2 + (image_y - r2_y) ** 2)
+        separation, u_x, u_y, n_x, n_y, c_x, c_y = _pair_frame(r1_x, r1_y, r2_x, r2_y)
+        common, apart, too_short = _checked(tx_x, tx_y, r1_x, r1_y, r2_x, r2_y, d1, d2, separation)
+        image_reason, image_x, image_y = _virtual_image(d1, d2, separation, u_x, u_y, n_x, n_y, c_x, c_y, common,
+                                                        apart, too_short)
+        corner_reason, corner_x, corner_y = _corner(tx_x, tx_y, n_x, n_y, c_x, c_y, image_reason, image_x, image_y)
+        edge_reason, edge_x, edge_y = _edge(tx_x, tx_y, r1_x, r1_y, r2_x, r2_y, d1, d2, separation, u_x, u_y, n_x,
+                                            n_y, c_x, c_y, common, apart, too_short)
+        if corner_reason != OK or edge_reason != OK:
+            continue
+        (corner_jacobian[0, 0], corner_jacobian[0, 1], corner_jacobian[1, 0], corner_jacobian[1, 1]) = _jacobian(
+            CORNER_SOLVER, tx_x, tx_y, r1_x, r1_y, r2_x, r2_y, corner_x, corner_y)
+        (edge_jacobian[0, 0], edge_jacobian[0, 1], edge_jacobian[1, 0], edge_jacobian[1, 1]) = _jacobian(
+            EDGE_SOLVER, tx_x, tx_y, r1_x, r1_y, r2_x, r2_y, edge_x, edge_y)
+        if not (np.isfinite(corner_jacobian).all() and np.isfinite(edge_jacobian).all()):
+            continue
+        if not _inverse(edge_jacobian if is_edge[n] else corner_jacobian, own_inverse):
+            continue
+        # An undecided landmark's covariance less the models' discrepancy, where what remains is a covariance.
+        gap_x, gap_y = edge_x - corner_x, edge_y - corner_y
+        measured[0, 0], measured[0, 1] = covariance[n, 0, 0] - gap_x * gap_x, covariance[n, 0, 1] - gap_x * gap_y
+        measured[1, 0], measured[1, 1] = covariance[n, 1, 0] - gap_y * gap_x, covariance[n, 1, 1] - gap_y * gap_y
+        if not (undecided[n] and measured[0, 0] > 0
+                and measured[0, 0] * measured[1, 1] - measured[0, 1] ** 2 > 0):
+            measured[:, :] = covariance[n]
+        _carry(own_inverse, measured, paths)
+        centre_x, centre_y = 0.5 * (tx_x + 0.5 * (r1_x + r2_x)), 0.5 * (tx_y + 0.5 * (r1_y + r2_y))
+        _carry(corner_jacobian, paths, corner_covariance[n])
+        _arc_spread(corner_x, corner_y, centre_x, centre_y, corner_covariance[n])
+        _carry(edge_jacobian, paths, edge_covariance[n])
+        _arc_spread(edge_x, edge_y, centre_x, centre_y, edge_covariance[n])
+        if not _inverse(corner_covariance[n], weight):
+            corner_covariance[n], edge_covariance[n] = np.nan, np.nan
+            continue
+        gap_jacobian[:, :] = edge_jacobian - corner_jacobian
+        _carry(gap_jacobian, paths, gap)
+        separation_noise[n] = (weight[0, 0] * gap[0, 0] + weight[0, 1] * gap[1, 0] + weight[1, 0] * gap[0, 1]
+                               + weight[1, 1] * gap[1, 1])
+        corner[n, 0], corner[n, 1], edge[n, 0], edge[n, 1] = corner_x, corner_y, edge_x, edge_y
+        valid[n] = True
+    return corner, edge, corner_covariance, edge_covariance, separation_noise, valid

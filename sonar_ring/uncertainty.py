@@ -117,27 +117,6 @@ def _lowest_finite(value) -> float:
     return float(array.min()) if np.isfinite(array).all() else math.nan
 
 
-def _inverse_2x2(rows: np.ndarray) -> np.ndarray:
-    """Inverse of (..., 2, 2) matrices; +inf where singular."""
-    a, b = rows[..., 0, 0], rows[..., 0, 1]
-    c, d = rows[..., 1, 0], rows[..., 1, 1]
-    det = a * d - b * c
-    adjugate = np.stack([np.stack([d, -b], -1), np.stack([-c, a], -1)], -2)
-    inverse = adjugate / det[..., None, None]
-    return np.where((det == 0)[..., None, None], np.inf, inverse)
-
-
-def _unit(vector: np.ndarray) -> np.ndarray:
-    """Unit vectors along (..., 2) vectors (sqrt of the sum of squares: no overflow at sensor scales)."""
-    return vector / np.sqrt(vector[..., 0] * vector[..., 0] + vector[..., 1] * vector[..., 1])[..., None]
-
-
-def _front(rx1: np.ndarray, rx2: np.ndarray) -> np.ndarray:
-    """The receivers' front ``n`` (..., 2): ``u`` (R1 to R2) turned counter-clockwise, R1 - R2 turned clockwise."""
-    u = _unit(rx2 - rx1)
-    return np.stack([-u[..., 1], u[..., 0]], axis=-1)
-
-
 @quiet
 def position_jacobian(estimate: PointEstimate, tx, rx1, rx2) -> np.ndarray:
     """Derivative of an estimate's position with respect to the paths ``(d1, d2)``.
@@ -166,23 +145,12 @@ def position_jacobian(estimate: PointEstimate, tx, rx1, rx2) -> np.ndarray:
     tx = points("tx", tx, "position_jacobian")
     rx1 = points("rx1", rx1, "position_jacobian")
     rx2 = points("rx2", rx2, "position_jacobian")
-    position = estimate.position
-    if estimate.model in ("virtual_image", "plane", "corner"):
-        image = position if estimate.model == "virtual_image" else 2.0 * position - tx
-        rows = np.stack([_unit(image - rx1), _unit(image - rx2)], axis=-2)
-        jacobian = _inverse_2x2(rows) * (1.0 if estimate.model == "virtual_image" else 0.5)
-    elif estimate.model == "edge":
-        towards_tx = _unit(position - tx)
-        rows = np.stack([towards_tx + _unit(position - rx1), towards_tx + _unit(position - rx2)], axis=-2)
-        jacobian = _inverse_2x2(rows)
-    elif estimate.model == "on_axis":
-        front = _front(rx1, rx2)
-        # P = M + r n with |P - T| + r = (d1 + d2) / 2, so dr/dd_n = 1 / (2 (1 + cos(P - T, n))).
-        towards_tx = _unit(position - tx)
-        rate = 0.5 / (1.0 + (towards_tx[..., 0] * front[..., 0] + towards_tx[..., 1] * front[..., 1]))
-        jacobian = (rate[..., None] * front)[..., :, None] * np.ones(2)
-    else:
+    if estimate.model not in solvers.SOLVERS:
         raise ValueError(f"position_jacobian: unknown model {estimate.model!r}")
+    shape = broadcast_shape("position_jacobian", ("tx", "rx1", "rx2", "position"), tx=tx, rx1=rx1, rx2=rx2,
+                            position=estimate.position)
+    rows = [array.reshape(-1, 2) for array in flat_copies(shape + (2,), tx, rx1, rx2, estimate.position)]
+    jacobian = solvers.jacobian_rows(solvers.SOLVERS.index(estimate.model), *rows).reshape(shape + (2, 2))
     return np.where(estimate.valid[..., None, None], jacobian, np.nan)
 
 

@@ -10,7 +10,7 @@ import pytest
 from numpy.testing import assert_allclose
 
 from sonar_ring import localise, uncertainty
-from sonar_ring.curvature import CURVATURE_THRESHOLD, PointModels, chi2_quantile, decide, point_models, with_arc_spread
+from sonar_ring.curvature import CURVATURE_THRESHOLD, PointModels, chi2_quantile, decide, point_models
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, UNKNOWN, make_landmarks
 from sonar_ring.mapping import LandmarkMap, transform_landmarks
@@ -82,8 +82,12 @@ def test_point_models_solve_both_models_from_the_paths_a_landmark_implies():
                                                              estimates[0], covariances[0]),
                                                             (models.edge[row], models.edge_covariance[row],
                                                              estimates[1], covariances[1])):
-            expected = with_arc_spread(estimate.position[None], centre[None], first_order[None])[0]
-            assert_allclose(covariance, expected, rtol=1e-6, atol=1e-15)
+            # the arc's spread: variance s^4 / (2 r^2) and squared mean s^4 / (4 r^2) along the line of sight
+            sight = estimate.position - centre
+            along = sight / np.linalg.norm(sight)
+            across = np.array([-along[1], along[0]])
+            spread = 0.75 * (across @ first_order @ across) ** 2 / (sight @ sight)
+            assert_allclose(covariance, first_order + spread * np.outer(along, along), rtol=1e-6, atol=1e-15)
             assert_allclose(position, estimate.position, atol=1e-12)
     assert np.all(models.separation_noise > 0) and np.all(models.separation_noise < 1)
     assert not point_models(load_layout("kreczmer_triad"), landmarks).valid.any()
