@@ -66,7 +66,9 @@ duplicates.  The other unmatched sightings are clustered within the ping
 cluster starts one entry.  A classified sighting that joins an UNKNOWN point, or a
 point named by motion alone, gives the point its class (PLANE turns it into a
 wall).  A wall whose line and extent match another wall's (gate, gap at most
-``search_radius``) absorbs it.
+``search_radius``) absorbs it, unless an EDGE on their line lies between them:
+a wall ends at a convex edge, and two walls either side of one are the sides of
+a doorway, however near their seen extents have grown.
 
 PLANE vs CORNER over motion
 ---------------------------
@@ -149,6 +151,10 @@ _MIN_RANGE = 1e-3
 
 _MIN_EXTENT = 0.01
 """Shortest extent (m) over which :func:`_line_floor` spreads the end-point error."""
+
+EDGE_ON_WALL = 0.05
+"""m: an EDGE this close to a wall's line ends the wall there (:meth:`LandmarkMap._merge_walls` does not merge
+walls across it)."""
 
 MAX_COORDINATE = 1e6
 """Largest |coordinate| (m) of a pose or sighting the map takes: beyond it the value is corrupt (and its
@@ -1696,8 +1702,9 @@ class LandmarkMap:
             keep, other = keep[distinct], other[distinct]
             if keep.size == 0:
                 return
-            d2, gap, *_ = self._wall_matches(keep, other)
+            d2, gap, _, _, along = self._wall_matches(keep, other)
             hits = np.flatnonzero((d2 <= self.gate_chi2) & (gap <= self.search_radius))
+            hits = hits[~self._edge_between(keep[hits], along[hits])]
             survivors = []
             for k in hits[np.argsort(d2[hits], kind="stable")]:
                 a, b = keep[k], other[k]
@@ -1707,6 +1714,26 @@ class LandmarkMap:
                     self._absorb_wall(survivor, absorbed)
                     survivors.append(survivor)
             pending = np.unique(np.asarray(survivors, dtype=np.int64))
+
+    def _edge_between(self, keep, other_along) -> np.ndarray:
+        """Whether an EDGE lies on the line of each wall ``keep`` (K,) between its middle and another wall's.
+
+        ``other_along`` (K, 2): the other wall's ends along ``keep``'s tangent from its anchor.  A wall ends at a
+        convex edge: two walls on one line with an edge between them are the two sides of a doorway, however
+        close their seen extents have come (an edge's echo placed a degree off, or a double bounce on the
+        line, runs a seen extent past the wall's end), not one wall.
+        """
+        p, w = self._points, self._walls
+        edges = np.flatnonzero(p.active & (p.landmark_class == EDGE))
+        if not edges.size or not keep.size:
+            return np.zeros(keep.size, bool)
+        offset = p.mean[edges][None, :, :] - w.anchor[keep][:, None, :]  # (K, E, 2)
+        across = np.einsum("kei,ki->ke", offset, w.normal[keep]) - w.line[keep, 1][:, None]
+        along = np.einsum("kei,ki->ke", offset, w.tangent[keep])
+        middle = 0.5 * (w.extent[keep, 0] + w.extent[keep, 1])
+        other_middle = other_along.mean(axis=1)
+        between = (along - middle[:, None]) * (along - other_middle[:, None]) < 0
+        return ((np.abs(across) <= EDGE_ON_WALL) & between).any(axis=1)
 
     def _absorb_wall(self, keep: int, other: int) -> None:
         w = self._walls

@@ -396,6 +396,48 @@ def test_two_pieces_of_one_wall_merge_when_the_gap_closes():
     assert abs(error) <= 3.0 * sigma
 
 
+def test_walls_on_one_line_do_not_merge_across_an_edge_between_them():
+    # the two sides of a doorway, grown towards each other until their gap is below the search radius: one wall,
+    # unless an edge (the door's jamb) lies on their line between them
+    for jamb in (False, True):
+        rng = np.random.default_rng(10)
+        landmark_map = LandmarkMap()
+        if jamb:
+            for x in np.arange(1.2, 1.8, STEP):
+                landmark_map.update(sightings(rng, np.array([x, 0.0]), [[1.5, WALL_Y]], [EDGE]), [x, 0, 0])
+        for xs in (np.arange(0.0, 1.3, STEP), np.arange(3.0, 1.7, -STEP)):  # each side grows towards the other
+            for x in xs:
+                landmark_map.update(sightings(rng, np.array([x, 0.0]), [[x, WALL_Y]], [PLANE]), [x, 0, 0])
+        walls = by_class(landmark_map.snapshot(), PLANE)
+        if jamb:
+            assert len(walls) == 2 and landmark_map.counts.merged_walls == 0
+            assert len(by_class(landmark_map.snapshot(), EDGE)) == 1
+        else:
+            assert len(walls) == 1 and landmark_map.counts.merged_walls == 1
+
+
+def test_a_published_wall_ends_at_the_edge_its_seen_extent_ran_past():
+    # a seen extent runs up to about 0.25 m past a wall's end where an echo on its line continues it (the
+    # realistic room's pillar faces); SLAM publishes the wall ended at the edge there, not past it
+    from sonar_ring.slam import SlamSettings
+
+    settings = SlamSettings()
+    rng = np.random.default_rng(11)
+    landmark_map = LandmarkMap()
+    for x in np.arange(0.0, 1.25, STEP):
+        landmark_map.update(sightings(rng, np.array([x, 0.0]), [[x, WALL_Y]], [PLANE]), [x, 0, 0])
+    wall = landmark_map.entries()
+    uid = wall.uid[wall.is_wall]
+    assert np.sort(by_class(landmark_map.snapshot(), PLANE).segment[0, :, 0])[1] > 1.2
+    edge = np.array([[0.97, WALL_Y]])
+    ended = landmark_map.walls_ended_at(uid, edge, settings.wall_end_reach, settings.wall_end_tolerance)
+    assert_allclose(np.sort(by_class(ended.snapshot(), PLANE).segment[0, :, 0])[1], 0.97, atol=1e-3)
+    # an edge farther than the reach from the end is another reflector's, not this wall's end
+    far = landmark_map.walls_ended_at(uid, edge - [settings.wall_end_reach + 0.3, 0.0], settings.wall_end_reach,
+                                      settings.wall_end_tolerance)
+    assert np.sort(by_class(far.snapshot(), PLANE).segment[0, :, 0])[1] > 1.2
+
+
 # --------------------------------------------------------------------------- memory
 
 def test_eviction_keeps_the_most_recently_seen_entries_within_the_bound():
