@@ -803,6 +803,7 @@ def load_kernels() -> None:
     prediction = predict(walls, points, placement, layout, rows, rows, tolerance, paths=paths)
     match(prediction, layout, rows, rows, paths, tolerance)
     plane = make_landmarks([PLANE], [[1.0, 0.0]], normal=[[0.0, 1.0]])
+    landmark_paths(plane, placement, layout)
     impossible(reflection_points(plane, placement, layout, rows), placement, layout, rows, rows, walls,
                [[0.0, 1.0], [-1.0, 0.0]], 0.01)
 

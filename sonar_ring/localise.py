@@ -419,10 +419,9 @@ def reflector_paths(tx, rx, position, is_edge) -> np.ndarray:
     ndarray, shape (L, K)
         Horizontal paths, m.
     """
-    tx, rx, position = (np.asarray(a, dtype=float) for a in (tx, rx, position))
-    image = np.linalg.norm((2.0 * position - tx)[:, None, :] - rx, axis=-1)
-    edge = np.linalg.norm(position - tx, axis=-1)[:, None] + np.linalg.norm(position[:, None, :] - rx, axis=-1)
-    return np.where(np.asarray(is_edge, dtype=bool)[:, None], edge, image)
+    # Copies: one array type for the kernel whatever the caller holds (a read-only array is another to numba).
+    return solvers.reflector_path_rows(np.array(tx, dtype=float), np.array(rx, dtype=float),
+                                       np.array(position, dtype=float), np.array(is_edge, dtype=bool))
 
 
 # --------------------------------------------------------------------------- the vertical correction and the bearing

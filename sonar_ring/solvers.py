@@ -16,7 +16,8 @@ caller holds its callees, so they share one module: see
   nodes localise them;
 * :func:`horizontal_rows` and :func:`path_covariance_rows`: the vertical
   correction and the paths' covariance, per entry;
-* :func:`jacobian_rows` (each model's derivative by the paths, for
+* :func:`reflector_path_rows` (the paths a landmark implies, for
+  :func:`sonar_ring.localise.reflector_paths`), :func:`jacobian_rows` (each model's derivative by the paths, for
   :func:`sonar_ring.uncertainty.position_jacobian`) and :func:`point_model_rows`
   (both point models of a sighting, for :func:`sonar_ring.curvature.point_models`,
   which the mapper calls every ping).
@@ -562,7 +563,32 @@ def _path_covariance(d1, d2, sigma_tof, speed, sigma_speed, out):
     out[1, 1] = independent + relative * d2 * d2
 
 
-# --------------------------------------------------------------------------- first-order uncertainty, both point models
+# --------------------------------------------------------------------------- implied paths, uncertainty, point models
+
+@kernel
+def _reflector_path(tx_x, tx_y, r_x, r_y, p_x, p_y, is_edge):
+    """The horizontal path ``T -> reflector -> R`` of a landmark at ``p``, m.
+
+    :func:`sonar_ring.localise.reflector_paths` gives the model: an edge's own
+    path, else the virtual image's ``|2p - T - R|``.
+    """
+    if is_edge:
+        return (np.sqrt((p_x - tx_x) * (p_x - tx_x) + (p_y - tx_y) * (p_y - tx_y))
+                + np.sqrt((p_x - r_x) * (p_x - r_x) + (p_y - r_y) * (p_y - r_y)))
+    image_x, image_y = 2.0 * p_x - tx_x, 2.0 * p_y - tx_y
+    return np.sqrt((image_x - r_x) * (image_x - r_x) + (image_y - r_y) * (image_y - r_y))
+
+
+@kernel
+def reflector_path_rows(tx, rx, position, is_edge):
+    """:func:`_reflector_path` of L landmarks to K receivers: tx (L, 2), rx (L, K, 2), position (L, 2), m; (L, K)."""
+    paths = np.empty((rx.shape[0], rx.shape[1]))
+    for n in range(rx.shape[0]):
+        for k in range(rx.shape[1]):
+            paths[n, k] = _reflector_path(tx[n, 0], tx[n, 1], rx[n, k, 0], rx[n, k, 1], position[n, 0],
+                                          position[n, 1], is_edge[n])
+    return paths
+
 
 @kernel
 def _unit(x, y):
@@ -701,15 +727,9 @@ def point_model_rows(tx, rx1, rx2, position, is_edge, undecided, covariance):
     for n in range(count):
         tx_x, tx_y, p_x, p_y = tx[n, 0], tx[n, 1], position[n, 0], position[n, 1]
         r1_x, r1_y, r2_x, r2_y = rx1[n, 0], rx1[n, 1], rx2[n, 0], rx2[n, 1]
-        # The paths the landmark implies (sonar_ring.localise.reflector_paths), solved by both models.
-        if is_edge[n]:
-            out = np.sqrt((p_x - tx_x) ** 2 + (p_y - tx_y) ** 2)
-            d1 = out + np.sqrt((p_x - r1_x) ** 2 + (p_y - r1_y) ** 2)
-            d2 = out + np.sqrt((p_x - r2_x) ** 2 + (p_y - r2_y) ** 2)
-        else:
-            image_x, image_y = 2.0 * p_x - tx_x, 2.0 * p_y - tx_y
-            d1 = np.sqrt((image_x - r1_x) ** 2 + (image_y - r1_y) ** 2)
-            d2 = np.sqrt((image_x - r2_x) ** 2 + (image_y - r2_y) ** 2)
+        # The paths the landmark implies, solved by both models.
+        d1 = _reflector_path(tx_x, tx_y, r1_x, r1_y, p_x, p_y, is_edge[n])
+        d2 = _reflector_path(tx_x, tx_y, r2_x, r2_y, p_x, p_y, is_edge[n])
         separation, u_x, u_y, n_x, n_y, c_x, c_y = _pair_frame(r1_x, r1_y, r2_x, r2_y)
         common, apart, too_short = _checked(tx_x, tx_y, r1_x, r1_y, r2_x, r2_y, d1, d2, separation)
         image_reason, image_x, image_y = _virtual_image(d1, d2, separation, u_x, u_y, n_x, n_y, c_x, c_y, common,

@@ -300,3 +300,23 @@ def test_error_handling():
     # coincident receivers are data-dependent geometry: flagged, not raised
     assert loc.corner(tx, rx1, rx1, 1.0, 1.0).reason == loc.DEGENERATE
     assert loc.bearing(1.0, 1.0, 0.0).reason == loc.DEGENERATE
+
+
+def test_reflector_paths_against_a_50_digit_reference():
+    import mpmath
+
+    mpmath.mp.dps = 50
+    rng = np.random.default_rng(12)
+    tx, rx = rng.normal(0.0, 0.1, (40, 2)), rng.normal(0.0, 0.1, (40, 3, 2))
+    position, is_edge = rng.uniform(-4.0, 4.0, (40, 2)), rng.random(40) < 0.5
+    paths = loc.reflector_paths(tx, rx, position, is_edge)
+    assert paths.shape == (40, 3)
+    for n in range(40):
+        t, p = ([mpmath.mpf(float(v)) for v in vector] for vector in (tx[n], position[n]))
+        for k in range(3):
+            r = [mpmath.mpf(float(v)) for v in rx[n, k]]
+            if is_edge[n]:  # the edge re-radiates from p
+                reference = mpmath.hypot(p[0] - t[0], p[1] - t[1]) + mpmath.hypot(p[0] - r[0], p[1] - r[1])
+            else:  # a plane, a corner or an undecided point: the virtual image 2p - T
+                reference = mpmath.hypot(2 * p[0] - t[0] - r[0], 2 * p[1] - t[1] - r[1])
+            assert abs(paths[n, k] - float(reference)) <= 1e-15 * float(reference)
