@@ -891,6 +891,14 @@ class _Walls:
         """Segment end points, shape (K, 2, 2), m."""
         return self.anchor[rows][:, None, :] + self.extent[rows][:, :, None] * self.tangent[rows][:, None, :]
 
+    def coordinates(self, rows, points):
+        """Where ``points`` (P, 2) lie from walls ``rows`` (K,): along each one's tangent and normal from its anchor.
+
+        (K, P) each, m; the second is the distance from the line of a recentred wall (:meth:`recentre`).
+        """
+        offset = points[None, :, :] - self.anchor[rows][:, None, :]
+        return np.einsum("kpi,ki->kp", offset, self.tangent[rows]), np.einsum("kpi,ki->kp", offset, self.normal[rows])
+
     def recentre(self, rows) -> None:
         """Move the anchors of walls ``rows`` to the middle of their segments, on the line.
 
@@ -1727,9 +1735,7 @@ class LandmarkMap:
         edges = np.flatnonzero(p.active & (p.landmark_class == EDGE))
         if not edges.size or not keep.size:
             return np.zeros(keep.size, bool)
-        offset = p.mean[edges][None, :, :] - w.anchor[keep][:, None, :]  # (K, E, 2)
-        across = np.einsum("kei,ki->ke", offset, w.normal[keep]) - w.line[keep, 1][:, None]
-        along = np.einsum("kei,ki->ke", offset, w.tangent[keep])
+        along, across = w.coordinates(keep, p.mean[edges])  # the walls are recentred: their lines pass the anchors
         middle = 0.5 * (w.extent[keep, 0] + w.extent[keep, 1])
         other_middle = other_along.mean(axis=1)
         between = (along - middle[:, None]) * (along - other_middle[:, None]) < 0
@@ -1813,10 +1819,8 @@ class LandmarkMap:
         if not slots.size or not points.size:
             return ended
         w = ended._walls
-        offset = points[None, :, :] - w.anchor[slots][:, None, :]  # (W, P, 2)
-        across = np.abs(np.einsum("wpi,wi->wp", offset, w.normal[slots]))
-        along = np.einsum("wpi,wi->wp", offset, w.tangent[slots])
-        on_line = across <= tolerance
+        along, across = w.coordinates(slots, points)
+        on_line = np.abs(across) <= tolerance
         for end in (0, 1):
             gap = np.where(on_line, np.abs(along - w.extent[slots, end][:, None]), np.inf)
             nearest = np.argmin(gap, axis=1)
