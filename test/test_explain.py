@@ -375,7 +375,7 @@ def test_an_entrys_own_echo_is_multipath_where_a_double_bounce_of_better_seen_en
 
     def multipath(second_support, rival_path):
         prediction = _one_channel_prediction(
-            [WALL, WALL_WALL, WALL_WALL], [0, 0, 1], [0, 1, 2], [150, 150, min(1000, second_support)],
+            [WALL, WALL_WALL, WALL_WALL], [0, 0, 1], [0, 1, 2], [150, 150, second_support],
             [4.0, 4.0, rival_path])
         explanation = match(prediction, RING, [0], [0], echo, tolerance, direct_wins=False)
         return explanation, explain._multipath_of_the_less_seen(prediction, explanation, tolerance.gate_sigmas)[0]
