@@ -191,7 +191,7 @@ class Tolerance:
     @property
     def xy_sigma(self) -> float:
         """Standard deviation of the pose's position along its worst direction, m (the larger eigenvalue's root)."""
-        (xx, xy), (_, yy) = self.pose_covariance[:2, :2].tolist()
+        (xx, xy), (_, yy) = self.pose_covariance[:2, :2].tolist()  # _largest_eigenvalue's, in floats: 7x faster
         largest = 0.5 * (xx + yy) + math.sqrt(0.25 * (xx - yy) ** 2 + xy ** 2)
         return math.sqrt(largest) if largest >= 0 else math.nan
 
@@ -557,10 +557,13 @@ class Explained:
         Its echo matches a double bounce of the map's entries (and no entry's own echo).
     impossible : ndarray of bool, shape (L,)
         Not multipath, but a leg of its path crosses a mapped wall.
+    position : ndarray, shape (L, 2)
+        Each landmark's position in the map's frame, m, for drawing (all NaN when none was tested).
     """
 
     multipath: np.ndarray
     impossible: np.ndarray
+    position: np.ndarray
 
     @property
     def any(self) -> np.ndarray:
@@ -732,12 +735,13 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     Explained
     """
     count = len(landmarks)
-    nothing = Explained(np.zeros(count, bool), np.zeros(count, bool))
+    nothing = Explained(np.zeros(count, bool), np.zeros(count, bool), np.full((count, 2), np.nan))
     if count == 0 or len(known) == 0 or layout.group_transmitters.shape[1] != 1:
         return nothing
     placement = place(layout, sensor_pose)
     in_map = transform_landmarks(landmarks, sensor_pose)
-    usable = np.asarray(landmarks.valid, dtype=bool) & np.isfinite(in_map.position).all(axis=1)
+    position = in_map.position
+    usable = np.asarray(landmarks.valid, dtype=bool) & np.isfinite(position).all(axis=1)
     rows = np.flatnonzero(usable)
     if rows.size == 0:
         return nothing
@@ -750,12 +754,12 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
                          seen=known.seen, wall_support=known.wall_support, point_support=known.point_support)
     explanation = match(prediction, layout, group, transmitter, paths, tolerance, direct_wins=False)
     multipath = _multipath_of_the_less_seen(prediction, explanation, tests.gate_sigmas)
-    spread = np.sqrt(np.maximum(np.linalg.eigvalsh(np.asarray(in_map.covariance, dtype=float))[:, -1], 0.0))
+    spread = np.sqrt(np.maximum(_largest_eigenvalue(np.asarray(in_map.covariance, dtype=float)), 0.0))
     margin = tests.gate_sigmas * np.hypot(spread, tests.sigma_map)
     margin = np.where(np.isfinite(margin), margin, 0.0)
     blocked = impossible(reflection_points(in_map, placement, layout, transmitter), placement, layout, group,
                          transmitter, known.seen, known.normals, margin) & ~multipath
-    out = Explained(np.zeros(count, bool), np.zeros(count, bool))
+    out = Explained(np.zeros(count, bool), np.zeros(count, bool), position)
     out.multipath[rows], out.impossible[rows] = multipath, blocked
     return out
 
@@ -809,6 +813,15 @@ def load_kernels() -> None:
 
 
 # --------------------------------------------------------------------------- checks and set-up
+
+
+def _largest_eigenvalue(covariance: np.ndarray) -> np.ndarray:
+    """The larger eigenvalue of each symmetric 2 x 2 matrix of (L, 2, 2), in closed form.
+
+    ``numpy.linalg.eigvalsh`` cost 0.05 ms a ping here, more than the rest of the margins' arithmetic.
+    """
+    xx, xy, yy = covariance[:, 0, 0], covariance[:, 0, 1], covariance[:, 1, 1]
+    return 0.5 * (xx + yy) + np.sqrt(0.25 * (xx - yy) ** 2 + xy ** 2)
 
 
 def _segments(segments, caller: str, name: str = "walls") -> np.ndarray:

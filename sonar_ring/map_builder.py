@@ -238,10 +238,8 @@ class MapBuilder:
         sensor = compose(robot, offset)
         explained = explain_landmarks(landmarks, layout, sensor, pose_covariance_at(robot, covariance, offset),
                                       self._known, tests)
-        flagged = explained.any  # only these are drawn: the rest of the ping need not be moved into the map
-        in_map = transform_landmarks(landmarks.select(flagged), sensor).position
-        self.explained = {"multipath": in_map[explained.multipath[flagged]],
-                          "impossible": in_map[explained.impossible[flagged]]}
+        self.explained = {"multipath": explained.position[explained.multipath],
+                          "impossible": explained.position[explained.impossible]}
         self.health.note("multipath explained", int(np.count_nonzero(explained.multipath)))
         self.health.note("impossible", int(np.count_nonzero(explained.impossible)))
         return explained.any
