@@ -793,6 +793,10 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
             if not near:
                 continue
         heard = False
+        # The legs from the transmitter to the first point and on to the last are one for every receiver that
+        # shares those points (a point's own echo, a bounce onto a point): each is tested once.
+        first_leg_x, first_leg_y, first_leg_blocked = np.nan, np.nan, False
+        middle_leg_x, middle_leg_y, middle_leg_blocked = np.nan, np.nan, False
         for k in range(receivers):
             if not np.isfinite(path[kept_count, k]):
                 continue
@@ -803,13 +807,22 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
             if not isotropic:
                 audible = audible and _accepted(first_x, first_y, tx[g, m, 0], tx[g, m, 1], tx_axis[g, m, 0, 0],
                                                 tx_axis[g, m, 0, 1], acceptance, yaw_margin, position_margin)
-            audible = audible and not (
-                _shortened_leg_blocked(tx[g, m, 0], tx[g, m, 1], first_x, first_y, 0.0, extent_margin, seen_extent,
-                                       seen_length, extent_margin, wall_support, least)
-                or _shortened_leg_blocked(first_x, first_y, last_x, last_y, extent_margin, extent_margin, seen_extent,
-                                          seen_length, extent_margin, wall_support, least)
-                or _shortened_leg_blocked(last_x, last_y, rx[g, k, 0], rx[g, k, 1], extent_margin, 0.0,
-                                          seen_extent, seen_length, extent_margin, wall_support, least))
+            if audible and not (first_x == first_leg_x and first_y == first_leg_y):
+                first_leg_x, first_leg_y = first_x, first_y
+                first_leg_blocked = _shortened_leg_blocked(tx[g, m, 0], tx[g, m, 1], first_x, first_y, 0.0,
+                                                           extent_margin, seen_extent, seen_length, extent_margin,
+                                                           wall_support, least)
+                middle_leg_x = np.nan  # its first point moved
+            audible = audible and not first_leg_blocked
+            if audible and not (first_x == first_leg_x and first_y == first_leg_y and last_x == middle_leg_x
+                                and last_y == middle_leg_y):
+                middle_leg_x, middle_leg_y = last_x, last_y
+                middle_leg_blocked = _shortened_leg_blocked(first_x, first_y, last_x, last_y, extent_margin,
+                                                            extent_margin, seen_extent, seen_length, extent_margin,
+                                                            wall_support, least)
+            audible = audible and not middle_leg_blocked and not _shortened_leg_blocked(
+                last_x, last_y, rx[g, k, 0], rx[g, k, 1], extent_margin, 0.0, seen_extent, seen_length,
+                extent_margin, wall_support, least)
             if audible:
                 heard = True
             else:
