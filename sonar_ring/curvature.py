@@ -182,7 +182,8 @@ def point_models(layout: Layout, landmarks: Landmarks, rows=None) -> PointModels
     count = len(landmarks)
     models = PointModels(np.full((count, 2), np.nan), np.full((count, 2), np.nan), np.full((count, 2, 2), np.nan),
                          np.full((count, 2, 2), np.nan), np.zeros(count), np.zeros(count, bool))
-    chosen = np.asarray(landmarks.valid, dtype=bool) & np.isin(landmarks.landmark_class, (UNKNOWN, CORNER, EDGE))
+    kind = landmarks.landmark_class
+    chosen = np.asarray(landmarks.valid, dtype=bool) & ((kind == UNKNOWN) | (kind == CORNER) | (kind == EDGE))
     if rows is not None:
         chosen &= np.asarray(rows, dtype=bool)
     index = np.flatnonzero(chosen)

@@ -1236,8 +1236,9 @@ class LandmarkMap:
         """
         self._counts.explained += int(np.count_nonzero(explained))
         hit = np.unique(target[explained & (target >= 0)])
-        fused = np.unique(target[~explained & (target >= 0)])
-        hit = hit[~np.isin(hit, fused)]  # a ping that also fused a sighting into it does not explain it
+        # A ping that also fused a sighting into an entry does not explain it.
+        fused = set(target[~explained & (target >= 0)].tolist())
+        hit = hit[np.array([slot not in fused for slot in hit.tolist()], dtype=bool)]
         for table, slots in ((self._points, hit[hit < self.max_points]),
                              (self._walls, hit[hit >= self.max_points] - self.max_points)):
             table.explained[slots] += 1
@@ -1634,7 +1635,8 @@ class LandmarkMap:
         winner's position.
         """
         p = self._points
-        fixed = np.isin(p.landmark_class[slots], (CORNER_OR_EDGE, CORNER, EDGE))
+        kind = p.landmark_class[slots]
+        fixed = (kind == CORNER_OR_EDGE) | (kind == CORNER) | (kind == EDGE)
         slots = slots[fixed & ~p.curvature_decided[slots] & (p.modelled[slots] >= 2)]
         if slots.size == 0:
             return

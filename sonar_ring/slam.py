@@ -433,9 +433,13 @@ class LandmarkSlam:
         sighting's own keeping only its range (module docstring).
         """
         entries = self.front.entries()
-        classes = dict(zip(entries.uid.tolist(), entries.landmark_class.tolist(), strict=True))
-        entry_class = np.array([classes.get(uid, UNKNOWN) for uid in uids.tolist()], dtype=np.uint8)
-        wall = np.isin(uids, entries.uid[entries.is_wall])
+        row_of = {uid: row for row, uid in enumerate(entries.uid.tolist())}
+        rows = np.array([row_of.get(uid, -1) for uid in uids.tolist()], dtype=np.int64)
+        known = rows >= 0
+        entry_class = np.full(len(uids), UNKNOWN, np.uint8)
+        entry_class[known] = entries.landmark_class[rows[known]]
+        wall = np.zeros(len(uids), bool)
+        wall[known] = entries.is_wall[rows[known]]
         position = np.array(landmarks.position, dtype=float)
         covariance = np.array(landmarks.covariance, dtype=float)
         decided = np.zeros(len(uids), bool)
