@@ -1,10 +1,12 @@
-"""doc/ARCHITECTURE.md stays true: every module is named there, and the core's import rules hold.
+"""doc/ARCHITECTURE.md stays true: every module is named there, and the core's import rules hold; package.xml
+declares what the package imports.
 
 Imports are read from the source with ``ast``; no module is imported.
 """
 
 import ast
 import re
+import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -139,3 +141,58 @@ def test_no_import_cycles():
         if name not in state:
             visit(name, [])
     assert not cycles, f"import cycles: {cycles}"
+
+
+THIRD_PARTY_KEYS = {
+    "numpy": "python3-numpy", "numba": "python3-numba", "yaml": "python3-yaml", "serial": "python3-serial",
+    "gtsam": "python3-gtsam-pip", "rosbags": "python3-rosbags-pip", "tqdm": "python3-tqdm",
+    "matplotlib": "python3-matplotlib", "scipy": "python3-scipy", "mpmath": "python3-mpmath",
+    "hypothesis": "python3-hypothesis", "pytest": "python3-pytest",
+}
+"""The rosdep key of each third-party module the package or its tests import (rosdistro's, or rosdep.yaml's)."""
+UNDECLARED = {"psutil"}
+"""Imported only where installed: the SLAM cost benchmark reads memory from /proc without it."""
+
+
+def declared_keys() -> dict[str, set[str]]:
+    """package.xml's rosdep keys: ``run`` (depend, exec_depend) and ``test`` (those and test_depend)."""
+    text = (ROOT / "package.xml").read_text(encoding="utf-8")
+    tagged = {tag: set(re.findall(rf"<{tag}>([^<]+)</{tag}>", text)) for tag in ("depend", "exec_depend",
+                                                                                  "test_depend")}
+    run = tagged["depend"] | tagged["exec_depend"]
+    return {"run": run, "test": run | tagged["test_depend"]}
+
+
+def needed_key(module: str) -> str | None:
+    """The rosdep key an import needs (None: the standard library, this package, or a test helper)."""
+    top = module.split(".")[0]
+    if top in sys.stdlib_module_names or top == "sonar_ring" or (ROOT / "test" / f"{top}.py").exists():
+        return None
+    if top in UNDECLARED:
+        return None
+    if top in THIRD_PARTY_KEYS:
+        return THIRD_PARTY_KEYS[top]
+    if ros_part(module) is not None or top.endswith("_interfaces") or top.startswith("launch") or top in (
+            "ament_index_python", "rclpy"):
+        return top
+    raise AssertionError(f"no rosdep key known for the import of {module!r}: add it to THIRD_PARTY_KEYS")
+
+
+def test_package_xml_declares_what_the_package_imports():
+    """Every module the package, its launch file and its tests import has its rosdep key in package.xml.
+
+    ``rosdep install --from-paths src`` then installs what a robot runs (the tests' keys as test_depend),
+    and rosdep.yaml defines only keys package.xml uses.
+    """
+    declared = declared_keys()
+    missing = set()
+    for scope, paths in (("run", [*modules(), *(ROOT / "launch").glob("*.py")]),
+                         ("test", sorted((ROOT / "test").glob("*.py")))):
+        for path in paths:
+            for module, _ in imports(path):
+                key = needed_key(module)
+                if key is not None and key not in declared[scope] and key != "sonar_ring":
+                    missing.add(f"{key} ({scope}: {path.relative_to(ROOT)} imports {module})")
+    assert not missing, f"package.xml lacks these rosdep keys: {sorted(missing)}"
+    custom = set(re.findall(r"^([\w-]+):", (ROOT / "rosdep.yaml").read_text(encoding="utf-8"), re.MULTILINE))
+    assert custom <= declared["test"], f"rosdep.yaml defines keys package.xml does not use: {custom - declared['test']}"
