@@ -745,7 +745,8 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     rows = np.flatnonzero(usable)
     if rows.size == 0:
         return nothing
-    in_map = in_map.select(rows)
+    if rows.size < count:
+        in_map = in_map.select(rows)
     tolerance = Tolerance(tests.sigma_path, sensor_covariance, tests.sigma_speed, tests.sigma_map, tests.gate_sigmas)
     group = in_map.group.astype(np.int64)
     transmitter = np.zeros(rows.size, np.int64)

@@ -500,13 +500,12 @@ def transform_landmarks(landmarks: Landmarks, pose) -> Landmarks:
     _check_landmarks(landmarks, "transform_landmarks")
     pose = _pose(pose, "transform_landmarks")
     rotation = _rotation(pose[2])
-    return replace(
-        landmarks,
-        position=landmarks.position @ rotation.T + pose[:2],
-        normal=landmarks.normal @ rotation.T,
-        segment=landmarks.segment @ rotation.T + pose[:2],
-        covariance=rotation @ landmarks.covariance @ rotation.T,
-    )
+    # Built directly: dataclasses.replace walks the fields in Python (twice a ping in the mapper).
+    return Landmarks(landmark_class=landmarks.landmark_class, position=landmarks.position @ rotation.T + pose[:2],
+                     normal=landmarks.normal @ rotation.T, covariance=rotation @ landmarks.covariance @ rotation.T,
+                     confidence=landmarks.confidence, segment=landmarks.segment @ rotation.T + pose[:2],
+                     observations=landmarks.observations, group=landmarks.group, echo=landmarks.echo,
+                     valid=landmarks.valid, reason=landmarks.reason)
 
 
 # --------------------------------------------------------------------------- counters
