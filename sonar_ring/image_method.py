@@ -366,7 +366,7 @@ def junctions(walls, points, gap):
 def map_paths(start, direction, normal, length, seen_extent, points, wall_support, point_support, excluded_pair,
               excluded_point, tx, rx, tx_axis, rx_axis, height_offset, transmitter, row_channel, row_paths, pose,
               max_path, acceptance, pose_covariance, xy_sigma, yaw_sigma, sigma_path, sigma_speed, sigma_map,
-              gate_sigmas, isotropic, prune, gated):
+              gate_sigmas, isotropic, prune, gated, doubles):
     """The paths, double and single bounces, a map of walls and points sends to one ping's channels' receivers.
 
     The engine of :func:`sonar_ring.explain.predict`, whose docstring gives the
@@ -426,9 +426,10 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
         The tolerance (:class:`sonar_ring.explain.Tolerance`); where ``gated``,
         a path is kept only if some row of its channel is within Mahalanobis
         distance ``gate_sigmas`` of it (:func:`match_rows`).
-    isotropic, prune, gated : bool
+    isotropic, prune, gated, doubles : bool
         An isotropic emitter (no transmit beam); prune (:mod:`sonar_ring.explain`,
-        "Pruning"); keep only paths near a measured row.
+        "Pruning"); keep only paths near a measured row; the double bounces too (else each entry's own
+        echo only).
 
     Returns
     -------
@@ -625,7 +626,7 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
                                                   tx[g, m, 1] - receiver_image[k, 1])
             kind[count], first[count], second[count], channel[count] = WALL, b, b, c
             count += 1
-            for a in range(n_walls):
+            for a in range(n_walls if doubles else 0):
                 if a == b or excluded_pair[a, b] or not wall_near[a] or not wall_sent[c, a]:
                     continue
                 if prune:
@@ -646,7 +647,7 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
                                                       double_image[t, a, b, 1] - rx[g, k, 1])
                 kind[count], first[count], second[count], channel[count] = WALL_WALL, a, b, c
                 count += 1
-            for p in range(n_points):
+            for p in range(n_points if doubles else 0):
                 if excluded_point[b, p] or not point_near[p] or not point_sent[c, p]:
                     continue
                 if prune:
@@ -672,7 +673,7 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
                 horizontal[count, k] = to_point[t, p] + back[k]
             kind[count], first[count], second[count], channel[count] = POINT, p, p, c
             count += 1
-            for a in range(n_walls):
+            for a in range(n_walls if doubles else 0):
                 if excluded_point[a, p] or not wall_near[a] or not wall_sent[c, a] or not via_exists[t, a, p]:
                     continue
                 for k in range(receivers):
@@ -940,8 +941,11 @@ def match_rows(channel, paths, channel_start, kind, support, predicted, jacobian
         Their Mahalanobis distances; inf where none, NaN where no receiver heard the row.
     double_support : ndarray, shape (N,)
         The highest ``support`` of a double bounce within the gate; -inf where none.
+    matched : ndarray of bool, shape (Q,)
+        Each predicted path some row is within the gate of.
     """
     rows = paths.shape[0]
+    matched = np.zeros(predicted.shape[0], dtype=np.bool_)
     best = np.full((2, rows), -1, dtype=np.int64)
     distance = np.full((2, rows), np.inf)
     double_support = np.full(rows, -np.inf)
@@ -963,11 +967,12 @@ def match_rows(channel, paths, channel_start, kind, support, predicted, jacobian
             squared = _distance2(paths, n, predicted, jacobian, q, pose_covariance, sigma_path, sigma_speed, sigma_map,
                                  scratch)
             bounces = 1 if kind[q] == WALL or kind[q] == POINT else 0
+            matched[q] = matched[q] or squared <= gate2
             if squared < distance[bounces, n]:
                 distance[bounces, n], best[bounces, n] = squared, q
             if bounces == 0 and squared <= gate2 and support[q] > double_support[n]:
                 double_support[n] = support[q]
-    return best[0], best[1], np.sqrt(distance[0]), np.sqrt(distance[1]), double_support
+    return best[0], best[1], np.sqrt(distance[0]), np.sqrt(distance[1]), double_support, matched
 
 
 @kernel

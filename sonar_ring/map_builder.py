@@ -16,7 +16,9 @@ Before a ping's landmarks reach the map, the map explains what it can
 estimate with its uncertainty, against the published map): a landmark whose
 echo is a double bounce of mapped entries (``multipath explained``) or whose
 path crosses a mapped wall (``impossible``) is matched to the map but never
-mapped, and an entry that such echoes explain away is removed.  Only
+mapped, and an entry that such echoes explain away is removed; so is an entry the
+map says should have been heard in many pings and that was heard in few of them
+(``not heard where expected``: a ghost seen in a burst).  Only
 persistent entries are published
 (:meth:`~sonar_ring.mapping.LandmarkMap.persistent`; with SLAM only they enter
 the graph): an echo that never repeats is never mapped.
@@ -26,7 +28,7 @@ detail, count)`` and ``note(reason, count)``: the node's
 :class:`~sonar_ring.ros.diagnostics.NodeHealth`, ``process``'s tally):
 ``pose_too_old``, ``no_odometry``, ``sightings not_finite`` and
 ``sightings degenerate`` (problems), ``multipath explained``, ``impossible``,
-``explained away``, ``sightings ambiguous``, ``sightings dropped``,
+``explained away``, ``not heard where expected``, ``sightings ambiguous``, ``sightings dropped``,
 ``sightings evicted`` (notes); with SLAM also ``odometry_jump`` (a new map
 session starts) and ``no_landmarks`` (a stretch of travel without a confirmed
 landmark) as problems.  :meth:`MapBuilder.not_persistent` says how many
@@ -41,7 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sonar_ring.curvature import point_models
-from sonar_ring.explain import EchoTests, explain_landmarks, known_map
+from sonar_ring.explain import EchoTests, audible, explain_landmarks, known_map
 from sonar_ring.geometry import Layout
 from sonar_ring.landmarks import Landmarks
 from sonar_ring.mapping import LandmarkMap, MapCounts, transform_landmarks
@@ -137,8 +139,13 @@ class MapBuilder:
         self.latest_stamp = None
         """Stamp (ns) of the latest ping mapped."""
         self.explained = {"multipath": np.empty((0, 2)), "impossible": np.empty((0, 2))}
-        self._known, self._known_age = None, 0  # the map the echo tests use, and the pings since it was made
         """The latest ping's landmarks the map explained, by how: positions (P, 2) in the map's frame."""
+        self._known, self._known_age = None, 0  # the map the echo tests use, and the pings since it was made
+        self._known_uids = np.empty(0, np.int64)  # its entries' uids (walls, then points)
+        self._expected = np.empty(0, np.int64)  # the entries this ping should hear (audible) ...
+        self._heard = np.empty(0, np.int64)  # ... and those whose own echo it heard
+        self._hearing: dict[int, list[int]] = {}  # uid -> [pings that should have heard it, pings that did]
+        self._pings_explained = 0
 
     @property
     def frame(self) -> str:
@@ -208,9 +215,13 @@ class MapBuilder:
             sensor = compose(odometry, offset)
             self.landmark_map.update(transform_landmarks(landmarks, sensor), sensor,
                                      None if models is None else models.transformed(sensor), explained)
+            self._hear()
             self.robot_pose = odometry
         else:
             report = self.slam.add_ping(landmarks, odometry, stamp * 1e-9, offset, models, explained)
+            if report.fault:  # a new session: its entries are not the tests' map's
+                self._known, self._expected, self._hearing = None, np.empty(0, np.int64), {}
+            self._hear()
             self.robot_pose = report.pose
             if report.fault:
                 self.health.problem(report.fault.replace(" ", "_"), f"{report.fault}: a new map session starts")
@@ -233,16 +244,48 @@ class MapBuilder:
         else:
             robot, covariance = self.slam.pose_at(odometry)
         if self._known is None or self._known_age >= tests.refresh_pings:
-            self._known, self._known_age = known_map(self.snapshot(), tests), 0
+            self._known, self._known_uids, self._known_age = known_map(self.snapshot(), tests), self.snapshot_uids(), 0
         self._known_age += 1
         sensor = compose(robot, offset)
-        explained = explain_landmarks(landmarks, layout, sensor, pose_covariance_at(robot, covariance, offset),
-                                      self._known, tests)
+        sensor_covariance = pose_covariance_at(robot, covariance, offset)
+        explained = explain_landmarks(landmarks, layout, sensor, sensor_covariance, self._known, tests)
+        self._pings_explained += 1
+        if tests.unheard_after > 0 and self._pings_explained % tests.hearing_every == 0:
+            self._expected = self._known_uids[audible(self._known, layout, sensor, sensor_covariance, tests)]
+            self._heard = self._known_uids[explained.heard]
         self.explained = {"multipath": explained.position[explained.multipath],
                           "impossible": explained.position[explained.impossible]}
         self.health.note("multipath explained", int(np.count_nonzero(explained.multipath)))
         self.health.note("impossible", int(np.count_nonzero(explained.impossible)))
         return explained.any
+
+    def _hear(self) -> None:
+        """Count, for each entry this ping should have heard, whether a landmark matched its own echo.
+
+        An entry heard in fewer than ``unheard_fraction`` of ``unheard_after`` or more such pings leaves the
+        map (:class:`~sonar_ring.explain.EchoTests`).
+        """
+        tests = self.settings.echo_tests
+        expected, self._expected = self._expected, np.empty(0, np.int64)
+        if not expected.size:
+            return
+        heard = set(self._heard.tolist())
+        gone = []
+        for uid in expected.tolist():
+            counts = self._hearing.setdefault(uid, [0, 0])
+            counts[0] += 1
+            counts[1] += uid in heard
+            if counts[0] >= tests.unheard_after and counts[1] < tests.unheard_fraction * counts[0]:
+                gone.append(uid)
+        if gone:
+            if self.slam is not None:
+                self.slam.forget(gone)
+            else:
+                self.landmark_map.remove(gone)
+            for uid in gone:
+                del self._hearing[uid]
+            self._known = None  # the tests' map loses them at the next ping
+            self.health.note("not heard where expected", len(gone))
 
     def _count_sightings(self) -> None:
         """What the map refused or left out since the last ping, on ``health``."""
@@ -271,6 +314,13 @@ class MapBuilder:
             return self.slam.snapshot(self.settings.min_observations)
         return self.landmark_map.snapshot(self.settings.min_observations, persistent=self._tested,
                                           decided=self._tested)
+
+    def snapshot_uids(self) -> np.ndarray:
+        """The uids of :meth:`snapshot`'s entries, in its order."""
+        if self.slam is not None:
+            return self.slam.snapshot_uids(self.settings.min_observations)
+        return self.landmark_map.snapshot_uids(self.settings.min_observations, persistent=self._tested,
+                                               decided=self._tested)
 
     def points(self) -> np.ndarray:
         """Costmap points of :meth:`snapshot`, (P, 2), in :attr:`frame`."""

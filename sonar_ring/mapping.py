@@ -1944,6 +1944,19 @@ class LandmarkMap:
             reason=np.zeros(count, np.uint8),
         )
 
+    def snapshot_uids(self, min_observations: int = 1, only=None, persistent: bool = False,
+                      decided: bool = False) -> np.ndarray:
+        """The uids of :meth:`snapshot`'s entries, in its order (walls, then points), (E,)."""
+        walls, points = self._chosen(min_observations, only, persistent, decided)
+        return np.concatenate([self._walls.uid[walls], self._points.uid[points]])
+
+    def remove(self, uids) -> None:
+        """Take the entries ``uids`` (K,) out of the map (uids it does not hold are ignored)."""
+        uids = np.asarray(uids, dtype=np.int64)
+        for table in (self._walls, self._points):
+            slots = self._slots(table, uids)
+            table.active[slots[slots >= 0]] = False
+
     def _chosen(self, min_observations: int, only, persistent: bool, decided: bool) -> tuple[np.ndarray, np.ndarray]:
         """Slots of the walls and points chosen as :meth:`snapshot` says."""
         chosen = []

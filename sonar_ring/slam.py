@@ -595,6 +595,16 @@ class LandmarkSlam:
         """
         return self.published().snapshot(min_observations=min_observations, only=self.confirmed, decided=True)
 
+    def snapshot_uids(self, min_observations: int = 1) -> np.ndarray:
+        """The uids of :meth:`snapshot`'s entries, in its order."""
+        return self.front.snapshot_uids(min_observations, only=self.confirmed, decided=True)
+
+    def forget(self, uids) -> None:
+        """Take the entries ``uids`` out of the map and the graph's confirmed set (their variables are marginalised)."""
+        self.front.remove(uids)
+        for uid in np.asarray(uids, dtype=np.int64).tolist():
+            self._confirmed.pop(uid, None)
+
     def points(self, min_observations: int = 1) -> np.ndarray:
         """Costmap points of the confirmed entries in ``map``, (P, 2), m (walls ended as in :meth:`snapshot`)."""
         return self.published().points(min_observations=min_observations, only=self.confirmed, decided=True)
