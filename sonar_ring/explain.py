@@ -730,19 +730,14 @@ def audible(known: KnownMap, layout: Layout, sensor_pose, sensor_covariance, tes
     beam and range and crosses no wall seen at least as often (:func:`predict` with the pose's
     covariance in the tolerance, single bounces only), (W + P,) bool.
     """
-    heard = np.zeros(len(known), bool)
     if len(known) == 0:
-        return heard
+        return np.zeros(0, bool)
     tolerance = Tolerance(tests.sigma_path, sensor_covariance, tests.sigma_speed, tests.sigma_map, tests.gate_sigmas)
     groups = np.arange(layout.n_groups)
     prediction = predict(known.seen, known.points, place(layout, sensor_pose), layout, groups,
                          layout.group_transmitters[:, 0], tolerance, wall_support=known.wall_support,
                          point_support=known.point_support, doubles=False)
-    reached = np.isfinite(prediction.path).any(axis=1)
-    walls = len(known.seen)
-    heard[prediction.first[reached & (prediction.kind == image_method.WALL)]] = True
-    heard[walls + prediction.first[reached & (prediction.kind == image_method.POINT)]] = True
-    return heard
+    return _own_echoes(prediction, np.isfinite(prediction.path).any(axis=1), known)
 
 
 def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_covariance, known: KnownMap,
@@ -803,10 +798,8 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     margin = np.where(np.isfinite(margin), margin, 0.0)
     blocked = impossible(reflection_points(in_map, placement, layout, transmitter), placement, layout, group,
                          transmitter, known.seen, known.normals, margin) & ~multipath
-    heard = np.zeros(len(known), bool)
-    heard[prediction.first[explanation.matched & (prediction.kind == image_method.WALL)]] = True
-    heard[len(known.seen) + prediction.first[explanation.matched & (prediction.kind == image_method.POINT)]] = True
-    out = Explained(np.zeros(count, bool), np.zeros(count, bool), position, heard)
+    out = Explained(np.zeros(count, bool), np.zeros(count, bool), position,
+                    _own_echoes(prediction, explanation.matched, known))
     out.multipath[rows], out.impossible[rows] = multipath, blocked
     return out
 
@@ -860,6 +853,14 @@ def load_kernels() -> None:
 
 
 # --------------------------------------------------------------------------- checks and set-up
+
+
+def _own_echoes(prediction: Prediction, chosen: np.ndarray, known: KnownMap) -> np.ndarray:
+    """Which entries of ``known`` (walls, then points) have a single bounce among the ``chosen`` paths, (W + P,)."""
+    entries = np.zeros(len(known), bool)
+    entries[prediction.first[chosen & (prediction.kind == image_method.WALL)]] = True
+    entries[len(known.seen) + prediction.first[chosen & (prediction.kind == image_method.POINT)]] = True
+    return entries
 
 
 def _largest_eigenvalue(covariance: np.ndarray) -> np.ndarray:
