@@ -245,6 +245,9 @@ class MapBuilder:
             robot, covariance = self.slam.pose_at(odometry)
         if self._known is None or self._known_age >= tests.refresh_pings:
             self._known, self._known_uids, self._known_age = known_map(self.snapshot(), tests), self.snapshot_uids(), 0
+            # Counters of entries the map no longer holds (merged, removed) go with them.
+            held = set(self._known_uids.tolist())
+            self._hearing = {uid: counts for uid, counts in self._hearing.items() if uid in held}
         self._known_age += 1
         sensor = compose(robot, offset)
         sensor_covariance = pose_covariance_at(robot, covariance, offset)

@@ -12,8 +12,9 @@ from numpy.testing import assert_allclose
 from sonar_ring import pipeline
 from sonar_ring.curvature import point_models
 from sonar_ring.echoes import screen_ping
+from sonar_ring.explain import EchoTests
 from sonar_ring.geometry import load_layout
-from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, Landmarks
+from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, Landmarks, make_landmarks
 from sonar_ring.map_builder import MapBuilder, MapperSettings
 from sonar_ring.ping_stage import Counts, PingStage
 from sonar_ring.poses import compose, relative_pose
@@ -170,6 +171,44 @@ def test_an_odometry_jump_starts_a_new_session_and_a_stretch_without_landmarks_i
         builder.add_odometry(stamp, compose(truth[-1], (0.005 * k, 0.0, 0.0)))
         builder.add_ping(stamp, Landmarks.empty())
     assert health.problems["no_landmarks"] == 1
+
+
+def test_an_entry_the_poses_that_should_hear_it_do_not_hear_leaves_the_map():
+    """A point seen in a burst of pings and never again, where the ring would hear it, is removed; the room stays.
+
+    The ghost is a CORNER sighting at (2, 2), in the room and in the ring's reach from every pose, added
+    to the first 20 pings' landmarks; the room's entries are heard in nearly every ping and stay as
+    mapped without the ghost.
+    """
+    truth = np.array([[1.0 + 0.01 * k, 1.0, math.radians(-135)] for k in range(160)])
+    landmarks, _ = labelled_pings(CORNER_ROOM, truth)
+    ghost = np.array([2.0, 2.0])
+    tests = EchoTests(unheard_after=50, unheard_fraction=0.25, hearing_every=1)
+
+    def mapped(with_ghost):
+        health = Counts()
+        builder = MapBuilder(MapperSettings(layout=RING, echo_tests=tests), health)
+        ghost_mapped = False
+        for k, (found, pose) in enumerate(zip(landmarks, truth, strict=True)):
+            if with_ghost and k < 20:
+                c, s = math.cos(pose[2]), math.sin(pose[2])
+                local = np.array([[c, s], [-s, c]]) @ (ghost - pose[:2])
+                group = int(np.argmax(RING.plan.facing @ local))
+                found = Landmarks.concatenate([found, make_landmarks(
+                    [CORNER], local, covariance=np.diag([2.5e-5, 2.5e-5]), confidence=0.99, group=group)])
+            stamp = int(1e9 + k * 1e9 / RING.ping_rate)
+            builder.add_odometry(stamp, pose)
+            builder.add_ping(stamp, found)
+            ghost_mapped |= bool(np.any(np.hypot(*(builder.snapshot().position - ghost).T) < 0.05))
+        return builder.snapshot(), health, ghost_mapped
+
+    room, health, _ = mapped(False)
+    assert "not heard where expected" not in health.notes and score_map(room, CORNER_ROOM).total("mapped") >= 2
+    with_ghost, health, ghost_mapped = mapped(True)
+    assert ghost_mapped  # confirmed and decided before it left
+    assert health.notes["not heard where expected"] == 1
+    assert_allclose(with_ghost.position, room.position, atol=1e-3)
+    assert np.array_equal(with_ghost.landmark_class, room.landmark_class)
 
 
 def test_the_builder_waits_for_odometry_and_counts_what_it_cannot_place():
