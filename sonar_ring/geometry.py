@@ -79,6 +79,8 @@ class GroupPlan:
         Unit vector along each group's facing.
     yaw : ndarray, shape (G,)
         That facing's angle, rad (:meth:`Layout.group_yaw`).
+    receiver_yaw, transmitter_yaw : ndarray, shape (G, K) and (G, M)
+        The facing of each group's receivers and transmitters, rad.
     """
 
     receivers: np.ndarray
@@ -86,6 +88,8 @@ class GroupPlan:
     height_offset: np.ndarray
     facing: np.ndarray
     yaw: np.ndarray
+    receiver_yaw: np.ndarray
+    transmitter_yaw: np.ndarray
 
 
 @dataclass(frozen=True)
@@ -196,7 +200,8 @@ class Layout:
         yaw = self.group_yaw()
         arrays = tuple(np.ascontiguousarray(array, dtype=float) for array in (
             self.group_receivers()[..., :2], self.transmitters[self.group_transmitters, :2], self.height_offset(),
-            np.stack([np.cos(yaw), np.sin(yaw)], axis=-1), yaw))
+            np.stack([np.cos(yaw), np.sin(yaw)], axis=-1), yaw, self.receiver_yaw[self.groups],
+            self.transmitter_yaw[self.group_transmitters]))
         for array in arrays:
             array.flags.writeable = False
         return GroupPlan(*arrays)

@@ -772,13 +772,14 @@ def place(layout: Layout, pose) -> Placement:
         raise ValueError(f"place: pose must be finite (x, y, yaw), got {pose!r}")
     cos_yaw, sin_yaw = math.cos(pose[2]), math.sin(pose[2])
     rotation = np.array([[cos_yaw, -sin_yaw], [sin_yaw, cos_yaw]])
-    tx_yaw = layout.transmitter_yaw[layout.group_transmitters] + pose[2]
-    rx_yaw = layout.receiver_yaw[layout.groups] + pose[2]
+    plan = layout.plan
+    tx_yaw = plan.transmitter_yaw + pose[2]
+    rx_yaw = plan.receiver_yaw + pose[2]
     return Placement(
         pose=pose,
         rotation=rotation,
-        tx=layout.transmitters[layout.group_transmitters][..., :2] @ rotation.T + pose[:2],
-        rx=layout.receivers[layout.groups][..., :2] @ rotation.T + pose[:2],
+        tx=plan.transmitters @ rotation.T + pose[:2],
+        rx=plan.receivers @ rotation.T + pose[:2],
         tx_axis=np.stack([np.cos(tx_yaw), np.sin(tx_yaw)], axis=-1)[:, :, None, :],
         rx_axis=np.stack([np.cos(rx_yaw), np.sin(rx_yaw)], axis=-1)[:, None, :, :],
     )
