@@ -48,6 +48,7 @@ import numpy as np
 from sonar_ring import solvers
 from sonar_ring.geometry import Layout
 from sonar_ring.landmarks import CORNER, EDGE, UNKNOWN, Landmarks
+from sonar_ring.poses import turned_covariances
 
 CURVATURE_THRESHOLD = 13.816
 """``|chi2_corner - chi2_edge|`` that tells a fixed point an edge or a corner: ``2 ln 1000``, a likelihood ratio of
@@ -133,7 +134,8 @@ class PointModels:
         c, s = np.cos(pose[2]), np.sin(pose[2])
         rotation = np.array([[c, -s], [s, c]])
         return PointModels(self.corner @ rotation.T + pose[:2], self.edge @ rotation.T + pose[:2],
-                           rotation @ self.corner_covariance @ rotation.T, rotation @ self.edge_covariance @ rotation.T,
+                           turned_covariances(self.corner_covariance, rotation),
+                           turned_covariances(self.edge_covariance, rotation),
                            self.separation_noise, self.valid)
 
     def widened(self, extra) -> PointModels:

@@ -134,6 +134,7 @@ from sonar_ring.compiled import kernel
 from sonar_ring.curvature import CONSISTENCY_Z, CURVATURE_THRESHOLD, PointModels, chi2_quantile, decide
 from sonar_ring.curvature import load_kernels as load_curvature_kernels
 from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, UNKNOWN, Landmarks, make_landmarks
+from sonar_ring.poses import turned_covariances
 
 CHI2_2DOF_99 = 9.2103
 """99 % point of chi-square with 2 degrees of freedom; also ``2 ln 100``."""
@@ -502,8 +503,9 @@ def transform_landmarks(landmarks: Landmarks, pose) -> Landmarks:
     rotation = _rotation(pose[2])
     # Built directly: dataclasses.replace walks the fields in Python (twice a ping in the mapper).
     return Landmarks(landmark_class=landmarks.landmark_class, position=landmarks.position @ rotation.T + pose[:2],
-                     normal=landmarks.normal @ rotation.T, covariance=rotation @ landmarks.covariance @ rotation.T,
-                     confidence=landmarks.confidence, segment=landmarks.segment @ rotation.T + pose[:2],
+                     normal=landmarks.normal @ rotation.T,
+                     covariance=turned_covariances(landmarks.covariance, rotation), confidence=landmarks.confidence,
+                     segment=landmarks.segment @ rotation.T + pose[:2],
                      observations=landmarks.observations, group=landmarks.group, echo=landmarks.echo,
                      valid=landmarks.valid, reason=landmarks.reason)
 

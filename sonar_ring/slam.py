@@ -83,7 +83,7 @@ import numpy as np
 from sonar_ring.curvature import PointModels
 from sonar_ring.landmarks import CORNER, EDGE, UNKNOWN, Landmarks
 from sonar_ring.mapping import LandmarkMap, transform_landmarks
-from sonar_ring.poses import compose, inverse, relative_pose
+from sonar_ring.poses import compose, inverse, relative_pose, turned_covariances
 
 POSE, POINT, WALL = "x", "l", "w"
 """Symbol characters of the graph's keyframe poses, point landmarks and walls."""
@@ -455,7 +455,7 @@ class LandmarkSlam:
         c, s = math.cos(frame[2]), math.sin(frame[2])
         rotation = np.array([[c, -s], [s, c]])
         position = position @ rotation.T + frame[:2]
-        covariance = rotation @ covariance @ rotation.T + self.settings.sighting_sigma ** 2 * np.eye(2)
+        covariance = turned_covariances(covariance, rotation) + self.settings.sighting_sigma ** 2 * np.eye(2)
         if wall.any():
             foot, jacobian = _foot_points(position[wall], frame[:2])
             position[wall] = foot

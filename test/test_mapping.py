@@ -9,6 +9,7 @@ from numpy.testing import assert_allclose, assert_array_equal
 
 from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, UNKNOWN, Landmarks, make_landmarks
 from sonar_ring.mapping import LandmarkMap, MapCounts, transform_landmarks
+from sonar_ring.poses import turned_covariances
 
 # Synthetic scene: the robot drives along +x on y = 0 past a wall on y = WALL_Y (seen from
 # below, so its normal towards the sensor is -y) and a corner at CORNER_POINT.
@@ -113,6 +114,16 @@ def test_transform_landmarks_round_trip_and_empty():
     assert_allclose(again.position, landmarks.position, atol=1e-12)
     assert_allclose(again.covariance, landmarks.covariance, atol=1e-15)
     assert len(transform_landmarks(Landmarks.empty(), pose)) == 0
+
+
+def test_turned_covariances_are_r_c_rt_bit_for_bit():
+    rng = np.random.default_rng(5)
+    factor = rng.normal(size=(200, 2, 2))
+    covariance = factor @ factor.transpose(0, 2, 1)
+    for yaw in rng.uniform(-np.pi, np.pi, 20):
+        rotation = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+        assert_array_equal(turned_covariances(covariance, rotation), rotation @ covariance @ rotation.T)
+    assert turned_covariances(np.empty((0, 2, 2)), np.eye(2)).shape == (0, 2, 2)
 
 
 # --------------------------------------------------------------------------- fusion and convergence
