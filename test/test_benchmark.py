@@ -82,6 +82,9 @@ def test_quick_map_study_writes_its_section_and_readme_table(tmp_path):
     for world in ("ideal", "realistic"):
         row = next(line for line in section.splitlines() if line.startswith(f"| {world} | odom-frame map"))
         assert re.search(r"\| \d+\.\d of \d+\.\d \|", row) and "ms |" in row, row
+        # walls past their ends (median / worst; runs within 2 cm) and the pose's RMS / final error
+        assert re.search(r"\| \d+\.\d / \d+\.\d cm, \d of 2 \|", row), row
+        assert re.search(r"\| \d+\.\d / \d+\.\d cm \|", row), row
     assert "sonar-ring bench --map" in section and "2 seeds" in section
     summary = readme.read_text()
     assert "old" not in summary and "| realistic | odom-frame map |" in summary
