@@ -427,6 +427,23 @@ def test_walls_on_one_line_do_not_merge_across_an_edge_between_them():
             assert len(walls) == 1 and landmark_map.counts.merged_walls == 1
 
 
+def test_a_wall_does_not_grow_past_an_edge_on_its_line():
+    # a wall seen up to the jamb at x = 1.5; sightings on its line beyond the jamb start the wall on the other
+    # side of the doorway instead of growing this one across it; sightings within reach before it still join
+    rng = np.random.default_rng(12)
+    landmark_map = LandmarkMap()
+    for x in np.arange(1.2, 1.8, STEP):
+        landmark_map.update(sightings(rng, np.array([x, 0.0]), [[1.5, WALL_Y]], [EDGE]), [x, 0, 0])
+    for x in np.arange(0.0, 1.4, STEP):
+        landmark_map.update(sightings(rng, np.array([x, 0.0]), [[x, WALL_Y]], [PLANE]), [x, 0, 0])
+    for x in np.arange(1.6, 2.2, STEP):  # beyond the jamb, within the search radius of the wall's end
+        landmark_map.update(sightings(rng, np.array([x, 0.0]), [[x, WALL_Y]], [PLANE]), [x, 0, 0])
+    walls = by_class(landmark_map.snapshot(), PLANE)
+    assert len(walls) == 2
+    ends = np.sort(np.sort(walls.segment[:, :, 0], axis=1), axis=0)
+    assert ends[0, 1] < 1.5 < ends[1, 0], ends  # one wall each side of the jamb
+
+
 def test_a_published_wall_ends_at_the_edge_its_seen_extent_ran_past():
     # a seen extent runs up to about 0.25 m past a wall's end where an echo on its line continues it (the
     # realistic room's pillar faces); SLAM publishes the wall ended at the edge there, not past it
