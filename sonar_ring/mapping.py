@@ -1719,7 +1719,8 @@ class LandmarkMap:
                 return
             d2, gap, _, _, along = self._wall_matches(keep, other)
             hits = np.flatnonzero((d2 <= self.gate_chi2) & (gap <= self.search_radius))
-            hits = hits[~self._edge_between(keep[hits], along[hits])]
+            middle = 0.5 * (w.extent[keep[hits], 0] + w.extent[keep[hits], 1])
+            hits = hits[~self._edge_between(keep[hits], middle, along[hits].mean(axis=1))]
             survivors = []
             for k in hits[np.argsort(d2[hits], kind="stable")]:
                 a, b = keep[k], other[k]
@@ -1730,42 +1731,34 @@ class LandmarkMap:
                     survivors.append(survivor)
             pending = np.unique(np.asarray(survivors, dtype=np.int64))
 
-    def _edge_between(self, keep, other_along) -> np.ndarray:
-        """Whether an EDGE lies on the line of each wall ``keep`` (K,) between its middle and another wall's.
+    def _edge_between(self, walls, first, second) -> np.ndarray:
+        """Whether an EDGE on the line of each wall ``walls`` (K,) lies strictly between ``first`` and ``second`` (K,).
 
-        ``other_along`` (K, 2): the other wall's ends along ``keep``'s tangent from its anchor.  A wall ends at a
-        convex edge: two walls on one line with an edge between them are the two sides of a doorway, however
-        close their seen extents have come (an edge's echo placed a degree off, or a double bounce on the
-        line, runs a seen extent past the wall's end), not one wall.
-        """
-        p, w = self._points, self._walls
-        edges = np.flatnonzero(p.active & (p.landmark_class == EDGE))
-        if not edges.size or not keep.size:
-            return np.zeros(keep.size, bool)
-        along, across = w.coordinates(keep, p.mean[edges])  # the walls are recentred: their lines pass the anchors
-        middle = 0.5 * (w.extent[keep, 0] + w.extent[keep, 1])
-        other_middle = other_along.mean(axis=1)
-        between = (along - middle[:, None]) * (along - other_middle[:, None]) < 0
-        return ((np.abs(across) <= EDGE_ON_WALL) & between).any(axis=1)
-
-    def _past_an_edge(self, walls, position) -> np.ndarray:
-        """Whether an EDGE on the line of each wall ``walls`` (K,) lies between its seen extent and ``position`` (K, 2).
-
-        A wall ends at a convex edge: a sighting on its line beyond one (the other side of a doorway, the jamb's
-        own echo placed along the line) is not this wall's, however near (a seen extent grown across a doorway
-        sighting by sighting reached the wall beyond it: 1.8 m past the wall's end in one realistic run of 20).
-        A sighting within the extent always may join.
+        Both are positions along the wall's tangent from its anchor, m.  A wall ends at a convex edge: two walls
+        on one line with an edge between their middles are the two sides of a doorway, however close their seen
+        extents have come (an edge's echo placed a degree off, or a double bounce on the line, runs a seen extent
+        past the wall's end), not one wall; and a sighting on the line beyond an edge past the wall's seen extent
+        is not this wall's (:meth:`_past_an_edge`).
         """
         p, w = self._points, self._walls
         edges = np.flatnonzero(p.active & (p.landmark_class == EDGE))
         if not edges.size or not walls.size:
             return np.zeros(walls.size, bool)
+        along, across = w.coordinates(walls, p.mean[edges])  # the walls are recentred: their lines pass the anchors
+        between = (along - first[:, None]) * (along - second[:, None]) < 0
+        return ((np.abs(across) <= EDGE_ON_WALL) & between).any(axis=1)
+
+    def _past_an_edge(self, walls, position) -> np.ndarray:
+        """Whether an EDGE on the line of each wall ``walls`` (K,) lies between its seen extent and ``position`` (K, 2).
+
+        A sighting beyond such an edge (the other side of a doorway, the jamb's own echo placed along the line) is
+        not this wall's, however near: a seen extent grown across a doorway sighting by sighting reached the wall
+        beyond it (1.8 m past the wall's end in one realistic run of 20).  A sighting within the extent always may
+        join.
+        """
+        w = self._walls
         along = np.einsum("ki,ki->k", position - w.anchor[walls], w.tangent[walls])
-        end = np.clip(along, w.extent[walls, 0], w.extent[walls, 1])  # the extent's nearest point
-        low, high = np.minimum(along, end), np.maximum(along, end)
-        edge_along, edge_across = w.coordinates(walls, p.mean[edges])
-        return ((np.abs(edge_across) <= EDGE_ON_WALL) & (edge_along > low[:, None])
-                & (edge_along < high[:, None])).any(axis=1)
+        return self._edge_between(walls, along, np.clip(along, w.extent[walls, 0], w.extent[walls, 1]))
 
     def _absorb_wall(self, keep: int, other: int) -> None:
         w = self._walls

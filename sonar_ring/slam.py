@@ -600,7 +600,12 @@ class LandmarkSlam:
         return self.front.snapshot_uids(min_observations, only=self.confirmed, decided=True)
 
     def forget(self, uids) -> None:
-        """Take the entries ``uids`` out of the map and the graph's confirmed set (their variables are marginalised)."""
+        """Take the entries ``uids`` out of the map and the graph's confirmed set.
+
+        Their variables and factors stay in the smoother until their keyframes pass the lag, so what they did
+        to the poses meanwhile stays too (the echo tests remove a ghost 10 s or more after it entered their map,
+        past the default 5 s lag).
+        """
         self.front.remove(uids)
         for uid in np.asarray(uids, dtype=np.int64).tolist():
             self._confirmed.pop(uid, None)
