@@ -128,6 +128,7 @@ The pose is taken as exact: the map is consistent in ``odom`` as far as odometry
 from __future__ import annotations
 
 import copy
+import math
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -420,6 +421,143 @@ def _point_entry_covariance(information, map_sigma):
 def _line_entry_covariance(information, extent, map_sigma):
     """Covariance (K, 2, 2) of lines (walls, plane hypotheses) from their information, with the end-point floor."""
     return _inverse(information) + _line_floor(extent, map_sigma)
+
+
+@kernel
+def _mark_seen(target, low, high, ping, sensor, last_seen, pings, unexplained, explained, travel, origin):
+    """Mark the entries ``target - low`` of the targets in ``low:high`` seen at ``ping`` from ``sensor`` (2,).
+
+    Once each, however many sightings matched it: the table's support columns (:func:`_add_support`) and
+    ``last_seen``, in place.
+    """
+    seen = np.zeros(high - low, dtype=np.bool_)
+    for i in range(target.size):
+        if low <= target[i] < high:
+            seen[target[i] - low] = True
+    for slot in range(seen.size):
+        if seen[slot]:
+            last_seen[slot] = ping
+            pings[slot] += 1
+            unexplained[slot] += explained[slot] > 0
+            distance = math.hypot(sensor[0] - origin[slot, 0], sensor[1] - origin[slot, 1])
+            if np.isnan(distance) or distance > travel[slot]:
+                travel[slot] = distance
+
+
+@kernel
+def _explain_away(target, explained, max_points, min_support_pings, point_explained, point_unexplained, point_pings,
+                  point_active, wall_explained, wall_unexplained, wall_pings, wall_active):
+    """The targets with explained sightings ``_EXPLAINED``, and the slots of the entries explained away.
+
+    The rule and the counts of :meth:`LandmarkMap._explain_away`, for the
+    points' and the walls' support columns and ``active`` flags, in place;
+    slots as targets (walls from ``max_points``), ascending.  A sighting whose
+    entry goes is set to -1 (it starts afresh).
+    """
+    slots = max_points + wall_active.size
+    hit = np.zeros(slots, dtype=np.bool_)
+    fused = np.zeros(slots, dtype=np.bool_)
+    for i in range(target.size):
+        if target[i] >= 0:
+            if explained[i]:
+                hit[target[i]] = True
+            else:
+                fused[target[i]] = True  # a ping that also fused a sighting into an entry does not explain it
+    ghosts = np.empty(slots, dtype=np.int64)
+    count = 0
+    for slot in range(slots):
+        if not hit[slot] or fused[slot]:
+            continue
+        if slot < max_points:
+            point_explained[slot] += 1
+            times = point_explained[slot]
+            gone = (times >= min_support_pings and times >= point_unexplained[slot]
+                    and 3 * times >= point_pings[slot])
+            if gone:
+                point_active[slot] = False
+        else:
+            wall = slot - max_points
+            wall_explained[wall] += 1
+            times = wall_explained[wall]
+            gone = (times >= min_support_pings and times >= wall_unexplained[wall]
+                    and 3 * times >= wall_pings[wall])
+            if gone:
+                wall_active[wall] = False
+        if gone:
+            ghosts[count] = slot
+            count += 1
+    out = target.copy()
+    for i in range(out.size):
+        if explained[i]:
+            out[i] = _EXPLAINED
+        elif out[i] >= max_points and not wall_active[out[i] - max_points]:
+            out[i] = -1
+        elif 0 <= out[i] < max_points and not point_active[out[i]]:
+            out[i] = -1
+    return out, ghosts[:count]
+
+
+@kernel
+def _best_targets(count, row, candidate, d2, score, new_entry_gate_chi2):
+    """Each of ``count`` sightings' entry: its candidate (K,) of lowest finite ``score`` (ties: lowest ``candidate``).
+
+    A sighting with no candidate of finite score gets ``_AMBIGUOUS`` where its
+    nearest ``d2`` is within ``new_entry_gate_chi2`` (too near an entry to start
+    one; a NaN distance is not), else -1 (start a new entry).
+    """
+    nearest = np.full(count, np.inf)
+    best_score = np.full(count, np.inf)
+    target = np.full(count, -1, dtype=np.int64)
+    for i in range(row.size):
+        r = row[i]
+        if np.isnan(d2[i]) or d2[i] < nearest[r]:
+            nearest[r] = d2[i]
+        if np.isfinite(score[i]) and (target[r] < 0 or score[i] < best_score[r]
+                                      or (score[i] == best_score[r] and candidate[i] < target[r])):
+            best_score[r], target[r] = score[i], candidate[i]
+    for r in range(count):
+        if target[r] < 0 and nearest[r] <= new_entry_gate_chi2:
+            target[r] = _AMBIGUOUS
+    return target
+
+
+@kernel
+def _edges_between(walls, first, second, anchor, tangent, normal, active, entry_class, mean):
+    """Whether an active EDGE lies on the line of each wall ``walls`` (K,) strictly between ``first`` and ``second``.
+
+    On the line: within :data:`EDGE_ON_WALL` of it (the walls are recentred: their
+    lines pass their anchors); ``first`` and ``second`` (K,) are positions along the
+    wall's tangent from its anchor, m.  The points' ``active``, ``entry_class`` and
+    ``mean`` (slots, 2), the walls' ``anchor``, ``tangent`` and ``normal`` (slots, 2).
+    """
+    between = np.zeros(walls.size, dtype=np.bool_)
+    for e in range(active.size):
+        if not active[e] or entry_class[e] != EDGE:
+            continue
+        for k in range(walls.size):
+            w = walls[k]
+            offset_x, offset_y = mean[e, 0] - anchor[w, 0], mean[e, 1] - anchor[w, 1]
+            along = offset_x * tangent[w, 0] + offset_y * tangent[w, 1]
+            across = offset_x * normal[w, 0] + offset_y * normal[w, 1]
+            between[k] = between[k] or (abs(across) <= EDGE_ON_WALL and (along - first[k]) * (along - second[k]) < 0)
+    return between
+
+
+@kernel
+def _edges_past_extents(walls, position, anchor, tangent, normal, extent, active, entry_class, mean):
+    """Whether an active EDGE lies on the line of each wall ``walls`` (K,) between its seen extent and ``position``.
+
+    ``position`` (K, 2), m.  Between the extent's end nearest to the position's place along the line
+    and that place (none for a position within the extent); the arrays as
+    :func:`_edges_between` takes them, and the walls' ``extent`` (slots, 2), m.
+    """
+    along = np.empty(walls.size)
+    nearest = np.empty(walls.size)
+    for k in range(walls.size):
+        w = walls[k]
+        along[k] = (position[k, 0] - anchor[w, 0]) * tangent[w, 0] + (position[k, 1] - anchor[w, 1]) * tangent[w, 1]
+        nearest[k] = min(max(along[k], extent[w, 0]), extent[w, 1])
+    return _edges_between(walls, along, nearest, anchor, tangent, normal, active, entry_class, mean)
 
 
 @kernel
@@ -1238,25 +1376,13 @@ class LandmarkMap:
         ``_EXPLAINED`` (neither fused nor started).
         """
         self._counts.explained += int(np.count_nonzero(explained))
-        hit = np.unique(target[explained & (target >= 0)])
-        # A ping that also fused a sighting into an entry does not explain it.
-        fused = set(target[~explained & (target >= 0)].tolist())
-        hit = hit[np.array([slot not in fused for slot in hit.tolist()], dtype=bool)]
-        for table, slots in ((self._points, hit[hit < self.max_points]),
-                             (self._walls, hit[hit >= self.max_points] - self.max_points)):
-            table.explained[slots] += 1
-            times = table.explained[slots]
-            ghosts = slots[(times >= self.min_support_pings) & (times >= table.unexplained[slots])
-                           & (3 * times >= table.pings[slots])]
-            table.active[ghosts] = False
-            self._removed.extend(table.uid[ghosts].tolist())
-            self._counts.explained_away += ghosts.size
-        target = target.copy()
-        target[explained] = _EXPLAINED
-        gone = (target >= 0) & ~np.where(target >= self.max_points,
-                                         self._walls.active[np.clip(target - self.max_points, 0, None)],
-                                         self._points.active[np.clip(target, 0, self.max_points - 1)])
-        target[gone] = -1  # its match was explained away in this ping: it starts afresh
+        p, w = self._points, self._walls
+        target, ghosts = _explain_away(target, explained, self.max_points, self.min_support_pings, p.explained,
+                                       p.unexplained, p.pings, p.active, w.explained, w.unexplained, w.pings,
+                                       w.active)
+        self._removed.extend(p.uid[ghosts[ghosts < self.max_points]].tolist())
+        self._removed.extend(w.uid[ghosts[ghosts >= self.max_points] - self.max_points].tolist())
+        self._counts.explained_away += ghosts.size
         return target
 
     def _uids_of(self, target) -> np.ndarray:
@@ -1357,30 +1483,17 @@ class LandmarkMap:
             targets.append(self.max_points + walls)
             distances.append(d2)
             scores.append(score)
-        target = np.full(count, -1)
-        if rows:
-            row, candidate, d2, score = (np.concatenate(a) for a in (rows, targets, distances, scores))
-            nearest = np.full(count, np.inf)
-            np.minimum.at(nearest, row, d2)
-            target[nearest <= self.new_entry_gate_chi2] = _AMBIGUOUS
-            inside = np.isfinite(score)
-            row, candidate, score = row[inside], candidate[inside], score[inside]
-            order = np.lexsort((candidate, score, row))
-            row, candidate = row[order], candidate[order]
-            first = np.ones(row.size, dtype=bool)
-            first[1:] = row[1:] != row[:-1]
-            first = np.flatnonzero(first)
-            target[row[first]] = candidate[first]
-        return target
+        if not rows:
+            return np.full(count, -1)
+        return _best_targets(count, *(np.concatenate(a) for a in (rows, targets, distances, scores)),
+                             self.new_entry_gate_chi2)
 
     def _mark_seen(self, target, sensor) -> None:
         """The ping's matched entries: seen now, their support grown (a ping counts once per entry)."""
-        for table, slots in ((self._points, np.unique(target[(target >= 0) & (target < self.max_points)])),
-                             (self._walls, np.unique(target[target >= self.max_points] - self.max_points))):
-            table.last_seen[slots] = self._ping
-            table.pings[slots] += 1
-            table.unexplained[slots] += table.explained[slots] > 0
-            table.travel[slots] = np.maximum(table.travel[slots], np.hypot(*(sensor - table.origin[slots]).T))
+        for table, low, high in ((self._points, 0, self.max_points),
+                                 (self._walls, self.max_points, self.max_points + self.max_walls)):
+            _mark_seen(target, low, high, self._ping, sensor, table.last_seen, table.pings, table.unexplained,
+                       table.explained, table.travel, table.origin)
 
     # ------------------------------------------------------------------ new entries
 
@@ -1741,12 +1854,7 @@ class LandmarkMap:
         is not this wall's (:meth:`_past_an_edge`).
         """
         p, w = self._points, self._walls
-        edges = np.flatnonzero(p.active & (p.landmark_class == EDGE))
-        if not edges.size or not walls.size:
-            return np.zeros(walls.size, bool)
-        along, across = w.coordinates(walls, p.mean[edges])  # the walls are recentred: their lines pass the anchors
-        between = (along - first[:, None]) * (along - second[:, None]) < 0
-        return ((np.abs(across) <= EDGE_ON_WALL) & between).any(axis=1)
+        return _edges_between(walls, first, second, w.anchor, w.tangent, w.normal, p.active, p.landmark_class, p.mean)
 
     def _past_an_edge(self, walls, position) -> np.ndarray:
         """Whether an EDGE on the line of each wall ``walls`` (K,) lies between its seen extent and ``position`` (K, 2).
@@ -1756,9 +1864,9 @@ class LandmarkMap:
         beyond it (1.8 m past the wall's end in one realistic run of 20).  A sighting within the extent always may
         join.
         """
-        w = self._walls
-        along = np.einsum("ki,ki->k", position - w.anchor[walls], w.tangent[walls])
-        return self._edge_between(walls, along, np.clip(along, w.extent[walls, 0], w.extent[walls, 1]))
+        p, w = self._points, self._walls
+        return _edges_past_extents(walls, position, w.anchor, w.tangent, w.normal, w.extent, p.active,
+                                   p.landmark_class, p.mean)
 
     def _absorb_wall(self, keep: int, other: int) -> None:
         w = self._walls
