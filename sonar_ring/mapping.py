@@ -1070,6 +1070,54 @@ def _recentre(anchor, line, information, normal, tangent, extent, rows):
         tangent[row, 0], tangent[row, 1] = -normal_y, normal_x
 
 
+@kernel
+def _last_of_each(slots, among, capacity):
+    """The distinct ``slots[among]`` (< ``capacity``), ascending, and the largest index of ``among`` going to each."""
+    last = np.full(capacity, -1, dtype=np.int64)
+    for index in among:
+        last[slots[index]] = max(last[slots[index]], index)
+    count = 0
+    for slot in range(capacity):
+        count += last[slot] >= 0
+    rows = np.empty(count, dtype=np.int64)
+    count = 0
+    for slot in range(capacity):
+        if last[slot] >= 0:
+            rows[count] = slot
+            count += 1
+    return rows, last[rows]
+
+
+@kernel
+def _add_differences(difference, modelled, slots, pulled, statistic):
+    """Add each sighting's pull (K, 2) and statistic (K,) to ``difference[slot]`` (M, 3) and count it, in order."""
+    for k in range(slots.size):
+        difference[slots[k], 0] += pulled[k, 0]
+        difference[slots[k], 1] += pulled[k, 1]
+        difference[slots[k], 2] += statistic[k]
+        modelled[slots[k]] += 1
+
+
+@kernel
+def _classes_of(uids, wall_uid, wall_active, point_uid, point_active, point_class):
+    """:meth:`LandmarkMap.classes_of`: each active slot's uid found among the sorted ``uids`` (K,)."""
+    is_wall = np.zeros(uids.size, dtype=np.bool_)
+    entry_class = np.full(uids.size, UNKNOWN, dtype=np.uint8)
+    order = np.argsort(uids)
+    ordered = uids[order]
+    for table in range(2):
+        table_uid, active = (wall_uid, wall_active) if table == 0 else (point_uid, point_active)
+        for slot in range(table_uid.size):
+            if not active[slot]:
+                continue
+            k = np.searchsorted(ordered, table_uid[slot])
+            while k < ordered.size and ordered[k] == table_uid[slot]:
+                is_wall[order[k]] = table == 0
+                entry_class[order[k]] = PLANE if table == 0 else point_class[slot]
+                k += 1
+    return is_wall, entry_class
+
+
 class _Groups:
     """K observations grouped by the table slot (< ``capacity``) each goes to.
 
@@ -1099,10 +1147,7 @@ class _Groups:
         Returns the distinct slots (ascending) and the index of that observation.
         """
         among = np.arange(self.slots.size) if among is None else among
-        last = np.full(self.capacity, -1)
-        np.maximum.at(last, self.slots[among], among)
-        rows = np.flatnonzero(last >= 0)
-        return rows, last[rows]
+        return _last_of_each(self.slots, among, self.capacity)
 
 
 def _information_update(mean, information, chi2, groups: _Groups, innovation, weight):
@@ -1680,10 +1725,7 @@ class LandmarkMap:
                             edge_weight)
         difference = m.edge[rows] - m.corner[rows]
         pulled = _apply(weight, difference)
-        np.add.at(p.difference[:, 0], slots, pulled[:, 0])
-        np.add.at(p.difference[:, 1], slots, pulled[:, 1])
-        np.add.at(p.difference[:, 2], slots, _dot(difference, pulled) - m.separation_noise[rows])
-        np.add.at(p.modelled, slots, 1)
+        _add_differences(p.difference, p.modelled, slots, pulled, _dot(difference, pulled) - m.separation_noise[rows])
 
     def _fuse_plane_hypotheses(self, s: Sightings, rows, slots) -> None:
         """Fuse sightings ``rows`` into the plane hypotheses, extents and baselines of ``slots``."""
@@ -1900,6 +1942,15 @@ class LandmarkMap:
             normal=np.concatenate([w.normal[walls], np.zeros((points.size, 2))]),
             observations=np.concatenate([w.observations[walls], p.observations[points]]),
         )
+
+    def classes_of(self, uids) -> tuple[np.ndarray, np.ndarray]:
+        """Whether each entry ``uids`` (K,) is a wall, and its class (PLANE for a wall), shape (K,) each.
+
+        False and UNKNOWN where no active entry has the uid.  The same as looking the uids up in
+        :meth:`entries`, without building them.
+        """
+        w, p = self._walls, self._points
+        return _classes_of(np.asarray(uids, dtype=np.int64), w.uid, w.active, p.uid, p.active, p.landmark_class)
 
     def _slots(self, table, uids) -> np.ndarray:
         """The slots of ``table`` holding the active entries ``uids`` (-1 where none does)."""

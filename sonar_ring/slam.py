@@ -81,7 +81,7 @@ import gtsam
 import numpy as np
 
 from sonar_ring.curvature import PointModels
-from sonar_ring.landmarks import CORNER, EDGE, UNKNOWN, Landmarks
+from sonar_ring.landmarks import CORNER, EDGE, Landmarks
 from sonar_ring.mapping import LandmarkMap, transform_landmarks
 from sonar_ring.poses import compose, inverse, relative_pose, turned_covariances
 
@@ -432,14 +432,7 @@ class LandmarkSlam:
         under its entry's decided model (an EDGE's edge model, a CORNER's corner model), else the
         sighting's own keeping only its range (module docstring).
         """
-        entries = self.front.entries()
-        row_of = {uid: row for row, uid in enumerate(entries.uid.tolist())}
-        rows = np.array([row_of.get(uid, -1) for uid in uids.tolist()], dtype=np.int64)
-        known = rows >= 0
-        entry_class = np.full(len(uids), UNKNOWN, np.uint8)
-        entry_class[known] = entries.landmark_class[rows[known]]
-        wall = np.zeros(len(uids), bool)
-        wall[known] = entries.is_wall[rows[known]]
+        wall, entry_class = self.front.classes_of(uids)
         position = np.array(landmarks.position, dtype=float)
         covariance = np.array(landmarks.covariance, dtype=float)
         decided = np.zeros(len(uids), bool)

@@ -256,6 +256,22 @@ def test_unknown_sightings_resolve_into_a_wall_and_a_corner_over_motion():
     assert landmark_map.decided(uids).all() and not landmark_map.decided([uids.max() + 1]).any()
 
 
+def test_classes_of_looks_uids_up_as_the_entries_list_them():
+    rng = np.random.default_rng(5)
+    landmark_map = LandmarkMap()
+    for x in np.arange(0.0, 1.0, STEP):
+        drive(landmark_map, rng, [x])
+    entries = landmark_map.entries()
+    assert entries.is_wall.any() and not entries.is_wall.all()
+    missing = entries.uid.max() + 1
+    uids = np.concatenate([entries.uid[::-1], [missing], entries.uid[:1]])
+    is_wall, entry_class = landmark_map.classes_of(uids)
+    assert_array_equal(is_wall, np.concatenate([entries.is_wall[::-1], [False], entries.is_wall[:1]]))
+    assert_array_equal(entry_class, np.concatenate([entries.landmark_class[::-1], [UNKNOWN],
+                                                    entries.landmark_class[:1]]))
+    assert entry_class.dtype == np.uint8 and landmark_map.classes_of(np.empty(0, np.int64))[0].shape == (0,)
+
+
 @pytest.mark.parametrize("motion", ["standing", "towards the wall"])
 def test_unknown_stays_unknown_without_motion_across_the_line_of_sight(motion):
     rng = np.random.default_rng(6)
