@@ -341,8 +341,8 @@ def predict(walls, points, placement: Placement, layout: Layout, group, transmit
     """
     walls, points = _map_arrays(walls, points, "predict")
     seen = walls if seen is None else _segments(seen, "predict", "seen")
-    wall_support = _support(wall_support, len(walls), "wall_support")
-    point_support = _support(point_support, len(points), "point_support")
+    wall_support = _support(wall_support, len(walls), "wall_support", "predict")
+    point_support = _support(point_support, len(points), "point_support", "predict")
     if seen.shape != walls.shape:
         raise ValueError(f"predict: seen must have the shape of walls {walls.shape}, got {seen.shape}")
     group, slot = _channels(layout, group, transmitter, "predict")
@@ -350,19 +350,8 @@ def predict(walls, points, placement: Placement, layout: Layout, group, transmit
     row_paths = np.empty((group.size, layout.receivers_per_group)) if paths is None else _row_paths(
         paths, group.size, layout, "predict")
     max_path = 2.0 * layout.max_range if max_path is None else float(max_path)
-    start, direction, normal, length = image_method.wall_frames(walls)
-    excluded_pair, excluded_point = image_method.junctions(walls, points, junction)
-    (kind, first, second, path_group, path_slot, support, path, jacobian, first_point, last_point,
-     channel_start) = image_method.map_paths(
-        start, direction, normal, length, seen, points, wall_support, point_support, excluded_pair, excluded_point,
-        placement.tx, placement.rx,
-        placement.tx_axis, placement.rx_axis, layout.plan.height_offset, layout.group_transmitters,
-        group * layout.group_transmitters.shape[1] + slot, row_paths, placement.pose, max_path, layout.beam_half_angle,
-        tolerance.pose_covariance, tolerance.xy_sigma, tolerance.yaw_sigma, tolerance.sigma_path, tolerance.sigma_speed,
-        tolerance.sigma_map, tolerance.gate_sigmas, layout.isotropic_emitter, prune, paths is not None, doubles)
-    return Prediction(group=path_group, slot=path_slot, kind=kind, first=first, second=second, support=support,
-                      path=path, jacobian=jacobian, first_point=first_point, last_point=last_point,
-                      channel_start=channel_start)
+    return _predict(_MapGeometry.of(walls, points, seen, wall_support, point_support, junction), placement, layout,
+                    group, slot, row_paths, paths is not None, tolerance, max_path, prune, doubles)
 
 
 def match(prediction: Prediction, layout: Layout, group, transmitter, paths, tolerance: Tolerance, *,
@@ -399,16 +388,7 @@ def match(prediction: Prediction, layout: Layout, group, transmitter, paths, tol
     paths = _row_paths(paths, group.size, layout, "match")
     if prediction.channel_start.shape != (layout.n_groups * layout.group_transmitters.shape[1] + 1,):
         raise ValueError("match: the prediction is of another layout")
-    channel = group * layout.group_transmitters.shape[1] + slot
-    best, direct, residual, direct_residual, double_support, matched = image_method.match_rows(
-        channel, paths, prediction.channel_start, prediction.kind, prediction.support, prediction.path,
-        prediction.jacobian, tolerance.pose_covariance, tolerance.sigma_path, tolerance.sigma_speed,
-        tolerance.sigma_map, tolerance.gate_sigmas)
-    # An echo that a mapped reflector's own echo explains as well may be that reflector's: not multipath.
-    label = np.where((residual <= tolerance.gate_sigmas)
-                     & ~(direct_wins & (direct_residual <= tolerance.gate_sigmas)), MULTIPATH, NONE)
-    return Explanation(label=label.astype(np.uint8), best=best, residual=residual, direct=direct,
-                       direct_residual=direct_residual, double_support=double_support, matched=matched)
+    return _match(prediction, layout, group, slot, paths, tolerance, direct_wins)
 
 
 def impossible(points, placement: Placement, layout: Layout, group, transmitter, walls, normals,
@@ -466,7 +446,7 @@ def impossible(points, placement: Placement, layout: Layout, group, transmitter,
     walls = _segments(walls, "impossible")
     normals = _unit_normals(normals, walls, "impossible")
     margin = np.full(group.size, float(margin)) if margin.ndim == 0 else np.ascontiguousarray(margin)
-    return image_method.reflections_blocked(points, group, slot, placement.tx, placement.rx, walls, normals, margin)
+    return _impossible(points, placement, group, slot, walls, normals, margin)
 
 
 def facing(walls, point) -> np.ndarray:
@@ -684,7 +664,7 @@ def landmark_paths(landmarks: Landmarks, placement: Placement, layout: Layout) -
 
 @dataclass(frozen=True)
 class KnownMap:
-    """A map as the echo tests use it (:func:`known_map`): W walls, P points.
+    """A map as the echo tests use it (:func:`known_map`): W walls, P points, as contiguous float arrays.
 
     Attributes
     ----------
@@ -698,6 +678,16 @@ class KnownMap:
         Corners, edges, fixed points, m.
     wall_support, point_support : ndarray, shape (W,), (P,)
         Each entry's observations.
+    reflecting, heard : _MapGeometry
+        The grown walls and the points as :func:`predict` takes them, and the seen extents and the points
+        (what :func:`audible` predicts): computed once per map, not per ping.
+    unit_normals : ndarray, shape (W, 2)
+        ``normals`` scaled to unit length, as :func:`impossible` takes them.
+
+    Raises
+    ------
+    ValueError
+        On arrays of the wrong shape, or a zero or non-finite normal of a wall.
     """
 
     seen: np.ndarray
@@ -706,6 +696,24 @@ class KnownMap:
     points: np.ndarray
     wall_support: np.ndarray
     point_support: np.ndarray
+    reflecting: _MapGeometry = field(init=False, repr=False, compare=False)
+    heard: _MapGeometry = field(init=False, repr=False, compare=False)
+    unit_normals: np.ndarray = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self):
+        walls, points = _map_arrays(self.walls, self.points, "KnownMap")
+        seen = _segments(self.seen, "KnownMap", "seen")
+        if seen.shape != walls.shape:
+            raise ValueError(f"KnownMap: seen must have the shape of walls {walls.shape}, got {seen.shape}")
+        wall_support = _support(self.wall_support, len(walls), "wall_support", "KnownMap")
+        point_support = _support(self.point_support, len(points), "point_support", "KnownMap")
+        for name, value in (("seen", seen), ("walls", walls), ("points", points), ("wall_support", wall_support),
+                            ("point_support", point_support)):
+            object.__setattr__(self, name, value)  # as checked: contiguous float arrays
+        object.__setattr__(self, "reflecting", _MapGeometry.of(walls, points, seen, wall_support, point_support,
+                                                               JUNCTION))
+        object.__setattr__(self, "heard", _MapGeometry.of(seen, points, None, wall_support, point_support, JUNCTION))
+        object.__setattr__(self, "unit_normals", _unit_normals(self.normals, seen, "KnownMap"))
 
     def __len__(self) -> int:
         return len(self.seen) + len(self.points)
@@ -734,9 +742,9 @@ def audible(known: KnownMap, layout: Layout, sensor_pose, sensor_covariance, tes
         return np.zeros(0, bool)
     tolerance = Tolerance(tests.sigma_path, sensor_covariance, tests.sigma_speed, tests.sigma_map, tests.gate_sigmas)
     groups = np.arange(layout.n_groups)
-    prediction = predict(known.seen, known.points, place(layout, sensor_pose), layout, groups,
-                         layout.group_transmitters[:, 0], tolerance, wall_support=known.wall_support,
-                         point_support=known.point_support, doubles=False)
+    prediction = _predict(known.heard, place(layout, sensor_pose), layout, groups, np.zeros(groups.size, np.int64),
+                          np.empty((groups.size, layout.receivers_per_group)), False, tolerance,
+                          2.0 * layout.max_range, True, False)
     return _own_echoes(prediction, np.isfinite(prediction.path).any(axis=1), known)
 
 
@@ -786,18 +794,20 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     if rows.size < count:
         in_map = in_map.select(rows)
     tolerance = Tolerance(tests.sigma_path, sensor_covariance, tests.sigma_speed, tests.sigma_map, tests.gate_sigmas)
-    group = in_map.group.astype(np.int64)
     transmitter = np.zeros(rows.size, np.int64)
+    group, slot = _channels(layout, in_map.group.astype(np.int64), transmitter, "explain_landmarks")
     paths = landmark_paths(in_map, placement, layout)
-    prediction = predict(known.walls, known.points, placement, layout, group, transmitter, tolerance, paths=paths,
-                         seen=known.seen, wall_support=known.wall_support, point_support=known.point_support)
-    explanation = match(prediction, layout, group, transmitter, paths, tolerance, direct_wins=False)
+    # The map's arrays and the rows are checked once (KnownMap, _channels): the private steps of predict,
+    # match and impossible, not the public functions that check them again at every ping.
+    prediction = _predict(known.reflecting, placement, layout, group, slot, paths, True, tolerance,
+                          2.0 * layout.max_range, True, True)
+    explanation = _match(prediction, layout, group, slot, paths, tolerance, False)
     multipath = _multipath_of_the_less_seen(prediction, explanation, tests.gate_sigmas)
     spread = np.sqrt(np.maximum(_largest_eigenvalue(np.asarray(in_map.covariance, dtype=float)), 0.0))
     margin = tests.gate_sigmas * np.hypot(spread, tests.sigma_map)
     margin = np.where(np.isfinite(margin), margin, 0.0)
-    blocked = impossible(reflection_points(in_map, placement, layout, transmitter), placement, layout, group,
-                         transmitter, known.seen, known.normals, margin) & ~multipath
+    blocked = _impossible(reflection_points(in_map, placement, layout, transmitter), placement, group, slot,
+                          known.seen, known.unit_normals, margin) & ~multipath
     out = Explained(np.zeros(count, bool), np.zeros(count, bool), position,
                     _own_echoes(prediction, explanation.matched, known))
     out.multipath[rows], out.impossible[rows] = multipath, blocked
@@ -855,6 +865,69 @@ def load_kernels() -> None:
 # --------------------------------------------------------------------------- checks and set-up
 
 
+@dataclass(frozen=True)
+class _MapGeometry:
+    """A map's walls and points as :func:`sonar_ring.image_method.map_paths` takes them, checked.
+
+    What depends on the map alone, computed once per map (:class:`KnownMap` holds two: its walls grown to where
+    they end and its walls' seen extents): the walls' frames (:func:`sonar_ring.image_method.wall_frames`), the
+    junctions within ``junction`` m, the walls' seen extents (W, 2, 2), the points (P, 2) and the supports.
+    """
+
+    frames: tuple
+    seen: np.ndarray
+    points: np.ndarray
+    wall_support: np.ndarray
+    point_support: np.ndarray
+    excluded_pair: np.ndarray
+    excluded_point: np.ndarray
+
+    @classmethod
+    def of(cls, walls, points, seen, wall_support, point_support, junction: float) -> _MapGeometry:
+        """From checked contiguous arrays (:func:`predict`'s); ``seen`` None: the walls themselves."""
+        seen = walls if seen is None else seen
+        return cls(image_method.wall_frames(walls), seen, points, wall_support, point_support,
+                   *image_method.junctions(walls, points, junction))
+
+
+def _predict(geometry: _MapGeometry, placement: Placement, layout: Layout, group, slot, row_paths, gated: bool,
+             tolerance: Tolerance, max_path: float, prune: bool, doubles: bool) -> Prediction:
+    """:func:`predict` of a checked map and checked rows: groups and transmitter slots (N,), paths (N, K)."""
+    start, direction, normal, length = geometry.frames
+    (kind, first, second, path_group, path_slot, support, path, jacobian, first_point, last_point,
+     channel_start) = image_method.map_paths(
+        start, direction, normal, length, geometry.seen, geometry.points, geometry.wall_support,
+        geometry.point_support, geometry.excluded_pair, geometry.excluded_point, placement.tx, placement.rx,
+        placement.tx_axis, placement.rx_axis, layout.plan.height_offset, layout.group_transmitters,
+        group * layout.group_transmitters.shape[1] + slot, row_paths, placement.pose, max_path, layout.beam_half_angle,
+        tolerance.pose_covariance, tolerance.xy_sigma, tolerance.yaw_sigma, tolerance.sigma_path, tolerance.sigma_speed,
+        tolerance.sigma_map, tolerance.gate_sigmas, layout.isotropic_emitter, prune, gated, doubles)
+    return Prediction(group=path_group, slot=path_slot, kind=kind, first=first, second=second, support=support,
+                      path=path, jacobian=jacobian, first_point=first_point, last_point=last_point,
+                      channel_start=channel_start)
+
+
+def _match(prediction: Prediction, layout: Layout, group, slot, paths, tolerance: Tolerance,
+           direct_wins: bool) -> Explanation:
+    """:func:`match` of checked rows: their groups and transmitter slots (N,) and paths (N, K), contiguous."""
+    channel = group * layout.group_transmitters.shape[1] + slot
+    best, direct, residual, direct_residual, double_support, matched = image_method.match_rows(
+        channel, paths, prediction.channel_start, prediction.kind, prediction.support, prediction.path,
+        prediction.jacobian, tolerance.pose_covariance, tolerance.sigma_path, tolerance.sigma_speed,
+        tolerance.sigma_map, tolerance.gate_sigmas)
+    # An echo that a mapped reflector's own echo explains as well may be that reflector's: not multipath.
+    label = np.where((residual <= tolerance.gate_sigmas)
+                     & ~(direct_wins & (direct_residual <= tolerance.gate_sigmas)), MULTIPATH, NONE)
+    return Explanation(label=label.astype(np.uint8), best=best, residual=residual, direct=direct,
+                       direct_residual=direct_residual, double_support=double_support, matched=matched)
+
+
+def _impossible(points, placement: Placement, group, slot, walls, unit_normals, margin) -> np.ndarray:
+    """:func:`impossible` of checked arrays: points (L, K, 2), walls (W, 2, 2), unit normals (W, 2), margins (L,)."""
+    return image_method.reflections_blocked(np.ascontiguousarray(points, dtype=float), group, slot, placement.tx,
+                                            placement.rx, walls, unit_normals, margin)
+
+
 def _own_echoes(prediction: Prediction, chosen: np.ndarray, known: KnownMap) -> np.ndarray:
     """Which entries of ``known`` (walls, then points) have a single bounce among the ``chosen`` paths, (W + P,)."""
     entries = np.zeros(len(known), bool)
@@ -901,13 +974,13 @@ def _map_arrays(walls, points, caller: str):
     return walls, points
 
 
-def _support(support, count: int, name: str) -> np.ndarray:
+def _support(support, count: int, name: str, caller: str) -> np.ndarray:
     """Observations of ``count`` entries as a float array (zeros when not given), checked."""
     if support is None:
         return np.zeros(count)
     support = np.ascontiguousarray(support, dtype=float)
     if support.shape != (count,):
-        raise ValueError(f"predict: {name} must have shape ({count},), got {support.shape}")
+        raise ValueError(f"{caller}: {name} must have shape ({count},), got {support.shape}")
     return support
 
 

@@ -517,6 +517,13 @@ def test_error_handling():
         impossible(np.ones((1, 2, 2)), placement, RING, one, one, walls, normals[1:], 0.0)
     with pytest.raises(ValueError, match="normals must be finite and not zero"):
         impossible(np.ones((1, 2, 2)), placement, RING, one, one, walls, 0.0 * normals, 0.0)
+    support = np.ones(len(walls)), np.ones(len(points))
+    with pytest.raises(ValueError, match="KnownMap: seen must have the shape of walls"):
+        explain.KnownMap(walls[:2], normals[:2], walls, points, *support)
+    with pytest.raises(ValueError, match=r"KnownMap: point_support must have shape \(11,\)"):
+        explain.KnownMap(walls, normals, walls, points, support[0], np.ones(3))
+    with pytest.raises(ValueError, match="KnownMap: normals must be finite and not zero"):
+        explain.KnownMap(walls, 0.0 * normals, walls, points, *support)
     with pytest.raises(ValueError, match="walls must have shape"):
         facing(walls[0], [2.0, 2.0])
     with pytest.raises(ValueError, match="point must have shape"):
