@@ -190,16 +190,20 @@ def _left(vector):
     return out
 
 
+@kernel(inline=True)
+def _inverse_of(m00, m01, m10, m11):
+    """The inverse of ``[[m00, m01], [m10, m11]]`` in closed form, as its four entries in the same order."""
+    det = m00 * m11 - m01 * m10
+    return m11 / det, -m01 / det, -m10 / det, m00 / det
+
+
 @kernel
 def _inverse(matrix):
     """Inverse of (K, 2, 2) matrices in closed form."""
     out = np.empty(matrix.shape)
     for k in range(matrix.shape[0]):
-        det = matrix[k, 0, 0] * matrix[k, 1, 1] - matrix[k, 0, 1] * matrix[k, 1, 0]
-        out[k, 0, 0] = matrix[k, 1, 1] / det
-        out[k, 1, 1] = matrix[k, 0, 0] / det
-        out[k, 0, 1] = -matrix[k, 0, 1] / det
-        out[k, 1, 0] = -matrix[k, 1, 0] / det
+        out[k, 0, 0], out[k, 0, 1], out[k, 1, 0], out[k, 1, 1] = _inverse_of(
+            matrix[k, 0, 0], matrix[k, 0, 1], matrix[k, 1, 0], matrix[k, 1, 1])
     return out
 
 
@@ -216,11 +220,15 @@ def _mahalanobis2(vector, covariance):
     """``v^T C^-1 v`` for vectors (K, 2) and covariances (K, 2, 2), without forming the inverse; shape (K,)."""
     out = np.empty(vector.shape[0])
     for k in range(vector.shape[0]):
-        x, y = vector[k, 0], vector[k, 1]
-        determinant = covariance[k, 0, 0] * covariance[k, 1, 1] - covariance[k, 0, 1] * covariance[k, 1, 0]
-        out[k] = (covariance[k, 1, 1] * x * x - 2.0 * covariance[k, 0, 1] * x * y
-                  + covariance[k, 0, 0] * y * y) / determinant
+        out[k] = _mahalanobis2_of(vector[k, 0], vector[k, 1], covariance[k, 0, 0], covariance[k, 0, 1],
+                                  covariance[k, 1, 0], covariance[k, 1, 1])
     return out
+
+
+@kernel(inline=True)
+def _mahalanobis2_of(x, y, c00, c01, c10, c11):
+    """``v^T C^-1 v`` of one vector ``(x, y)`` and covariance ``[[c00, c01], [c10, c11]]``."""
+    return (c11 * x * x - 2.0 * c01 * x * y + c00 * y * y) / (c00 * c11 - c01 * c10)
 
 
 def _quadratic(vector, matrix):
@@ -233,12 +241,18 @@ def _sandwich(jacobian, matrix):
     """``J M J^T`` for (K, 2, 2) arrays ``J`` and symmetric ``M``; exactly symmetric."""
     out = np.empty(matrix.shape)
     for k in range(matrix.shape[0]):
-        a, b, c, d = jacobian[k, 0, 0], jacobian[k, 0, 1], jacobian[k, 1, 0], jacobian[k, 1, 1]
-        xx, xy, yy = matrix[k, 0, 0], matrix[k, 0, 1], matrix[k, 1, 1]
-        out[k, 0, 0] = a * a * xx + 2.0 * a * b * xy + b * b * yy
-        out[k, 0, 1] = out[k, 1, 0] = a * c * xx + (a * d + b * c) * xy + b * d * yy
-        out[k, 1, 1] = c * c * xx + 2.0 * c * d * xy + d * d * yy
+        out[k, 0, 0], out[k, 0, 1], out[k, 1, 1] = _sandwich_of(
+            jacobian[k, 0, 0], jacobian[k, 0, 1], jacobian[k, 1, 0], jacobian[k, 1, 1], matrix[k, 0, 0],
+            matrix[k, 0, 1], matrix[k, 1, 1])
+        out[k, 1, 0] = out[k, 0, 1]
     return out
+
+
+@kernel(inline=True)
+def _sandwich_of(a, b, c, d, xx, xy, yy):
+    """``J M J^T`` of one ``J = [[a, b], [c, d]]`` and symmetric ``M``: its entries 00, 01 (= 10), 11."""
+    return (a * a * xx + 2.0 * a * b * xy + b * b * yy, a * c * xx + (a * d + b * c) * xy + b * d * yy,
+            c * c * xx + 2.0 * c * d * xy + d * d * yy)
 
 
 @kernel
@@ -266,9 +280,9 @@ def _pairs_within(query, points, radius):
     return rows[:count], columns[:count]
 
 
-@kernel
-def _gated_scores(innovation, covariance, observations, distance, with_distance, gate_chi2):
-    """Mahalanobis ``d^2`` of innovations (K, 2) with covariances (K, 2, 2), and the association scores (K,).
+@kernel(inline=True)
+def _gated_score_of(x, y, c00, c01, c10, c11, observations, distance, with_distance, gate_chi2):
+    """Mahalanobis ``d^2`` of an innovation ``(x, y)`` with its covariance ``[[c00, c01], [c10, c11]]``, and its score.
 
     The score ``d^2 + ln det C - 2 ln n`` is minus twice the log of the sighting's
     likelihood times a prior proportional to the entry's sightings so far ``n``
@@ -280,15 +294,12 @@ def _gated_scores(innovation, covariance, observations, distance, with_distance,
     has determinant ``1 / r``, so ``+ 2 ln r`` puts their scores on the point
     scale.  The score is inf where ``d^2`` does not pass ``gate_chi2``.
     """
-    d2 = _mahalanobis2(innovation, covariance)
-    score = np.empty(d2.size)
-    for k in range(d2.size):
-        determinant = covariance[k, 0, 0] * covariance[k, 1, 1] - covariance[k, 0, 1] * covariance[k, 1, 0]
-        score[k] = d2[k] + np.log(determinant) - 2.0 * np.log(observations[k])
-        if with_distance:
-            score[k] += 2.0 * np.log(distance[k])
-        if not d2[k] <= gate_chi2:
-            score[k] = np.inf
+    d2 = _mahalanobis2_of(x, y, c00, c01, c10, c11)
+    score = d2 + np.log(c00 * c11 - c01 * c10) - 2.0 * np.log(observations)
+    if with_distance:
+        score += 2.0 * np.log(distance)
+    if not d2 <= gate_chi2:
+        score = np.inf
     return d2, score
 
 
@@ -303,27 +314,53 @@ def _point_scores(rows, slots, seen_class, position, covariance, normal, distanc
     may be a plane; ``d^2`` and the score are the smaller of the two (inf where
     neither applies).
     """
-    seen, entry = seen_class[rows], entry_class[slots]
-    as_point = (seen != PLANE) & ((entry == UNKNOWN) | (seen == UNKNOWN) | (seen == entry) | by_motion[slots])
-    d2, score = _gated_scores(position[rows] - mean[slots],
-                              covariance[rows] + _point_entry_covariance(information[slots], map_sigma),
-                              observations[slots], np.zeros(0), False, gate_chi2)
-    d2 = np.where(as_point, d2, np.inf)
-    score = np.where(as_point, score, np.inf)
-    as_line = np.flatnonzero((entry == UNKNOWN) & ((seen == UNKNOWN) | (seen == PLANE)))
-    if as_line.size:
-        open_slots, line_rows = slots[as_line], rows[as_line]
-        value, jacobian = _line_of_sight(normal[line_rows], position[line_rows], anchor[open_slots],
-                                         distance[line_rows])
-        innovation = value - line[open_slots]
-        innovation[:, 0] = _wrap(innovation[:, 0])
-        line_covariance = (_sandwich(jacobian, covariance[line_rows])
-                           + _line_entry_covariance(line_information[open_slots], extent[open_slots], map_sigma))
-        line_d2, line_score = _gated_scores(innovation, line_covariance, observations[open_slots],
-                                            distance[line_rows], True, gate_chi2)
-        d2[as_line] = np.minimum(d2[as_line], line_d2)
-        score[as_line] = np.minimum(score[as_line], line_score)
+    d2 = np.full(rows.size, np.inf)
+    score = np.full(rows.size, np.inf)
+    variance = map_sigma ** 2
+    for k in range(rows.size):
+        row, slot = rows[k], slots[k]
+        seen, entry = seen_class[row], entry_class[slot]
+        if seen != PLANE and (entry == UNKNOWN or seen == UNKNOWN or seen == entry or by_motion[slot]):
+            e00, e01, e10, e11 = _inverse_of(information[slot, 0, 0], information[slot, 0, 1],
+                                             information[slot, 1, 0], information[slot, 1, 1])
+            d2[k], score[k] = _gated_score_of(
+                position[row, 0] - mean[slot, 0], position[row, 1] - mean[slot, 1],
+                covariance[row, 0, 0] + (e00 + variance * 1.0), covariance[row, 0, 1] + (e01 + variance * 0.0),
+                covariance[row, 1, 0] + (e10 + variance * 0.0), covariance[row, 1, 1] + (e11 + variance * 1.0),
+                observations[slot], 1.0, False, gate_chi2)
+        if entry == UNKNOWN and (seen == UNKNOWN or seen == PLANE):
+            line_d2, line_score = _line_score_of(row, slot, position, covariance, normal, distance, anchor, line,
+                                                 line_information, extent, observations, map_sigma, gate_chi2)
+            d2[k] = _smaller(d2[k], line_d2)
+            score[k] = _smaller(score[k], line_score)
     return d2, score
+
+
+@kernel(inline=True)
+def _smaller(a, b):
+    """``numpy.minimum`` of two numbers: NaN if either is."""
+    return a + b if np.isnan(a) or np.isnan(b) else min(a, b)
+
+
+@kernel(inline=True)
+def _line_score_of(row, slot, position, covariance, normal, distance, anchor, line, information, extent, observations,
+                   map_sigma, gate_chi2):
+    """``d^2`` and score (:func:`_gated_score_of`) of sighting ``row`` against the line of entry ``slot``.
+
+    The sighting's line coordinates about the entry's anchor (:func:`_line_of_sight`) against the entry's line,
+    with the sighting's covariance carried over plus the entry's (:func:`_line_entry_covariance`).
+    """
+    theta, delta, j00, j01, j10, j11 = _line_of_sight_of(normal[row, 0], normal[row, 1], position[row, 0],
+                                                         position[row, 1], anchor[slot, 0], anchor[slot, 1],
+                                                         distance[row])
+    s00, s01, s11 = _sandwich_of(j00, j01, j10, j11, covariance[row, 0, 0], covariance[row, 0, 1],
+                                 covariance[row, 1, 1])
+    i00, i01, i10, i11 = _inverse_of(information[slot, 0, 0], information[slot, 0, 1], information[slot, 1, 0],
+                                     information[slot, 1, 1])
+    f00, f01, f11 = _line_floor_of(extent[slot, 0], extent[slot, 1], map_sigma)
+    return _gated_score_of(_wrap(theta - line[slot, 0]), delta - line[slot, 1], s00 + (i00 + f00),
+                           s01 + (i01 + f01), s01 + (i10 + f01), s11 + (i11 + f11), observations[slot],
+                           distance[row], True, gate_chi2)
 
 
 @kernel
@@ -333,7 +370,7 @@ def _wall_scores(rows, slots, position, covariance, normal, distance, anchor, li
 
     A pair is a candidate where the sighting lies within ``radius`` of the wall's
     segment.  Returns the pairs' sighting rows and wall slots, by sighting, then
-    wall, and their ``d^2`` and scores (see :func:`_gated_scores`).
+    wall, and their ``d^2`` and scores (see :func:`_gated_score_of`).
     """
     near_rows, near_walls = [], []
     for row in rows:
@@ -350,13 +387,11 @@ def _wall_scores(rows, slots, position, covariance, normal, distance, anchor, li
                 near_rows.append(row)
                 near_walls.append(wall)
     pair_rows, pair_walls = np.array(near_rows, dtype=np.int64), np.array(near_walls, dtype=np.int64)
-    value, jacobian = _line_of_sight(normal[pair_rows], position[pair_rows], anchor[pair_walls], distance[pair_rows])
-    innovation = value - line[pair_walls]
-    innovation[:, 0] = _wrap(innovation[:, 0])
-    line_covariance = (_sandwich(jacobian, covariance[pair_rows])
-                       + _line_entry_covariance(information[pair_walls], extent[pair_walls], map_sigma))
-    d2, score = _gated_scores(innovation, line_covariance, observations[pair_walls], distance[pair_rows], True,
-                              gate_chi2)
+    d2 = np.empty(pair_rows.size)
+    score = np.empty(pair_rows.size)
+    for k in range(pair_rows.size):
+        d2[k], score[k] = _line_score_of(pair_rows[k], pair_walls[k], position, covariance, normal, distance, anchor,
+                                         line, information, extent, observations, map_sigma, gate_chi2)
     return pair_rows, pair_walls, d2, score
 
 
@@ -403,12 +438,17 @@ def _line_floor(extent, sigma):
     """
     out = np.empty((extent.shape[0], 2, 2))
     for k in range(extent.shape[0]):
-        first, second = extent[k, 0], extent[k, 1]
-        length2 = np.maximum(second - first, _MIN_EXTENT) ** 2
-        out[k, 0, 0] = sigma ** 2 * (2.0 / length2)
-        out[k, 0, 1] = out[k, 1, 0] = sigma ** 2 * ((first + second) / length2)
-        out[k, 1, 1] = sigma ** 2 * ((first ** 2 + second ** 2) / length2)
+        out[k, 0, 0], out[k, 0, 1], out[k, 1, 1] = _line_floor_of(extent[k, 0], extent[k, 1], sigma)
+        out[k, 1, 0] = out[k, 0, 1]
     return out
+
+
+@kernel(inline=True)
+def _line_floor_of(first, second, sigma):
+    """:func:`_line_floor` of one segment from ``first`` to ``second``: its entries 00, 01 (= 10), 11."""
+    length2 = np.maximum(second - first, _MIN_EXTENT) ** 2
+    return (sigma ** 2 * (2.0 / length2), sigma ** 2 * ((first + second) / length2),
+            sigma ** 2 * ((first ** 2 + second ** 2) / length2))
 
 
 @kernel
@@ -844,15 +884,20 @@ def _line_of_sight(normal, position, anchor, distance):
     value = np.empty((count, 2))
     jacobian = np.empty((count, 2, 2))
     for k in range(count):
-        normal_x, normal_y = normal[k, 0], normal[k, 1]
-        tangent_x, tangent_y = -normal_y, normal_x
-        offset_x, offset_y = position[k, 0] - anchor[k, 0], position[k, 1] - anchor[k, 1]
-        along = (tangent_x * offset_x + tangent_y * offset_y) / distance[k]
-        jacobian[k, 0, 0], jacobian[k, 0, 1] = -tangent_x / distance[k], -tangent_y / distance[k]
-        jacobian[k, 1, 0], jacobian[k, 1, 1] = normal_x - along * tangent_x, normal_y - along * tangent_y
-        value[k, 0] = np.arctan2(normal_y, normal_x)
-        value[k, 1] = normal_x * offset_x + normal_y * offset_y
+        (value[k, 0], value[k, 1], jacobian[k, 0, 0], jacobian[k, 0, 1], jacobian[k, 1, 0],
+         jacobian[k, 1, 1]) = _line_of_sight_of(normal[k, 0], normal[k, 1], position[k, 0], position[k, 1],
+                                                anchor[k, 0], anchor[k, 1], distance[k])
     return value, jacobian
+
+
+@kernel(inline=True)
+def _line_of_sight_of(normal_x, normal_y, x, y, anchor_x, anchor_y, distance):
+    """:func:`_line_of_sight` of one sighting: ``theta``, ``delta`` and ``J``'s entries 00, 01, 10, 11."""
+    tangent_x, tangent_y = -normal_y, normal_x
+    offset_x, offset_y = x - anchor_x, y - anchor_y
+    along = (tangent_x * offset_x + tangent_y * offset_y) / distance
+    return (np.arctan2(normal_y, normal_x), normal_x * offset_x + normal_y * offset_y, -tangent_x / distance,
+            -tangent_y / distance, normal_x - along * tangent_x, normal_y - along * tangent_y)
 
 
 @kernel
@@ -1492,7 +1537,7 @@ class LandmarkMap:
         """Gate distances and scores (K,) of sightings ``rows`` against points ``slots``.
 
         ``d^2`` is the smaller over the models the classes allow (inf if none), the
-        score that of the best model within the gate (see :func:`_gated_scores`).
+        score that of the best model within the gate (see :func:`_gated_score_of`).
         """
         p = self._points
         return _point_scores(rows, slots, s.landmark_class, s.position, s.covariance, s.normal, s.distance,
