@@ -2230,19 +2230,26 @@ def load_kernels() -> None:
     """Load the map's compiled kernels now instead of at the first update.
 
     Loading starts numba and reads the cached machine code of each kernel; a
-    process that maps on a deadline pays that at start.  A scratch map
-    sees two walls, a corner and an unknown reflector from three poses, which
-    takes every kernel's path with the production argument types; the point
-    models the mapper gives it (:func:`sonar_ring.curvature.load_kernels`) too.
+    process that maps on a deadline pays that at start.  A scratch map sees
+    two walls, a corner, an edge on their line and an unknown reflector
+    (explained in the later pings) from three poses, with their point models,
+    looks up its entries' classes and makes its snapshot: every kernel's path
+    with the production argument types.  The point models' own loop
+    (:func:`sonar_ring.curvature.load_kernels`) too.
     """
     load_curvature_kernels()
     scratch = LandmarkMap()
     spread = np.array([[-0.02, 0.0], [0.02, 0.0]])
+    classes = np.array([PLANE, PLANE, CORNER, UNKNOWN, EDGE])
+    covariance = np.tile(1e-4 * np.eye(2), (5, 1, 1))
     for x in (0.0, 0.2, 0.4):
-        position = np.array([[x, 1.0], [x + 2.0, 1.0], [1.5, -1.2], [-1.0, 0.5]])
-        scratch.update(make_landmarks(np.array([PLANE, PLANE, CORNER, UNKNOWN]), position,
-                                      normal=np.array([[0.0, 1.0], [0.0, 1.0], [0.0, 0.0], [0.0, 0.0]]),
-                                      covariance=np.tile(1e-4 * np.eye(2), (4, 1, 1)),
-                                      segment=position[:, None, :] + spread,
-                                      confidence=np.array([0.9, 0.9, 0.9, 0.0])),
-                       (x, 0.0, 0.0))
+        position = np.array([[x, 1.0], [x + 2.0, 1.0], [1.5, -1.2], [-1.0, 0.5], [3.5, 1.0]])
+        models = PointModels(position, position, covariance, covariance, np.zeros(5), classes != PLANE)
+        placed = scratch.update(make_landmarks(classes, position,
+                                               normal=np.array([[0.0, 1.0], [0.0, 1.0], [0.0, 0.0], [0.0, 0.0],
+                                                                [0.0, 0.0]]),
+                                               covariance=covariance, segment=position[:, None, :] + spread,
+                                               confidence=np.array([0.9, 0.9, 0.9, 0.0, 0.9])),
+                                (x, 0.0, 0.0), models, np.array([False, False, False, x > 0.0, False]))
+        scratch.classes_of(placed.uid)
+    scratch.snapshot()
