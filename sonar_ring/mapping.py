@@ -484,6 +484,17 @@ def _mark_seen(target, low, high, ping, sensor, last_seen, pings, unexplained, e
                 travel[slot] = distance
 
 
+@kernel(inline=True)
+def _explained_once(explained, unexplained, pings, active, slot, min_support_pings):
+    """One more ping that explained entry ``slot`` of a table (in place); whether that explains it away (inactive)."""
+    explained[slot] += 1
+    times = explained[slot]
+    gone = times >= min_support_pings and times >= unexplained[slot] and 3 * times >= pings[slot]
+    if gone:
+        active[slot] = False
+    return gone
+
+
 @kernel
 def _explain_away(target, explained, max_points, min_support_pings, point_explained, point_unexplained, point_pings,
                   point_active, wall_explained, wall_unexplained, wall_pings, wall_active):
@@ -509,20 +520,11 @@ def _explain_away(target, explained, max_points, min_support_pings, point_explai
         if not hit[slot] or fused[slot]:
             continue
         if slot < max_points:
-            point_explained[slot] += 1
-            times = point_explained[slot]
-            gone = (times >= min_support_pings and times >= point_unexplained[slot]
-                    and 3 * times >= point_pings[slot])
-            if gone:
-                point_active[slot] = False
+            gone = _explained_once(point_explained, point_unexplained, point_pings, point_active, slot,
+                                   min_support_pings)
         else:
-            wall = slot - max_points
-            wall_explained[wall] += 1
-            times = wall_explained[wall]
-            gone = (times >= min_support_pings and times >= wall_unexplained[wall]
-                    and 3 * times >= wall_pings[wall])
-            if gone:
-                wall_active[wall] = False
+            gone = _explained_once(wall_explained, wall_unexplained, wall_pings, wall_active, slot - max_points,
+                                   min_support_pings)
         if gone:
             ghosts[count] = slot
             count += 1
