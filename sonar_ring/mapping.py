@@ -540,6 +540,22 @@ def _explain_away(target, explained, max_points, min_support_pings, point_explai
 
 
 @kernel
+def _add_motion(baseline, motion, slots, sensor_along, weight):
+    """Widen each point's ``baseline`` (M, 2) to the sensor's places ``sensor_along`` (K,) and add the weighted sums.
+
+    ``motion`` (M, 3) gathers ``sum w``, ``sum w s`` and ``sum w s^2`` of the sightings' places ``s`` and
+    weights ``w`` (K,) per point ``slots`` (K,), in the sightings' order; NaN stays NaN, as in numpy.
+    """
+    for k in range(slots.size):
+        slot, along = slots[k], sensor_along[k]
+        baseline[slot, 0] = _smaller(baseline[slot, 0], along)
+        baseline[slot, 1] = -_smaller(-baseline[slot, 1], -along)
+        motion[slot, 0] += weight[k]
+        motion[slot, 1] += weight[k] * along
+        motion[slot, 2] += weight[k] * along ** 2
+
+
+@kernel
 def _best_targets(count, row, candidate, d2, score, new_entry_gate_chi2):
     """Each of ``count`` sightings' entry: its candidate (K,) of lowest finite ``score`` (ties: lowest ``candidate``).
 
@@ -1781,11 +1797,7 @@ class LandmarkMap:
                     s.normal, s.position, s.distance, s.covariance, s.segment)
         across = p.across[slots]
         sensor_along = _dot(s.sensor - p.anchor[slots], across)
-        np.minimum.at(p.baseline[:, 0], slots, sensor_along)
-        np.maximum.at(p.baseline[:, 1], slots, sensor_along)
-        weight = 1.0 / _quadratic(across, s.covariance[rows])
-        for column, values in enumerate((weight, weight * sensor_along, weight * sensor_along ** 2)):
-            np.add.at(p.motion[:, column], slots, values)
+        _add_motion(p.baseline, p.motion, slots, sensor_along, 1.0 / _quadratic(across, s.covariance[rows]))
 
     def _fuse_walls(self, s: Sightings, rows, target):
         """Merge sightings ``rows`` into their walls; the walls whose segment grew."""
@@ -2233,8 +2245,8 @@ def load_kernels() -> None:
 
     Loading starts numba and reads the cached machine code of each kernel; a
     process that maps on a deadline pays that at start.  A scratch map sees
-    two walls, a corner, an edge on their line and an unknown reflector
-    (explained in the later pings) from three poses, with their point models,
+    two walls, a corner, an edge on their line and two unknown reflectors
+    (one explained in the later pings) from three poses, with their point models,
     looks up its entries' classes and makes its snapshot: every kernel's path
     with the production argument types.  The point models' own loop
     (:func:`sonar_ring.curvature.load_kernels`) too.
@@ -2242,16 +2254,16 @@ def load_kernels() -> None:
     load_curvature_kernels()
     scratch = LandmarkMap()
     spread = np.array([[-0.02, 0.0], [0.02, 0.0]])
-    classes = np.array([PLANE, PLANE, CORNER, UNKNOWN, EDGE])
-    covariance = np.tile(1e-4 * np.eye(2), (5, 1, 1))
+    classes = np.array([PLANE, PLANE, CORNER, UNKNOWN, EDGE, UNKNOWN])
+    covariance = np.tile(1e-4 * np.eye(2), (6, 1, 1))
     for x in (0.0, 0.2, 0.4):
-        position = np.array([[x, 1.0], [x + 2.0, 1.0], [1.5, -1.2], [-1.0, 0.5], [3.5, 1.0]])
-        models = PointModels(position, position, covariance, covariance, np.zeros(5), classes != PLANE)
-        placed = scratch.update(make_landmarks(classes, position,
-                                               normal=np.array([[0.0, 1.0], [0.0, 1.0], [0.0, 0.0], [0.0, 0.0],
-                                                                [0.0, 0.0]]),
-                                               covariance=covariance, segment=position[:, None, :] + spread,
-                                               confidence=np.array([0.9, 0.9, 0.9, 0.0, 0.9])),
-                                (x, 0.0, 0.0), models, np.array([False, False, False, x > 0.0, False]))
+        position = np.array([[x, 1.0], [x + 2.0, 1.0], [1.5, -1.2], [-1.0, 0.5], [3.5, 1.0], [0.5, -2.5]])
+        models = PointModels(position, position, covariance, covariance, np.zeros(6), classes != PLANE)
+        normal = np.zeros((6, 2))
+        normal[:2, 1] = 1.0
+        placed = scratch.update(make_landmarks(classes, position, normal=normal, covariance=covariance,
+                                               segment=position[:, None, :] + spread,
+                                               confidence=np.array([0.9, 0.9, 0.9, 0.0, 0.9, 0.0])),
+                                (x, 0.0, 0.0), models, np.array([False] * 5 + [x > 0.0]))
         scratch.classes_of(placed.uid)
     scratch.snapshot()
