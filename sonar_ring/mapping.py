@@ -316,17 +316,16 @@ def _point_scores(rows, slots, seen_class, position, covariance, normal, distanc
     """
     d2 = np.full(rows.size, np.inf)
     score = np.full(rows.size, np.inf)
-    variance = map_sigma ** 2
     for k in range(rows.size):
         row, slot = rows[k], slots[k]
         seen, entry = seen_class[row], entry_class[slot]
         if seen != PLANE and (entry == UNKNOWN or seen == UNKNOWN or seen == entry or by_motion[slot]):
-            e00, e01, e10, e11 = _inverse_of(information[slot, 0, 0], information[slot, 0, 1],
-                                             information[slot, 1, 0], information[slot, 1, 1])
+            e00, e01, e10, e11 = _point_entry_covariance_of(information[slot, 0, 0], information[slot, 0, 1],
+                                                            information[slot, 1, 0], information[slot, 1, 1],
+                                                            map_sigma)
             d2[k], score[k] = _gated_score_of(
-                position[row, 0] - mean[slot, 0], position[row, 1] - mean[slot, 1],
-                covariance[row, 0, 0] + (e00 + variance * 1.0), covariance[row, 0, 1] + (e01 + variance * 0.0),
-                covariance[row, 1, 0] + (e10 + variance * 0.0), covariance[row, 1, 1] + (e11 + variance * 1.0),
+                position[row, 0] - mean[slot, 0], position[row, 1] - mean[slot, 1], covariance[row, 0, 0] + e00,
+                covariance[row, 0, 1] + e01, covariance[row, 1, 0] + e10, covariance[row, 1, 1] + e11,
                 observations[slot], 1.0, False, gate_chi2)
         if entry == UNKNOWN and (seen == UNKNOWN or seen == PLANE):
             line_d2, line_score = _line_score_of(row, slot, position, covariance, normal, distance, anchor, line,
@@ -355,12 +354,11 @@ def _line_score_of(row, slot, position, covariance, normal, distance, anchor, li
                                                          distance[row])
     s00, s01, s11 = _sandwich_of(j00, j01, j10, j11, covariance[row, 0, 0], covariance[row, 0, 1],
                                  covariance[row, 1, 1])
-    i00, i01, i10, i11 = _inverse_of(information[slot, 0, 0], information[slot, 0, 1], information[slot, 1, 0],
-                                     information[slot, 1, 1])
-    f00, f01, f11 = _line_floor_of(extent[slot, 0], extent[slot, 1], map_sigma)
-    return _gated_score_of(_wrap(theta - line[slot, 0]), delta - line[slot, 1], s00 + (i00 + f00),
-                           s01 + (i01 + f01), s01 + (i10 + f01), s11 + (i11 + f11), observations[slot],
-                           distance[row], True, gate_chi2)
+    e00, e01, e10, e11 = _line_entry_covariance_of(information[slot, 0, 0], information[slot, 0, 1],
+                                                   information[slot, 1, 0], information[slot, 1, 1], extent[slot, 0],
+                                                   extent[slot, 1], map_sigma)
+    return _gated_score_of(_wrap(theta - line[slot, 0]), delta - line[slot, 1], s00 + e00, s01 + e01, s01 + e10,
+                           s11 + e11, observations[slot], distance[row], True, gate_chi2)
 
 
 @kernel
@@ -454,13 +452,38 @@ def _line_floor_of(first, second, sigma):
 @kernel
 def _point_entry_covariance(information, map_sigma):
     """Covariance (K, 2, 2) of point entries against the truth from their information, with the ``map_sigma`` floor."""
-    return _inverse(information) + map_sigma ** 2 * np.eye(2)
+    out = np.empty(information.shape)
+    for k in range(information.shape[0]):
+        out[k, 0, 0], out[k, 0, 1], out[k, 1, 0], out[k, 1, 1] = _point_entry_covariance_of(
+            information[k, 0, 0], information[k, 0, 1], information[k, 1, 0], information[k, 1, 1], map_sigma)
+    return out
+
+
+@kernel(inline=True)
+def _point_entry_covariance_of(i00, i01, i10, i11, map_sigma):
+    """:func:`_point_entry_covariance` of one entry's information ``[[i00, i01], [i10, i11]]``: its four entries."""
+    e00, e01, e10, e11 = _inverse_of(i00, i01, i10, i11)
+    variance = map_sigma ** 2
+    return e00 + variance * 1.0, e01 + variance * 0.0, e10 + variance * 0.0, e11 + variance * 1.0
 
 
 @kernel
 def _line_entry_covariance(information, extent, map_sigma):
     """Covariance (K, 2, 2) of lines (walls, plane hypotheses) from their information, with the end-point floor."""
-    return _inverse(information) + _line_floor(extent, map_sigma)
+    out = np.empty(information.shape)
+    for k in range(information.shape[0]):
+        out[k, 0, 0], out[k, 0, 1], out[k, 1, 0], out[k, 1, 1] = _line_entry_covariance_of(
+            information[k, 0, 0], information[k, 0, 1], information[k, 1, 0], information[k, 1, 1], extent[k, 0],
+            extent[k, 1], map_sigma)
+    return out
+
+
+@kernel(inline=True)
+def _line_entry_covariance_of(i00, i01, i10, i11, first, second, map_sigma):
+    """:func:`_line_entry_covariance` of one line's information and extent ``first``, ``second``: its four entries."""
+    e00, e01, e10, e11 = _inverse_of(i00, i01, i10, i11)
+    f00, f01, f11 = _line_floor_of(first, second, map_sigma)
+    return e00 + f00, e01 + f01, e10 + f01, e11 + f11
 
 
 @kernel
