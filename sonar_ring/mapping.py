@@ -1523,9 +1523,10 @@ class LandmarkMap:
         wall = target >= self.max_points
         uid[point] = self._points.uid[target[point]]
         uid[wall] = self._walls.uid[target[wall] - self.max_points]
-        for index in np.flatnonzero(uid >= 0):
-            while uid[index] in self._renamed:
-                uid[index] = self._renamed[uid[index]]
+        if self._renamed:  # most pings rename nothing
+            for index in np.flatnonzero(uid >= 0):
+                while uid[index] in self._renamed:
+                    uid[index] = self._renamed[uid[index]]
         return uid
 
     def _new_uids(self, count: int) -> np.ndarray:
