@@ -466,10 +466,13 @@ class LandmarkSlam:
 
         A point that became a wall leaves its variable behind: the wall is confirmed as a wall of its own.
         """
-        walls = set(self.front.entries().uid[self.front.entries().is_wall].tolist()) if renamed else set()
+        if not renamed:
+            return
+        new_uids = list(renamed.values())
+        is_wall = dict(zip(new_uids, self.front.classes_of(new_uids)[0].tolist(), strict=True))
         for old, new in renamed.items():
             record = self._confirmed.pop(old, None)
-            if record is not None and new not in self._confirmed and (record.kind == WALL) == (new in walls):
+            if record is not None and new not in self._confirmed and (record.kind == WALL) == is_wall[new]:
                 self._confirmed[new] = record
             self._since_keyframe.rename(old, new)
 
