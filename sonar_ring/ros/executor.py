@@ -26,6 +26,7 @@ belong to the rclpy this package pins (``ros-kilted-rclpy``);
 from __future__ import annotations
 
 import inspect
+import time
 from contextlib import ExitStack
 
 from rclpy.exceptions import InvalidHandle
@@ -33,6 +34,9 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.subscription import Subscription
 from rclpy.utilities import timeout_sec_to_nsec
+
+SHUTDOWN_GRACE = 1.0
+"""s: how long an error of rclpy's is given to turn out a shutdown (Ctrl-C) before it is raised."""
 
 
 class DirectExecutor(SingleThreadedExecutor):
@@ -47,12 +51,16 @@ class DirectExecutor(SingleThreadedExecutor):
         :class:`~rclpy.executors.ExternalShutdownException` when the context was
         shut down from another thread or by a signal, also while a wait set was
         being made (rclpy's executor raises an ``RCLError`` there) or a message
-        taken (rclpy 9 may fail to convert it then).
+        taken (rclpy 9 may fail to convert it then, before the context is down:
+        such an error waits up to :data:`SHUTDOWN_GRACE` for the shutdown).
         """
         try:
             self._spin_once(timeout_sec)
-        except RuntimeError:  # rclpy's RCLError, or a take that failed inside rclpy as the context went down
-            if self._context.ok():
+        except RuntimeError:
+            # rclpy's RCLError as the context went down, or a take that Ctrl-C broke: Python raises the
+            # KeyboardInterrupt inside rclpy's conversion of the message, which turns it into this error, and
+            # rclpy's signal thread shuts the context down a moment later.
+            if not _goes_down(self._context, SHUTDOWN_GRACE):
                 raise
         if not self._context.ok():
             raise ExternalShutdownException()
@@ -119,6 +127,16 @@ class DirectExecutor(SingleThreadedExecutor):
             return False
         with self._tasks_lock:
             return all(task.done() for task, _, _ in self._tasks)
+
+
+def _goes_down(context, within: float) -> bool:
+    """Whether ``context`` is shut down now or within ``within`` seconds (polled every 10 ms)."""
+    deadline = time.monotonic() + within
+    while context.ok():
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.01)
+    return True
 
 
 def _held(held: ExitStack, entity) -> bool:
