@@ -587,8 +587,10 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
     # placed); where gated, channel by channel, only those near a measured row of their channel, with which
     # rows (bits of the row's place in its channel; the 64th: any from there on).  Near: within the gate at
     # every receiver that heard the row, with the largest variance a pose error could give
-    # (:func:`_row_intervals`).  At most: every seen wall or point alone, and last with every entry (a point:
-    # every wall) first.
+    # (:func:`_row_intervals`); a candidate is checked at the first receiver of each row as it is found
+    # (most are near none: 350 of 1592 a ping of the explain bench are kept), then at all of them.  These
+    # lengths only choose what pass 2 computes again, exactly: ``_norm``, not ``math.hypot``.  At most: every
+    # seen wall or point alone, and last with every entry (a point: every wall) first.
     capacity = 0
     for c in range(channels):
         for w in range(n_walls):
@@ -608,11 +610,24 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
     transmitter_side = np.empty(n_walls)
     receiver_side = np.empty(receivers)
     receiver_image = np.empty((receivers, 2))
+    first_heard = np.empty(row_channel.shape[0], dtype=np.int64)
+    first_low = np.empty(row_channel.shape[0])
+    first_high = np.empty(row_channel.shape[0])
     count = 0
     for c in range(channels):
         g, m = channel_id[c] // slots, channel_id[c] % slots
         t = transmitter[g, m]
         channel_first = count
+        # Each row of the channel at the first receiver that heard it (the gate below asks the same of every
+        # receiver that heard a row).
+        rows = 0
+        for r in range(row_start[channel_id[c]], row_start[channel_id[c] + 1]):
+            n = row_order[r]
+            for k in range(receivers):
+                if low[n, k] <= high[n, k]:
+                    first_heard[rows], first_low[rows], first_high[rows] = k, low[n, k], high[n, k]
+                    rows += 1
+                    break
         for a in range(n_walls):
             transmitter_side[a] = _side(tx[g, m, 0], tx[g, m, 1], a, start, normal)
         for b in range(n_walls):
@@ -622,10 +637,11 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
                 receiver_side[k] = _side(rx[g, k, 0], rx[g, k, 1], b, start, normal)
                 receiver_image[k, 0] = rx[g, k, 0] - 2.0 * receiver_side[k] * normal[b, 0]
                 receiver_image[k, 1] = rx[g, k, 1] - 2.0 * receiver_side[k] * normal[b, 1]
-                horizontal[count, k] = math.hypot(tx[g, m, 0] - receiver_image[k, 0],
-                                                  tx[g, m, 1] - receiver_image[k, 1])
+                horizontal[count, k] = _norm(tx[g, m, 0] - receiver_image[k, 0],
+                                             tx[g, m, 1] - receiver_image[k, 1])
             kind[count], first[count], second[count], channel[count] = WALL, b, b, c
-            count += 1
+            count += not gated or _near_first_heard(horizontal, count, height_offset, g, m, first_heard,
+                                                   first_low, first_high, rows)
             for a in range(n_walls if doubles else 0):
                 if a == b or excluded_pair[a, b] or not wall_near[a] or not wall_sent[c, a]:
                     continue
@@ -643,10 +659,11 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
                     if not kept:
                         continue
                 for k in range(receivers):
-                    horizontal[count, k] = math.hypot(double_image[t, a, b, 0] - rx[g, k, 0],
-                                                      double_image[t, a, b, 1] - rx[g, k, 1])
+                    horizontal[count, k] = _norm(double_image[t, a, b, 0] - rx[g, k, 0],
+                                                 double_image[t, a, b, 1] - rx[g, k, 1])
                 kind[count], first[count], second[count], channel[count] = WALL_WALL, a, b, c
-                count += 1
+                count += not gated or _near_first_heard(horizontal, count, height_offset, g, m, first_heard,
+                                                   first_low, first_high, rows)
             for p in range(n_points if doubles else 0):
                 if excluded_point[b, p] or not point_near[p] or not point_sent[c, p]:
                     continue
@@ -661,25 +678,28 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
                     if not kept:
                         continue
                 for k in range(receivers):
-                    horizontal[count, k] = to_point[t, p] + math.hypot(points[p, 0] - receiver_image[k, 0],
-                                                                       points[p, 1] - receiver_image[k, 1])
+                    horizontal[count, k] = to_point[t, p] + _norm(points[p, 0] - receiver_image[k, 0],
+                                                                  points[p, 1] - receiver_image[k, 1])
                 kind[count], first[count], second[count], channel[count] = POINT_WALL, p, b, c
-                count += 1
+                count += not gated or _near_first_heard(horizontal, count, height_offset, g, m, first_heard,
+                                                   first_low, first_high, rows)
         for p in range(n_points):
             if not point_seen_any[c, p]:
                 continue
             for k in range(receivers):
-                back[k] = math.hypot(points[p, 0] - rx[g, k, 0], points[p, 1] - rx[g, k, 1])
+                back[k] = _norm(points[p, 0] - rx[g, k, 0], points[p, 1] - rx[g, k, 1])
                 horizontal[count, k] = to_point[t, p] + back[k]
             kind[count], first[count], second[count], channel[count] = POINT, p, p, c
-            count += 1
+            count += not gated or _near_first_heard(horizontal, count, height_offset, g, m, first_heard,
+                                                   first_low, first_high, rows)
             for a in range(n_walls if doubles else 0):
                 if excluded_point[a, p] or not wall_near[a] or not wall_sent[c, a] or not via_exists[t, a, p]:
                     continue
                 for k in range(receivers):
                     horizontal[count, k] = via_length[t, a, p] + back[k]
                 kind[count], first[count], second[count], channel[count] = WALL_POINT, a, p, c
-                count += 1
+                count += not gated or _near_first_heard(horizontal, count, height_offset, g, m, first_heard,
+                                                   first_low, first_high, rows)
         if gated:
             near_count = channel_first
             first_row, end_row = row_start[channel_id[c]], row_start[channel_id[c] + 1]
@@ -840,6 +860,30 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
     return (out_kind[:kept_count], out_first[:kept_count], out_second[:kept_count], out_group[:kept_count],
             out_slot[:kept_count], out_support[:kept_count], path[:kept_count], jacobian[:kept_count],
             first_point[:kept_count], last_point[:kept_count], channel_start)
+
+
+@kernel(inline=True)
+def _near_first_heard(horizontal, q, height_offset, g, m, first_heard, low, high, rows):
+    """Whether candidate ``q`` of channel (g, m) is near one of the channel's ``rows`` at its first receiver.
+
+    Near: its squared 3-D length at receiver ``first_heard[j]`` within ``low[j]``..``high[j]`` (m^2), what the
+    gate asks of that receiver (:func:`_row_intervals`).
+    """
+    for j in range(rows):
+        k = first_heard[j]
+        if low[j] <= horizontal[q, k] ** 2 + height_offset[g, m, k] ** 2 <= high[j]:
+            return True
+    return False
+
+
+@kernel(inline=True)
+def _norm(x, y):
+    """``sqrt(x^2 + y^2)``, for lengths that only prune.
+
+    Within an ulp or two of ``math.hypot``, which costs several times more; the gates they meet have a slack far
+    above that.
+    """
+    return math.sqrt(x * x + y * y)
 
 
 @kernel
