@@ -526,6 +526,8 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
     wall_seen_any = np.zeros((channels, n_walls), dtype=np.bool_)
     mirror = np.zeros((channels, receivers, n_walls, 6))
     point_seen_any = np.zeros((channels, n_points), dtype=np.bool_)
+    point_x, point_y = np.ascontiguousarray(points[:, 0]), np.ascontiguousarray(points[:, 1])
+    point_cos, point_sin = np.ascontiguousarray(point_cone[:, 0]), np.ascontiguousarray(point_cone[:, 1])
     wall_sent = np.ones((channels, n_walls), dtype=np.bool_)
     point_sent = np.ones((channels, n_points), dtype=np.bool_)
     for c in range(channels):
@@ -539,16 +541,15 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
                     wall_seen_any[c, w] = wall_seen_any[c, w] or seen
                     if seen and prune:
                         _mirror_cone(mirror, c, k, rx_x, rx_y, w, ends, low, high, start, normal)
-            for p in range(n_points):
-                point_seen_any[c, p] = point_seen_any[c, p] or (
-                    point_near[p] and _in_cone(rx_x, rx_y, axis_x, axis_y, point_cone, points, p))
+            _points_in_cone(point_seen_any[c], rx_x, rx_y, axis_x, axis_y, point_cos, point_sin, point_x, point_y,
+                            point_near)
         if not isotropic:
             for w in range(n_walls):
                 wall_sent[c, w] = _part_in_cone(tx[g, m, 0], tx[g, m, 1], tx_axis[g, m, 0, 0], tx_axis[g, m, 0, 1],
                                                 wall_cone, ends, w)[0]
-            for p in range(n_points):
-                point_sent[c, p] = _in_cone(tx[g, m, 0], tx[g, m, 1], tx_axis[g, m, 0, 0], tx_axis[g, m, 0, 1],
-                                            point_cone, points, p)
+            point_sent[c] = False
+            _points_in_cone(point_sent[c], tx[g, m, 0], tx[g, m, 1], tx_axis[g, m, 0, 0], tx_axis[g, m, 0, 1],
+                            point_cos, point_sin, point_x, point_y, point_near)
 
     # What depends on the transmitter alone, computed once for all its channels: its images in every wall
     # and pair of walls, its distance to every point, and the first bounce of every wall -> point path.
@@ -610,7 +611,9 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
     transmitter_side = np.empty(n_walls)
     receiver_side = np.empty(receivers)
     receiver_image = np.empty((receivers, 2))
+    heard_row = np.empty(row_channel.shape[0], dtype=np.int64)
     first_heard = np.empty(row_channel.shape[0], dtype=np.int64)
+    in_mirror = np.empty(n_points, dtype=np.bool_)
     first_low = np.empty(row_channel.shape[0])
     first_high = np.empty(row_channel.shape[0])
     count = 0
@@ -625,7 +628,7 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
             n = row_order[r]
             for k in range(receivers):
                 if low[n, k] <= high[n, k]:
-                    first_heard[rows], first_low[rows], first_high[rows] = k, low[n, k], high[n, k]
+                    heard_row[rows], first_heard[rows], first_low[rows], first_high[rows] = r, k, low[n, k], high[n, k]
                     rows += 1
                     break
         for a in range(n_walls):
@@ -664,19 +667,11 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
                 kind[count], first[count], second[count], channel[count] = WALL_WALL, a, b, c
                 count += not gated or _near_first_heard(horizontal, count, height_offset, g, m, first_heard,
                                                    first_low, first_high, rows)
+            if doubles and prune:
+                _points_in_mirror(in_mirror, wall_seen, mirror, c, b, point_side, receiver_side, point_x, point_y)
             for p in range(n_points if doubles else 0):
-                if excluded_point[b, p] or not point_near[p] or not point_sent[c, p]:
+                if excluded_point[b, p] or not point_near[p] or not point_sent[c, p] or (prune and not in_mirror[p]):
                     continue
-                if prune:
-                    kept = False
-                    for k in range(receivers):
-                        kept = kept or (
-                            wall_seen[c, k, b] and point_side[b, p] * receiver_side[k] > -_SLACK
-                            and _in_wedge(mirror[c, k, b, 0], mirror[c, k, b, 1], mirror[c, k, b, 2],
-                                          mirror[c, k, b, 3], mirror[c, k, b, 4], mirror[c, k, b, 5], points[p, 0],
-                                          points[p, 1]))
-                    if not kept:
-                        continue
                 for k in range(receivers):
                     horizontal[count, k] = to_point[t, p] + _norm(points[p, 0] - receiver_image[k, 0],
                                                                   points[p, 1] - receiver_image[k, 1])
@@ -702,7 +697,7 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
                                                    first_low, first_high, rows)
         if gated:
             near_count = channel_first
-            first_row, end_row = row_start[channel_id[c]], row_start[channel_id[c] + 1]
+            first_row = row_start[channel_id[c]]
             for q in range(channel_first, count):
                 # A point's paths, and a wall -> point path, leave the transmitter the same way for every
                 # receiver and come to each from one point (the last point, or the first one's image in the last
@@ -714,14 +709,16 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
                         image_distance[k] = horizontal[q, k] - (via_length[t, first[q], second[q]]
                                                                 if kind[q] == WALL_POINT else to_point[t, first[q]])
                 mask = np.uint64(0)
-                for r in range(first_row, end_row):
+                for j in range(rows):
+                    if not first_low[j] <= squared[first_heard[j]] <= first_high[j]:
+                        continue
+                    r = heard_row[j]
                     n = row_order[r]
-                    near, heard = True, False
+                    near = True
                     for k in range(receivers):
                         if low[n, k] <= high[n, k]:
-                            heard = True
                             near = near and low[n, k] <= squared[k] <= high[n, k]
-                    near = near and heard and (not same_start or _differences_near(
+                    near = near and (not same_start or _differences_near(
                         row_paths, n, horizontal, q, squared, image_distance, rx, g, spread, xy_sigma, yaw_sigma,
                         sigma_path, sigma_speed, gate_sigmas))
                     if near:
@@ -862,6 +859,25 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
             first_point[:kept_count], last_point[:kept_count], channel_start)
 
 
+@kernel
+def _points_in_mirror(in_mirror, wall_seen, mirror, c, b, point_side, receiver_side, point_x, point_y):
+    """Into ``in_mirror`` (P,): which points some receiver of channel ``c`` that sees wall ``b`` hears by way of it.
+
+    A point on the receiver's side of the wall, inside the cone from the receiver's image through the part of
+    the wall in its beam (``mirror[c, k, b]``, :func:`_mirror_cone`; :func:`_in_wedge`).  A loop over the points
+    for each receiver, which the compiler runs several points at a time.
+    """
+    in_mirror[:] = False
+    for k in range(wall_seen.shape[1]):
+        if not wall_seen[c, k, b]:
+            continue
+        apex_x, apex_y, left_x, left_y = mirror[c, k, b, 0], mirror[c, k, b, 1], mirror[c, k, b, 2], mirror[c, k, b, 3]
+        right_x, right_y, side = mirror[c, k, b, 4], mirror[c, k, b, 5], receiver_side[k]
+        for p in range(point_x.shape[0]):
+            in_mirror[p] |= (point_side[b, p] * side > -_SLACK) & _in_wedge(apex_x, apex_y, left_x, left_y, right_x,
+                                                                             right_y, point_x[p], point_y[p])
+
+
 @kernel(inline=True)
 def _near_first_heard(horizontal, q, height_offset, g, m, first_heard, low, high, rows):
     """Whether candidate ``q`` of channel (g, m) is near one of the channel's ``rows`` at its first receiver.
@@ -869,11 +885,12 @@ def _near_first_heard(horizontal, q, height_offset, g, m, first_heard, low, high
     Near: its squared 3-D length at receiver ``first_heard[j]`` within ``low[j]``..``high[j]`` (m^2), what the
     gate asks of that receiver (:func:`_row_intervals`).
     """
-    for j in range(rows):
+    near = False
+    for j in range(rows):  # without a branch per row: which rows are near is as good as random
         k = first_heard[j]
-        if low[j] <= horizontal[q, k] ** 2 + height_offset[g, m, k] ** 2 <= high[j]:
-            return True
-    return False
+        squared = horizontal[q, k] ** 2 + height_offset[g, m, k] ** 2
+        near |= (low[j] <= squared) & (squared <= high[j])
+    return near
 
 
 @kernel(inline=True)
@@ -1263,14 +1280,18 @@ def _widest_cone(cones, row, distance, acceptance, yaw_margin, position_margin, 
         cones[row, 0], cones[row, 1] = math.cos(half), math.sin(half)
 
 
-@kernel
-def _in_cone(apex_x, apex_y, axis_x, axis_y, cones, points, row):
-    """Whether ``points[row]`` is inside its widest cone (``cones[row]``, :func:`_widest_cone`) at the apex."""
-    if np.isnan(cones[row, 0]):
-        return True
-    dx, dy = points[row, 0] - apex_x, points[row, 1] - apex_y
-    along, across = axis_x * dx + axis_y * dy, axis_x * dy - axis_y * dx
-    return abs(across) * cones[row, 0] <= along * cones[row, 1] + _SLACK * (abs(dx) + abs(dy))
+@kernel(inline=True)
+def _points_in_cone(seen, apex_x, apex_y, axis_x, axis_y, cone_cos, cone_sin, point_x, point_y, near):
+    """Marks in ``seen`` (P,) the ``near`` points inside their widest cones at the apex (:func:`_widest_cone`).
+
+    The cones' half-angle cosines and sines (NaN: seen from anywhere) and the points' coordinates as arrays of
+    their own, (P,): a loop without a branch, which the compiler runs several points at a time.
+    """
+    for p in range(point_x.shape[0]):
+        dx, dy = point_x[p] - apex_x, point_y[p] - apex_y
+        along, across = axis_x * dx + axis_y * dy, axis_x * dy - axis_y * dx
+        inside = abs(across) * cone_cos[p] <= along * cone_sin[p] + _SLACK * (abs(dx) + abs(dy))
+        seen[p] |= near[p] & (np.isnan(cone_cos[p]) | inside)
 
 
 @kernel
