@@ -955,14 +955,13 @@ def _segments(segments, caller: str, name: str = "walls") -> np.ndarray:
 
 def _unit_normals(normals, walls: np.ndarray, caller: str) -> np.ndarray:
     """The normals (W, 2) of ``walls`` scaled to unit length, checked (a wall left out may have any)."""
-    normals = np.asarray(normals, dtype=float)
+    normals = np.ascontiguousarray(normals, dtype=float)
     if normals.shape != (len(walls), 2):
         raise ValueError(f"{caller}: normals must have shape ({len(walls)}, 2), one per wall, got {normals.shape}")
-    length = np.hypot(normals[:, 0], normals[:, 1])
-    used = np.isfinite(walls).all(axis=(1, 2))
-    if not (np.isfinite(length[used]).all() and (length[used] > 0).all()):
+    unit, bad = _scaled_to_unit(normals, walls)
+    if bad >= 0:
         raise ValueError(f"{caller}: normals must be finite and not zero, got {normals!r}")
-    return np.ascontiguousarray(normals / np.where(used, length, 1.0)[:, None])
+    return unit
 
 
 def _map_arrays(walls, points, caller: str):
@@ -1041,3 +1040,22 @@ def _slots(group, transmitter, group_transmitters):
         if slot[n] < 0 and bad < 0:
             bad = n
     return slot, bad
+
+
+@kernel
+def _scaled_to_unit(normals, walls):
+    """``normals`` (W, 2) over their lengths, and the first wall whose normal is not finite or zero (-1: none).
+
+    Only walls (W, 2, 2) with finite ends count; the normals of the others are left as they are.
+    """
+    unit = np.empty_like(normals)
+    bad = -1
+    for w in range(normals.shape[0]):
+        used = (np.isfinite(walls[w, 0, 0]) and np.isfinite(walls[w, 0, 1]) and np.isfinite(walls[w, 1, 0])
+                and np.isfinite(walls[w, 1, 1]))
+        length = math.hypot(normals[w, 0], normals[w, 1])
+        if used and not (np.isfinite(length) and length > 0) and bad < 0:
+            bad = w
+        scale = length if used else 1.0
+        unit[w, 0], unit[w, 1] = normals[w, 0] / scale, normals[w, 1] / scale
+    return unit, bad
