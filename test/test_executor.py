@@ -227,7 +227,7 @@ def test_a_take_failing_as_the_context_goes_down_is_a_shutdown(ros, monkeypatch)
     def take_fails(subscription):
         raise RuntimeError("Unable to convert call argument '0' to Python object")
 
-    monkeypatch.setattr(executor_module, "_call", take_fails)
+    monkeypatch.setattr(executor_module, "_take", take_fails)
     monkeypatch.setattr(executor_module, "SHUTDOWN_GRACE", 0.05)
     with pytest.raises(RuntimeError, match="Unable to convert"):  # the context stays up: an error
         _publish_until(executor, publisher, lambda: False)
@@ -238,6 +238,6 @@ def test_a_take_failing_as_the_context_goes_down_is_a_shutdown(ros, monkeypatch)
         take_fails(subscription)
 
     monkeypatch.setattr(executor_module, "SHUTDOWN_GRACE", 5.0)
-    monkeypatch.setattr(executor_module, "_call", fail_then_shut_down)
+    monkeypatch.setattr(executor_module, "_take", fail_then_shut_down)
     with pytest.raises(ExternalShutdownException):
         _publish_until(executor, publisher, lambda: False)

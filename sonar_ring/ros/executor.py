@@ -36,7 +36,7 @@ from rclpy.subscription import Subscription
 from rclpy.utilities import timeout_sec_to_nsec
 
 SHUTDOWN_GRACE = 1.0
-"""s: how long an error of rclpy's is given to turn out a shutdown (Ctrl-C) before it is raised."""
+"""s: how long a failed take is given to turn out a shutdown (Ctrl-C) before it is raised."""
 
 
 class DirectExecutor(SingleThreadedExecutor):
@@ -52,15 +52,12 @@ class DirectExecutor(SingleThreadedExecutor):
         shut down from another thread or by a signal, also while a wait set was
         being made (rclpy's executor raises an ``RCLError`` there) or a message
         taken (rclpy 9 may fail to convert it then, before the context is down:
-        such an error waits up to :data:`SHUTDOWN_GRACE` for the shutdown).
+        a failed take waits up to :data:`SHUTDOWN_GRACE` for the shutdown).
         """
         try:
             self._spin_once(timeout_sec)
-        except RuntimeError:
-            # rclpy's RCLError as the context went down, or a take that Ctrl-C broke: Python raises the
-            # KeyboardInterrupt inside rclpy's conversion of the message, which turns it into this error, and
-            # rclpy's signal thread shuts the context down a moment later.
-            if not _goes_down(self._context, SHUTDOWN_GRACE):
+        except RuntimeError:  # rclpy's RCLError as the context went down
+            if self._context.ok():
                 raise
         if not self._context.ok():
             raise ExternalShutdownException()
@@ -95,7 +92,7 @@ class DirectExecutor(SingleThreadedExecutor):
             ready = wait_set.get_ready_entities("subscription")
             for subscription in subscriptions:
                 if subscription.handle.pointer in ready:
-                    _call(subscription)
+                    _call(subscription, self._context)
             # Still ready if a callback raised: the next wait sees them again.
             handed_on = bool(wait_set.get_ready_entities("timer") or wait_set.get_ready_entities("service")
                              or any(guard._executor_triggered for guard in node_guards))
@@ -129,6 +126,11 @@ class DirectExecutor(SingleThreadedExecutor):
             return all(task.done() for task, _, _ in self._tasks)
 
 
+def _take(subscription: Subscription):
+    """One message of ``subscription`` as rclpy takes it: ``(message, MessageInfo)``, or None."""
+    return subscription.handle.take_message(subscription.msg_type, subscription.raw)
+
+
 def _goes_down(context, within: float) -> bool:
     """Whether ``context`` is shut down now or within ``within`` seconds (polled every 10 ms)."""
     deadline = time.monotonic() + within
@@ -148,16 +150,24 @@ def _held(held: ExitStack, entity) -> bool:
     return True
 
 
-def _call(subscription: Subscription) -> None:
+def _call(subscription: Subscription, context) -> None:
     """Take one message of a ready subscription and call its callback (with its MessageInfo if it takes one).
 
     A subscription destroyed by an earlier callback of the same wait is skipped, as rclpy's executor does.
+    A take that fails while ``context`` goes down within :data:`SHUTDOWN_GRACE` raises
+    :class:`~rclpy.executors.ExternalShutdownException`.
     """
     try:
         with subscription.handle:
-            taken = subscription.handle.take_message(subscription.msg_type, subscription.raw)
+            taken = _take(subscription)
     except InvalidHandle:
         return
+    except RuntimeError:
+        # Ctrl-C: Python raises the KeyboardInterrupt inside rclpy's conversion of the message, which turns it
+        # into this error, and rclpy's signal thread shuts the context down a moment later.
+        if _goes_down(context, SHUTDOWN_GRACE):
+            raise ExternalShutdownException() from None
+        raise
     if taken is None:  # the middleware had nothing after all (e.g. a message it could not deserialize)
         return
     if subscription._callback_type is Subscription.CallbackType.MessageOnly:
