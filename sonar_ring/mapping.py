@@ -464,6 +464,7 @@ def _point_entry_covariance_of(i00, i01, i10, i11, map_sigma):
     """:func:`_point_entry_covariance` of one entry's information ``[[i00, i01], [i10, i11]]``: its four entries."""
     e00, e01, e10, e11 = _inverse_of(i00, i01, i10, i11)
     variance = map_sigma ** 2
+    # ``variance * np.eye(2)`` entry by entry, as the array version adds it: -0.0 and NaN come out the same.
     return e00 + variance * 1.0, e01 + variance * 0.0, e10 + variance * 0.0, e11 + variance * 1.0
 
 
