@@ -81,10 +81,23 @@ def positive_number(name: str, value) -> float:
 
     Numbers are checked without numpy, whose calls cost more than the check.
     """
-    number = value
-    if not isinstance(value, float | int):
-        numeric = isinstance(value, np.generic | np.ndarray) and value.ndim == 0 and value.dtype.kind in "biuf"
-        number = float(value) if numeric else math.nan
+    number = _one_number(value)
     if not (math.isfinite(number) and number > 0):
         raise ValueError(f"{name} must be a finite number > 0, got {value!r}")
-    return float(number)
+    return number
+
+
+def non_negative_number(name: str, value) -> float:
+    """``value`` as a float; ``ValueError`` unless it is one finite number >= 0 (as :func:`positive_number`)."""
+    number = _one_number(value)
+    if not (math.isfinite(number) and number >= 0):
+        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    return number
+
+
+def _one_number(value) -> float:
+    """``value`` as a float where it is one real number (a Python or a numpy scalar), else NaN."""
+    if isinstance(value, float | int):
+        return float(value)
+    numeric = isinstance(value, np.generic | np.ndarray) and value.ndim == 0 and value.dtype.kind in "biuf"
+    return float(value) if numeric else math.nan

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from sonar_ring import solvers
-from sonar_ring.checks import positive_finite, positive_number
+from sonar_ring.checks import non_negative_number, positive_finite, positive_number
 from sonar_ring.compiled import kernel
 from sonar_ring.confidence import confidence_from_margin
 from sonar_ring.landmarks import EDGE, UNKNOWN
@@ -58,6 +58,13 @@ class ConsistencyResult:
         Fitted virtual image ``T'`` of the transmitter, m, sensor frame.
     edge_position : ndarray of float, shape (N, 2)
         Fitted edge position ``P``, m, sensor frame.
+    image_covariance, edge_covariance : ndarray of float, shape (N, 2, 2)
+        Covariance of ``virtual_image`` and of ``edge_position``, m^2 (:func:`_fit_covariance`): the joint
+        estimate over every receiver that heard the echo; NaN where not asked for (``covariances``), untested,
+        or where that model does not fit (its chi-square above the fit limit of :func:`geometric_consistency`).
+    joined : ndarray of int, shape (N, J)
+        The echo's own row, then the rows whose receivers its fits used with its own, -1 padded (one column
+        outside a ring).  Rows whose fits share a row are estimates of one echo, not independent.
     """
 
     cls: np.ndarray
@@ -69,6 +76,9 @@ class ConsistencyResult:
     dof: np.ndarray
     virtual_image: np.ndarray
     edge_position: np.ndarray
+    image_covariance: np.ndarray
+    edge_covariance: np.ndarray
+    joined: np.ndarray
 
 
 CONSISTENCY_Z = 3.5
@@ -105,7 +115,7 @@ converges only linearly: twice the work for no change in any decision."""
 
 
 def geometric_consistency(transmitter, receivers, paths, sigma_path, z=CONSISTENCY_Z,
-                          facing=None) -> ConsistencyResult:
+                          facing=None, covariances=False, relative_sigma_speed=0.0) -> ConsistencyResult:
     """EDGE versus specular (PLANE/CORNER) from one echo seen by three or more receivers.
 
     Two models are fitted by weighted least squares (Gauss-Newton, per echo) to the
@@ -145,12 +155,18 @@ def geometric_consistency(transmitter, receivers, paths, sigma_path, z=CONSISTEN
         Direction the receivers face (echoes arrive from that side), sensor frame;
         default the direction from the transmitter to the receivers' centroid, right
         for a ring but not for an emitter beside its receivers (a triad).
+    covariances : bool
+        Also the fitted positions' covariances (else NaN): what an echo's joint estimate needs, not the test.
+    relative_sigma_speed : float
+        Relative standard deviation of the speed of sound, >= 0: a scale common to every path, which the
+        covariances include.
 
     Returns
     -------
     ConsistencyResult
-        Decisions, confidences, chi-squares and both fitted positions.  Echoes with
-        fewer than three usable receivers are UNKNOWN with zero confidence.
+        Decisions, confidences, chi-squares and both fitted positions (with their
+        covariances where asked for).  Echoes with fewer than three usable receivers are UNKNOWN with
+        zero confidence.
     """
     z = positive_number("z", z)
     receivers = np.asarray(receivers, dtype=float)
@@ -168,29 +184,30 @@ def geometric_consistency(transmitter, receivers, paths, sigma_path, z=CONSISTEN
 
     outward = np.zeros((n_echoes, 2)) if facing is None else np.broadcast_to(np.asarray(facing, dtype=float),
                                                                             (n_echoes, 2))
+    relative_sigma_speed = non_negative_number("relative_sigma_speed", relative_sigma_speed)
     fits = _fit_models(np.ascontiguousarray(transmitter), np.ascontiguousarray(receivers),
                        np.ascontiguousarray(paths), np.ascontiguousarray(sigma), np.ascontiguousarray(outward),
-                       facing is not None)
-    return _result(*_decide(*fits, z))
+                       facing is not None, bool(covariances), relative_sigma_speed)
+    return _result(*_decide(*fits, z), np.arange(n_echoes)[:, None])
 
 
 def _result(cls, specular, margin, *tests) -> ConsistencyResult:
-    """The :class:`ConsistencyResult` of :func:`_decide`'s outputs: its fields, with the margins' confidences."""
+    """The :class:`ConsistencyResult` of :func:`_decide`'s outputs and the joined rows, with the confidences."""
     return ConsistencyResult(cls, specular, margin, confidence_from_margin(margin), *tests)
 
 
 @kernel
-def _decide(image, chi2_specular, edge, chi2_edge, dof, z):
+def _decide(image, chi2_specular, edge, chi2_edge, dof, image_covariance, edge_covariance, z):
     """Per echo, the two tests of :func:`geometric_consistency` on both models' fits (:func:`_fit_models`' outputs).
 
     ``image`` and ``edge`` (N, 2) m, ``chi2_specular`` and ``chi2_edge`` (N,), ``dof``
-    (N,) int; ``z`` the significance.  An echo is tested when ``dof >= 1``: EDGE
-    when ``chi2_specular - chi2_edge > z^2`` and the edge fits (``chi2_edge`` within
+    (N,) int, the fits' covariances (N, 2, 2) m^2; ``z`` the significance.  An echo is tested when
+    ``dof >= 1``: EDGE when ``chi2_specular - chi2_edge > z^2`` and the edge fits (``chi2_edge`` within
     :func:`_chi2_upper_quantile`), specular in the mirror case.  Returns the fields
     of :class:`ConsistencyResult` in order but the confidence (:func:`_result`
-    adds it): the class (N,) uint8, specular (N,) bool, the margin (N,) (0 where
+    adds it) and the joined rows: the class (N,) uint8, specular (N,) bool, the margin (N,) (0 where
     nothing was decided), the chi-squares, ``dof``, and the fitted points, NaN
-    where untested.
+    where untested, and their covariances, NaN also where that model does not fit.
     """
     n_echoes = dof.size
     cls = np.full(n_echoes, UNKNOWN, dtype=np.uint8)
@@ -198,6 +215,7 @@ def _decide(image, chi2_specular, edge, chi2_edge, dof, z):
     margin = np.zeros(n_echoes)
     tested_specular, tested_edge = np.full(n_echoes, np.nan), np.full(n_echoes, np.nan)
     tested_image, tested_point = np.full((n_echoes, 2), np.nan), np.full((n_echoes, 2), np.nan)
+    fitting_image, fitting_point = np.full((n_echoes, 2, 2), np.nan), np.full((n_echoes, 2, 2), np.nan)
     threshold = z * z
     for n in range(n_echoes):
         if dof[n] < 1:
@@ -206,6 +224,10 @@ def _decide(image, chi2_specular, edge, chi2_edge, dof, z):
         tested_image[n], tested_point[n] = image[n], edge[n]
         difference = chi2_specular[n] - chi2_edge[n]
         fit_limit = _chi2_upper_quantile(dof[n], z)
+        if chi2_specular[n] <= fit_limit:
+            fitting_image[n] = image_covariance[n]
+        if chi2_edge[n] <= fit_limit:
+            fitting_point[n] = edge_covariance[n]
         is_edge = difference > threshold and chi2_edge[n] <= fit_limit
         is_specular = -difference > threshold and chi2_specular[n] <= fit_limit
         if is_edge or is_specular:
@@ -214,7 +236,8 @@ def _decide(image, chi2_specular, edge, chi2_edge, dof, z):
             specular[n] = is_specular
             if is_edge:
                 cls[n] = EDGE
-    return cls, specular, margin, tested_specular, tested_edge, dof, tested_image, tested_point
+    return (cls, specular, margin, tested_specular, tested_edge, dof, tested_image, tested_point, fitting_image,
+            fitting_point)
 
 
 @kernel
@@ -276,14 +299,14 @@ def load_kernels() -> None:
     one = np.zeros(1, dtype=np.int64)
     two_paths = np.full((1, 2), 2.0)
     _ring_tests(one, one, two_paths, horizontal_path(two_paths, 0.0).value, pair, transmitters, facing, slots,
-                spacing, 1e-3, CONSISTENCY_Z, MAX_ECHOES_PER_GROUP)
+                spacing, 1e-3, CONSISTENCY_Z, MAX_ECHOES_PER_GROUP, False, 0.0)
     height_offset = np.zeros((1, 1, 2))
     height_offset.flags.writeable = False
     _row_height_offsets(height_offset, one)
 
 
 @kernel
-def _fit_models(transmitter, receivers, paths, sigma, facing, has_facing):
+def _fit_models(transmitter, receivers, paths, sigma, facing, has_facing, covariances, relative_sigma_speed):
     """Both models' fits for :func:`geometric_consistency`, each echo on its own.
 
     ``transmitter`` (N, 2), ``receivers`` (N, K, 2), ``paths`` and ``sigma`` (N, K), m;
@@ -291,7 +314,9 @@ def _fit_models(transmitter, receivers, paths, sigma, facing, has_facing):
     from the transmitter to the receivers' centroid is used.  A receiver is used
     where its path is finite and positive and the geometry finite.  Returns the
     fitted virtual image (N, 2) and its chi-square (N,), the fitted edge point and
-    its chi-square, and the degrees of freedom (usable receivers - 2) (N,).
+    its chi-square, the degrees of freedom (usable receivers - 2) (N,), and the two
+    fits' covariances (N, 2, 2) (:func:`_fit_covariance`, with ``relative_sigma_speed``) where
+    ``covariances``, else NaN.
     """
     n_echoes, n_receivers = paths.shape
     usable = np.zeros((n_echoes, n_receivers), dtype=np.bool_)
@@ -327,7 +352,12 @@ def _fit_models(transmitter, receivers, paths, sigma, facing, has_facing):
     # The corner point (T + T') / 2 is within millimetres of an edge (Browne section 7).
     edge, chi2_edge = _fit(0.5 * (safe_transmitter + image), safe_receivers, safe_paths, weight, safe_transmitter,
                            True, _GAUSS_NEWTON_STEPS, _CONVERGED)
-    return image, chi2_specular, edge, chi2_edge, dof
+    if not covariances:
+        return image, chi2_specular, edge, chi2_edge, dof, np.full((n_echoes, 2, 2), np.nan), np.full(
+            (n_echoes, 2, 2), np.nan)
+    return (image, chi2_specular, edge, chi2_edge, dof,
+            _fit_covariance(image, safe_receivers, safe_paths, weight, safe_transmitter, False, relative_sigma_speed),
+            _fit_covariance(edge, safe_receivers, safe_paths, weight, safe_transmitter, True, relative_sigma_speed))
 
 
 @kernel
@@ -419,6 +449,64 @@ def _fit(start, receivers, paths, weight, emitter, edge, steps, converged):
 
 
 @kernel
+def _fit_covariance(fitted, receivers, paths, weight, emitter, edge, relative_sigma_speed):
+    """Covariance (N, 2, 2) of each echo's fitted point (:func:`_fit`'s arguments and its fitted points), m^2.
+
+    The fit's, ``H^-1`` with ``H = J^T W J`` at the fitted point (``J`` the paths' derivatives by the point,
+    ``W`` the weights, the paths' inverse variances): the joint Cramer-Rao bound of the receivers that heard
+    the echo, evaluated at the estimate.  Plus the speed of sound's share: every path scaled by ``1 + e``,
+    ``e`` of standard deviation ``relative_sigma_speed``, moves the fit by ``e v`` with ``v = H^-1 J^T W d``
+    (``d`` the paths; the vertical offset's share of the scale, ``(dz / d)^2``, is left out).  And the
+    second-order spread along the line of sight of a point on an arc (:func:`sonar_ring.solvers.arc_spread`,
+    as a pair's sightings carry it): the fit's error across the line of sight is centimetres where its
+    aperture is a few pairs', and moves the point along it by about the path noise.  NaN where
+    ``H`` is singular or the point not finite.
+    """
+    n_echoes, n_receivers = paths.shape
+    covariance = np.full((n_echoes, 2, 2), np.nan)
+    for n in range(n_echoes):
+        x, y = fitted[n, 0], fitted[n, 1]
+        emitter_distance = emitter_unit_x = emitter_unit_y = 0.0
+        if edge:
+            away_x, away_y = x - emitter[n, 0], y - emitter[n, 1]
+            emitter_distance = np.sqrt(away_x * away_x + away_y * away_y)
+            emitter_unit_x, emitter_unit_y = away_x / emitter_distance, away_y / emitter_distance
+        xx = xy = yy = scale_x = scale_y = centre_x = centre_y = 0.0
+        used = 0
+        for k in range(n_receivers):
+            w = weight[n, k]
+            if w == 0.0:
+                continue
+            centre_x += receivers[n, k, 0]
+            centre_y += receivers[n, k, 1]
+            used += 1
+            to_x, to_y = x - receivers[n, k, 0], y - receivers[n, k, 1]
+            distance = np.sqrt(to_x * to_x + to_y * to_y)
+            jacobian_x, jacobian_y = to_x / distance + emitter_unit_x, to_y / distance + emitter_unit_y
+            xx += w * jacobian_x * jacobian_x
+            xy += w * jacobian_x * jacobian_y
+            yy += w * jacobian_y * jacobian_y
+            scale_x += w * jacobian_x * paths[n, k]
+            scale_y += w * jacobian_y * paths[n, k]
+        det = xx * yy - xy * xy
+        if not (np.isfinite(det) and det > 0.0):
+            continue
+        inverse_xx, inverse_xy, inverse_yy = yy / det, -xy / det, xx / det
+        shift_x = inverse_xx * scale_x + inverse_xy * scale_y
+        shift_y = inverse_xy * scale_x + inverse_yy * scale_y
+        speed = relative_sigma_speed * relative_sigma_speed
+        covariance[n, 0, 0] = inverse_xx + speed * shift_x * shift_x
+        covariance[n, 0, 1] = covariance[n, 1, 0] = inverse_xy + speed * shift_x * shift_y
+        covariance[n, 1, 1] = inverse_yy + speed * shift_y * shift_y
+        # The arc: a virtual image's equal-path circle is about the receivers, an edge's about them and the emitter.
+        centre_x, centre_y = centre_x / used, centre_y / used
+        if edge:
+            centre_x, centre_y = 0.5 * (centre_x + emitter[n, 0]), 0.5 * (centre_y + emitter[n, 1])
+        solvers.arc_spread(x, y, centre_x, centre_y, covariance[n])
+    return covariance
+
+
+@kernel
 def _chi2_upper_quantile(dof, z):
     """Upper quantile of chi-square with ``dof`` (>= 1) degrees of freedom at ``z`` (Wilson-Hilferty).
 
@@ -464,7 +552,8 @@ def _overlapping_groups(yaw_bytes: bytes, beam_half_angle: float) -> np.ndarray:
     return np.where(np.take_along_axis(overlap, chosen, axis=1), chosen, -1)
 
 
-def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_Z) -> ConsistencyResult:
+def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_Z, covariances=False,
+                     relative_sigma_speed=0.0) -> ConsistencyResult:
     """Geometric consistency of every echo of a single-emitter sensor, with its overlapping groups.
 
     Each echo row (one group, its K receivers) is joined by the echo of each
@@ -499,11 +588,16 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
         Ping of each echo when several pings are stacked; echoes join only within a ping.
     z : float
         Significance in standard normal deviates, > 0 (see :func:`geometric_consistency`).
+    covariances : bool
+        Also the fits' covariances (:func:`geometric_consistency`).
+    relative_sigma_speed : float
+        Relative standard deviation of the speed of sound, >= 0 (the fits' covariances).
 
     Returns
     -------
     ConsistencyResult
-        One entry per echo row; positions in the sensor frame.
+        One entry per echo row; positions in the sensor frame, the fits over the echo's row and the rows
+        joined with it (``joined``).
     """
     if layout.group_transmitters.shape[1] != 1:
         raise ValueError(f"ring_consistency: layout {layout.name!r} has "
@@ -511,6 +605,7 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
                          "consistency needs one emitter (use the amplitude rule for transducer pairs)")
     sigma_path = positive_number("sigma_path", sigma_path)
     z = positive_number("z", z)
+    relative_sigma_speed = non_negative_number("relative_sigma_speed", relative_sigma_speed)
     group = np.array(group, dtype=np.int64).reshape(-1)  # a copy: writable, one type to numba
     n_echoes, k = group.size, layout.receivers_per_group
     paths = np.array(paths, dtype=float, order="C")  # a copy: writable and contiguous, one type to numba
@@ -528,7 +623,8 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
     horizontal = solvers.horizontal_rows(paths.ravel(), height_offsets)[0].reshape(paths.shape)
     slots, spacing = _ring_slots(plan.yaw.tobytes(), float(layout.beam_half_angle), plan.receivers.tobytes())
     return _result(*_ring_tests(ping.astype(np.int64), group, paths, horizontal, plan.receivers, plan.transmitters,
-                                plan.facing, slots, spacing, sigma_path, z, MAX_ECHOES_PER_GROUP))
+                                plan.facing, slots, spacing, sigma_path, z, MAX_ECHOES_PER_GROUP,
+                                bool(covariances), relative_sigma_speed))
 
 
 @kernel
@@ -570,7 +666,7 @@ def _ring_slots(yaw_bytes: bytes, beam_half_angle: float, receiver_bytes: bytes)
 
 @kernel
 def _ring_tests(ping, group, paths, horizontal, receivers, transmitters, facing, slots, spacing, sigma_path, z,
-                max_per_group):
+                max_per_group, covariances, relative_sigma_speed):
     """Both models' fits and tests (:func:`_decide`) of every echo of :func:`ring_consistency`.
 
     Each echo is joined with its overlapping groups' echoes first.
@@ -583,8 +679,10 @@ def _ring_tests(ping, group, paths, horizontal, receivers, transmitters, facing,
     ``spacing`` (G, 1 + J, K, K) the distances between their receivers, m
     (:func:`_ring_slots`); ``sigma_path`` m; ``z`` the gate's significance; a group
     with more than ``max_per_group`` echoes in a ping is left out.  Returns what
-    :func:`_decide` returns, one row per echo; an echo left out (crowded, too
-    many echoes) has no usable receiver, so is untested.
+    :func:`_decide` returns, one row per echo (the fits' covariances where ``covariances``, with
+    ``relative_sigma_speed``), and
+    the rows joined with each (N, 1 + J), its own first, -1 padded; an echo left out (crowded, too
+    many echoes) has no usable receiver, so is untested, and is joined with no other.
     """
     n_echoes, n_receivers = paths.shape
     n_groups, n_slots = slots.shape
@@ -610,7 +708,9 @@ def _ring_tests(ping, group, paths, horizontal, receivers, transmitters, facing,
     echo_transmitter = np.empty((n_echoes, 2))
     echo_facing = np.empty((n_echoes, 2))
     joined = np.empty(n_slots, dtype=np.int64)
+    joined_rows = np.full((n_echoes, n_slots), -1, dtype=np.int64)
     for n in range(n_echoes):
+        joined_rows[n, 0] = n
         echo_transmitter[n] = transmitters[group[n], 0]
         echo_facing[n] = facing[group[n]]
         if overfull[n]:
@@ -639,6 +739,7 @@ def _ring_tests(ping, group, paths, horizontal, receivers, transmitters, facing,
         if crowded:
             continue
         joined[0] = n
+        joined_rows[n] = joined
         for slot in range(n_slots):
             row = joined[slot]
             if row < 0:
@@ -648,7 +749,11 @@ def _ring_tests(ping, group, paths, horizontal, receivers, transmitters, facing,
                 all_paths[n, column] = horizontal[row, k]
                 all_sigma[n, column] = sigma[row, k]
                 all_receivers[n, column] = receivers[group[row], k]
-    return _decide(*_fit_models(echo_transmitter, all_receivers, all_paths, all_sigma, echo_facing, True), z)
+    (cls, specular, margin, chi2_specular, chi2_edge, dof, image, edge, image_covariance,
+     edge_covariance) = _decide(*_fit_models(echo_transmitter, all_receivers, all_paths, all_sigma, echo_facing, True,
+                                             covariances, relative_sigma_speed), z)
+    return (cls, specular, margin, chi2_specular, chi2_edge, dof, image, edge, image_covariance, edge_covariance,
+            joined_rows)
 
 
 @kernel

@@ -8,7 +8,13 @@ from numpy.testing import assert_allclose, assert_array_equal
 from sonar_ring import localise
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN
-from sonar_ring.ring_consistency import geometric_consistency, overlapping_groups, ring_consistency
+from sonar_ring.ring_consistency import (
+    CONSISTENCY_Z,
+    _chi2_upper_quantile,
+    geometric_consistency,
+    overlapping_groups,
+    ring_consistency,
+)
 from sonar_ring.simulate import Noise, Simulator, load_scene
 
 SPEED = 343.0
@@ -109,14 +115,89 @@ def test_consistency_fits_reach_the_least_squares_minimum():
             assert_allclose(fitted[n], reference.x, atol=1e-6)
 
 
+def test_joint_fit_covariance_is_the_weighted_least_squares_one():
+    # (J^T W J)^-1 from a numerical Jacobian of the residuals, and the speed of sound's share from refitting
+    # paths scaled by 1 + h: neither uses the kernel's algebra; then the arc's spread as documented.
+    receivers = ring_receivers((47, 0, 1))
+    sigma = np.full(6, SIGMA_PATH) * np.linspace(1.0, 1.5, 6)  # unequal weights
+    relative_sigma_speed = 0.0035
+    for cls, range_m in ((CORNER, 1.5), (EDGE, 0.8)):
+        bearing = np.radians([4.0])
+        paths = exact_paths(cls, receivers, range_m, bearing)
+
+        def fit(measured, edge=cls == EDGE):
+            result = geometric_consistency(np.zeros(2), receivers[None], measured, sigma[None], covariances=True,
+                                           relative_sigma_speed=relative_sigma_speed)
+            return result, (result.edge_position if edge else result.virtual_image)[0]
+
+        result, point = fit(paths)
+
+        def residuals(at, edge=cls == EDGE, measured=paths[0]):
+            emitter = np.linalg.norm(at) if edge else 0.0
+            return (emitter + np.linalg.norm(at - receivers, axis=-1) - measured) / sigma
+
+        step = 1e-7
+        jacobian = np.stack([(residuals(point + step * e) - residuals(point - step * e)) / (2 * step)
+                             for e in np.eye(2)], axis=1)
+        shift = (fit(paths * (1 + 1e-6))[1] - fit(paths * (1 - 1e-6))[1]) / 2e-6
+        expected = np.linalg.inv(jacobian.T @ jacobian) + relative_sigma_speed ** 2 * np.outer(shift, shift)
+        # The arc's second-order spread along the line of sight from the equal-path circle's centre.
+        centre = receivers.mean(axis=0) / (2 if cls == EDGE else 1)  # the emitter at the origin
+        along = (point - centre) / np.linalg.norm(point - centre)
+        across = np.array([-along[1], along[0]])
+        expected += 0.75 * (across @ expected @ across) ** 2 / np.sum((point - centre) ** 2) * np.outer(along, along)
+        covariance = result.edge_covariance if cls == EDGE else result.image_covariance
+        assert_allclose(covariance[0], expected, rtol=1e-5)
+
+
+def test_joint_fit_covariance_holds_the_spread_of_noisy_fits():
+    # 2000 noisy echoes of a corner 1.5 m away heard by three pairs (sigma_t = 0.3 us): the fits scatter as
+    # their reported covariance says (normalised errors' mean 2, the 2-D chi-square's), 3 sigma holds.
+    rng = np.random.default_rng(11)
+    receivers = ring_receivers((47, 0, 1))
+    trials, sigma = 2000, SPEED * 0.3e-6
+    truth = 1.5 * np.array([np.cos(0.05), np.sin(0.05)])
+    paths = exact_paths(CORNER, receivers, 1.5, np.full(trials, 0.05)) + rng.normal(0, sigma, (trials, 6))
+    result = geometric_consistency(np.zeros(2), np.broadcast_to(receivers, (trials, 6, 2)), paths, sigma,
+                                   covariances=True)
+    error = 0.5 * result.virtual_image - truth  # the corner (T + T') / 2, T at the origin
+    normalised = np.einsum("ni,nij,nj->n", error, np.linalg.inv(0.25 * result.image_covariance), error)
+    assert 1.85 < normalised.mean() < 2.15
+    assert np.mean(normalised <= 11.83) > 0.99  # 11.83: the 2-D chi-square's 99.73 % point
+    assert_allclose(np.cov(error.T), 0.25 * result.image_covariance.mean(axis=0), rtol=0.1)
+
+
+def test_ring_consistency_says_which_rows_each_fit_joined():
+    ring = load_layout("browne_ring")
+    scene = load_scene("room")
+    ping = Simulator(scene, ring).ping(scene.sensor_pose, noise=Noise(tof=1e-6), rng=np.random.default_rng(3))
+    result = ring_consistency(ring, ping.group, ping.tof * ping.speed_of_sound, SIGMA_PATH, covariances=True)
+    without = ring_consistency(ring, ping.group, ping.tof * ping.speed_of_sound, SIGMA_PATH)
+    assert np.isnan(without.image_covariance).all() and np.isnan(without.edge_covariance).all()
+    assert_array_equal(without.virtual_image, result.virtual_image)  # the same fits, without their covariances
+    assert result.joined.shape == (ping.n_echoes, 5)  # its own and two overlapping groups on either side
+    assert_array_equal(result.joined[:, 0], np.arange(ping.n_echoes))
+    neighbours = overlapping_groups(ring)
+    heard = np.isfinite(ping.tof).sum(axis=1)
+    for row, rows in enumerate(result.joined):
+        others = rows[1:][rows[1:] >= 0]
+        assert np.isin(ping.group[others], neighbours[ping.group[row]]).all()
+        if result.dof[row] >= 1:  # the fit used every receiver of the rows it joined
+            assert result.dof[row] + 2 == heard[rows[rows >= 0]].sum()
+            fits = result.chi2_specular[row] <= _chi2_upper_quantile(result.dof[row], CONSISTENCY_Z)
+            assert np.isfinite(result.image_covariance[row]).all() == fits
+    assert np.count_nonzero(result.dof >= 1) > ping.n_echoes // 2
+
+
 def test_consistency_abstains_when_neither_model_fits():
     receivers = ring_receivers((0, 1))
     paths = exact_paths(PLANE, receivers, 0.5, np.radians([2.0]))
     paths[0, 3] += 0.05  # one receiver heard something else, 5 cm further
-    result = geometric_consistency(np.zeros(2), receivers[None], paths, SIGMA_PATH)
+    result = geometric_consistency(np.zeros(2), receivers[None], paths, SIGMA_PATH, covariances=True)
     assert result.cls[0] == UNKNOWN and not result.specular[0]
     assert result.confidence[0] == 0.0 and result.margin[0] == 0.0
     assert result.chi2_specular[0] > 1e3 and result.chi2_edge[0] > 1e3
+    assert np.isnan(result.image_covariance).all() and np.isnan(result.edge_covariance).all()  # no fit to trust
 
 
 def test_overlapping_groups_of_the_ring_are_two_on_each_side():
@@ -194,6 +275,11 @@ def test_error_handling():
     for z in (0.0, np.nan, [3.5, 3.5], "3.5", None, np.array("3.5"), 3.5j):
         with pytest.raises(ValueError, match="z must"):
             ring_consistency(ring_layout, [0], np.ones((1, 2)), SIGMA_PATH, z=z)
+    for speed in (-0.01, np.nan, np.inf, "0.01", [0.01]):
+        with pytest.raises(ValueError, match="relative_sigma_speed must be a finite number >= 0"):
+            ring_consistency(ring_layout, [0], np.ones((1, 2)), SIGMA_PATH, relative_sigma_speed=speed)
+        with pytest.raises(ValueError, match="relative_sigma_speed must be a finite number >= 0"):
+            geometric_consistency(np.zeros(2), receivers, np.ones((2, 3)), SIGMA_PATH, relative_sigma_speed=speed)
 
     # ... bad data values give UNKNOWN / NaN, never an exception.
     ring = ring_receivers((0, 1))
@@ -203,11 +289,14 @@ def test_error_handling():
     paths[2, 0] = -1.0  # a negative path is dropped; three receivers remain
     transmitter = np.array([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0], [np.nan, 0.0]])
     with np.errstate(all="raise"):
-        result = geometric_consistency(transmitter, np.broadcast_to(ring, (4, 4, 2)), paths, SIGMA_PATH)
+        result = geometric_consistency(transmitter, np.broadcast_to(ring, (4, 4, 2)), paths, SIGMA_PATH,
+                                       covariances=True)
     assert_array_equal(result.cls, [UNKNOWN, UNKNOWN, EDGE, UNKNOWN])
     assert_array_equal(result.dof, [-1, 0, 1, -2])
     assert_array_equal(result.confidence[[0, 1, 3]], 0.0)
     assert np.all(np.isnan(result.chi2_edge[[0, 1, 3]])) and np.all(np.isnan(result.virtual_image[[0, 1, 3]]))
+    assert np.isnan(result.edge_covariance[[0, 1, 3]]).all() and np.isfinite(result.edge_covariance[2]).all()
+    assert_array_equal(result.joined, np.arange(4)[:, None])
     # A ring ping with missing receivers, a path shorter than the height offset and no echoes at all.
     paths = np.array([[np.nan, np.nan], [0.05, 2.0], [2.0, np.inf]])
     with np.errstate(all="raise"):
