@@ -1,6 +1,6 @@
 """An echo heard by several pairs, fitted over all their receivers: error against the joint Cramer-Rao bound.
 
-Regenerate ``bench/results/joint.md`` (about three minutes):
+Regenerate ``bench/results/joint.md`` (a few seconds):
 
     source tools/env.sh && python bench/bench_joint.py   # from the repository root
 
