@@ -466,11 +466,11 @@ def _fit_covariance(fitted, receivers, paths, weight, emitter, edge, relative_si
     covariance = np.full((n_echoes, 2, 2), np.nan)
     for n in range(n_echoes):
         x, y = fitted[n, 0], fitted[n, 1]
-        emitter_distance = emitter_unit_x = emitter_unit_y = 0.0
+        emitter_unit_x = emitter_unit_y = 0.0  # the edge's path has a leg from the emitter, the image's not
         if edge:
             away_x, away_y = x - emitter[n, 0], y - emitter[n, 1]
-            emitter_distance = np.sqrt(away_x * away_x + away_y * away_y)
-            emitter_unit_x, emitter_unit_y = away_x / emitter_distance, away_y / emitter_distance
+            away = np.sqrt(away_x * away_x + away_y * away_y)
+            emitter_unit_x, emitter_unit_y = away_x / away, away_y / away
         xx = xy = yy = scale_x = scale_y = centre_x = centre_y = 0.0
         used = 0
         for k in range(n_receivers):

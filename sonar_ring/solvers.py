@@ -657,7 +657,9 @@ def arc_spread(p_x, p_y, centre_x, centre_y, covariance):
     covariance (a tenth of a millimetre along the line of sight) does not
     hold.  Its variance ``s^4 / (2 r^2)`` and squared mean ``s^4 / (4 r^2)``
     are added along the line of sight: without them the model that is true
-    fails its own chi-square over a pass of a few metres.
+    fails its own chi-square over a pass of a few metres.  A fit over several
+    pairs' receivers (:func:`sonar_ring.ring_consistency.ring_consistency`)
+    lies on such an arc too, about the centre of its own equal paths.
     """
     sight_x, sight_y = p_x - centre_x, p_y - centre_y
     radius = np.sqrt(sight_x * sight_x + sight_y * sight_y)
