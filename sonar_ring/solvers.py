@@ -647,7 +647,7 @@ def _carry(j, s, out):
 
 
 @kernel
-def arc_spread(p_x, p_y, centre_x, centre_y, covariance):
+def _arc_spread(p_x, p_y, centre_x, centre_y, covariance):
     """Add to ``covariance`` (2, 2) the second-order spread of a point sighting's arc about ``centre``.
 
     A pair's two paths put a point on an arc of radius ``r`` about ``centre``
@@ -657,9 +657,7 @@ def arc_spread(p_x, p_y, centre_x, centre_y, covariance):
     covariance (a tenth of a millimetre along the line of sight) does not
     hold.  Its variance ``s^4 / (2 r^2)`` and squared mean ``s^4 / (4 r^2)``
     are added along the line of sight: without them the model that is true
-    fails its own chi-square over a pass of a few metres.  A fit over several
-    pairs' receivers (:func:`sonar_ring.ring_consistency.ring_consistency`)
-    lies on such an arc too, about the centre of its own equal paths.
+    fails its own chi-square over a pass of a few metres.
     """
     sight_x, sight_y = p_x - centre_x, p_y - centre_y
     radius = np.sqrt(sight_x * sight_x + sight_y * sight_y)
@@ -710,7 +708,7 @@ def point_model_rows(tx, rx1, rx2, position, is_edge, undecided, covariance):
     corner_covariance, edge_covariance : ndarray, shape (L, 2, 2)
         The paths' covariance (the landmark's through the inverse of its
         model's Jacobian) carried through each model's, plus the arc's spread
-        (:func:`arc_spread`), m^2; NaN where not valid.
+        (:func:`_arc_spread`), m^2; NaN where not valid.
     separation_noise : ndarray, shape (L,)
         ``tr(W D)`` (:class:`sonar_ring.curvature.PointModels`); 0 where not valid.
     valid : ndarray of bool, shape (L,)
@@ -759,9 +757,9 @@ def point_model_rows(tx, rx1, rx2, position, is_edge, undecided, covariance):
         _carry(own_inverse, measured, paths)
         centre_x, centre_y = 0.5 * (tx_x + 0.5 * (r1_x + r2_x)), 0.5 * (tx_y + 0.5 * (r1_y + r2_y))
         _carry(corner_jacobian, paths, corner_covariance[n])
-        arc_spread(corner_x, corner_y, centre_x, centre_y, corner_covariance[n])
+        _arc_spread(corner_x, corner_y, centre_x, centre_y, corner_covariance[n])
         _carry(edge_jacobian, paths, edge_covariance[n])
-        arc_spread(edge_x, edge_y, centre_x, centre_y, edge_covariance[n])
+        _arc_spread(edge_x, edge_y, centre_x, centre_y, edge_covariance[n])
         if not _inverse(corner_covariance[n], weight):
             corner_covariance[n], edge_covariance[n] = np.nan, np.nan
             continue

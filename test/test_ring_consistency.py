@@ -117,7 +117,7 @@ def test_consistency_fits_reach_the_least_squares_minimum():
 
 def test_joint_fit_covariance_is_the_weighted_least_squares_one():
     # (J^T W J)^-1 from a numerical Jacobian of the residuals, and the speed of sound's share from refitting
-    # paths scaled by 1 + h: neither uses the kernel's algebra; then the arc's spread as documented.
+    # paths scaled by 1 + h: neither uses the kernel's algebra; then the arc's sag as documented.
     receivers = ring_receivers((47, 0, 1))
     sigma = np.full(6, SIGMA_PATH) * np.linspace(1.0, 1.5, 6)  # unequal weights
     relative_sigma_speed = 0.0035
@@ -145,14 +145,14 @@ def test_joint_fit_covariance_is_the_weighted_least_squares_one():
         centre = receivers.mean(axis=0) / (2 if cls == EDGE else 1)  # the emitter at the origin
         along = (point - centre) / np.linalg.norm(point - centre)
         across = np.array([-along[1], along[0]])
-        expected += 0.75 * (across @ expected @ across) ** 2 / np.sum((point - centre) ** 2) * np.outer(along, along)
+        expected += (1.5 * (across @ expected @ across)) ** 2 / np.sum((point - centre) ** 2) * np.outer(along, along)
         covariance = result.edge_covariance if cls == EDGE else result.image_covariance
         assert_allclose(covariance[0], expected, rtol=1e-5)
 
 
 def test_joint_fit_covariance_holds_the_spread_of_noisy_fits():
     # 2000 noisy echoes of a corner 1.5 m away heard by three pairs (sigma_t = 0.3 us): the fits scatter as
-    # their reported covariance says (normalised errors' mean 2, the 2-D chi-square's), 3 sigma holds.
+    # their reported covariance says (normalised errors' mean about 2, the 2-D chi-square's), 3 sigma holds.
     rng = np.random.default_rng(11)
     receivers = ring_receivers((47, 0, 1))
     trials, sigma = 2000, SPEED * 0.3e-6
