@@ -99,6 +99,15 @@ so the error bound of :func:`geometric_consistency` still holds.  (On 620 simula
 pings, 5 and 8 steps gave identical decisions.)"""
 
 
+SAG_BAND = 1.5 ** 2
+"""A joint fit's sag in :func:`sonar_ring.solvers.arc_spread`'s units, as a band its 3 sigma holds.
+
+An error ``a`` across the line of sight (variance ``s^2``) moves a point on an arc of radius ``r`` by
+``a^2 / (2 r)`` along it, always the same way: a squared Gaussian, whose 99.73 % point is ``9 s^2 / (2 r)``.
+Variance ``(1.5 s^2 / r)^2`` along the line of sight puts that point at 3 sigma.  (A pair's sightings carry the
+sag's variance and squared mean instead, :data:`sonar_ring.solvers.ARC_SPREAD`: their along-sight error is the
+sag's, where a joint fit's is mostly the paths' noise with the sag's tail.)"""
+
 MAX_ECHOES_PER_GROUP = 32
 """Echoes of one group in one ping beyond which :func:`ring_consistency` leaves that group out."""
 
@@ -457,9 +466,10 @@ def _fit_covariance(fitted, receivers, paths, weight, emitter, edge, relative_si
     the echo, evaluated at the estimate.  Plus the speed of sound's share: every path scaled by ``1 + e``,
     ``e`` of standard deviation ``relative_sigma_speed``, moves the fit by ``e v`` with ``v = H^-1 J^T W d``
     (``d`` the paths; the vertical offset's share of the scale, ``(dz / d)^2``, is left out).  And the
-    sag along the line of sight of a point on an arc (:func:`_add_sag`): the fit's error across the line of
-    sight is centimetres where its aperture is a few pairs', and moves the point along it by about the path
-    noise, always outwards.  NaN where ``H`` is singular or the point not finite.
+    sag along the line of sight of a point on an arc, as a band (:data:`SAG_BAND`,
+    :func:`sonar_ring.solvers.arc_spread`): the fit's error across the line of sight is centimetres where its
+    aperture is a few pairs', and moves the point along it by about the path noise, always outwards.  NaN
+    where ``H`` is singular or the point not finite.
     """
     n_echoes, n_receivers = paths.shape
     covariance = np.full((n_echoes, 2, 2), np.nan)
@@ -501,33 +511,8 @@ def _fit_covariance(fitted, receivers, paths, weight, emitter, edge, relative_si
         centre_x, centre_y = centre_x / used, centre_y / used
         if edge:
             centre_x, centre_y = 0.5 * (centre_x + emitter[n, 0]), 0.5 * (centre_y + emitter[n, 1])
-        _add_sag(x, y, centre_x, centre_y, covariance[n])
+        solvers.arc_spread(x, y, centre_x, centre_y, covariance[n], SAG_BAND)
     return covariance
-
-
-@kernel
-def _add_sag(x, y, centre_x, centre_y, covariance):
-    """Add to ``covariance`` (2, 2) the sag of a fit on an arc about ``centre``, as a band its 3 sigma holds.
-
-    An error ``a`` across the line of sight (variance ``s^2``, from ``covariance``) moves a point on an arc of
-    radius ``r`` by ``a^2 / (2 r)`` along it, always the same way: a squared Gaussian, whose 99.73 % point is
-    ``9 s^2 / (2 r)``.  Variance ``(1.5 s^2 / r)^2`` along the line of sight puts that point at 3 sigma.
-    (A pair's sightings carry the sag's variance and squared mean instead, :func:`sonar_ring.solvers._arc_spread`:
-    their along-sight error is the sag's, where a joint fit's is mostly the paths' noise with the sag's tail.)
-    """
-    sight_x, sight_y = x - centre_x, y - centre_y
-    radius = np.sqrt(sight_x * sight_x + sight_y * sight_y)
-    if not radius > 0:
-        return
-    along_x, along_y = sight_x / radius, sight_y / radius
-    across_x, across_y = -along_y, along_x
-    across_variance = (across_x * (covariance[0, 0] * across_x + covariance[0, 1] * across_y)
-                       + across_y * (covariance[1, 0] * across_x + covariance[1, 1] * across_y))
-    band = (1.5 * across_variance / radius) ** 2
-    covariance[0, 0] += band * along_x * along_x
-    covariance[0, 1] += band * along_x * along_y
-    covariance[1, 0] += band * along_y * along_x
-    covariance[1, 1] += band * along_y * along_y
 
 
 @kernel

@@ -646,18 +646,23 @@ def _carry(j, s, out):
                          + j[i, 1] * (s[1, 0] * j[k, 0] + s[1, 1] * j[k, 1]))
 
 
-@kernel
-def _arc_spread(p_x, p_y, centre_x, centre_y, covariance):
-    """Add to ``covariance`` (2, 2) the second-order spread of a point sighting's arc about ``centre``.
+ARC_SPREAD = 0.75
+"""The sag's variance ``s^4 / (2 r^2)`` and squared mean ``s^4 / (4 r^2)`` in :func:`arc_spread`'s units: what a
+pair's sighting carries (its along-sight error is the sag's)."""
 
-    A pair's two paths put a point on an arc of radius ``r`` about ``centre``
-    (the middle of the emitter and the pair's receivers): an error ``a``
-    across the line of sight (variance ``s^2``, a large fraction of a degree)
-    also moves the point ``a^2 / (2 r)`` *along* it, which the first-order
-    covariance (a tenth of a millimetre along the line of sight) does not
-    hold.  Its variance ``s^4 / (2 r^2)`` and squared mean ``s^4 / (4 r^2)``
-    are added along the line of sight: without them the model that is true
-    fails its own chi-square over a pass of a few metres.
+
+@kernel
+def arc_spread(p_x, p_y, centre_x, centre_y, covariance, factor):
+    """Add to ``covariance`` (2, 2) ``factor s^4 / r^2`` along the line of sight: a point's sag on an arc.
+
+    A point sighting lies on an arc of radius ``r`` about ``centre`` (a
+    pair's two paths: the middle of the emitter and the pair's receivers):
+    an error ``a`` across the line of sight (variance ``s^2``, from
+    ``covariance``; a large fraction of a degree) also moves the point
+    ``a^2 / (2 r)`` *along* it, which the first-order covariance (a tenth of a
+    millimetre along the line of sight) does not hold.  A pair's sighting takes
+    :data:`ARC_SPREAD`: without it the model that is true fails its own
+    chi-square over a pass of a few metres.
     """
     sight_x, sight_y = p_x - centre_x, p_y - centre_y
     radius = np.sqrt(sight_x * sight_x + sight_y * sight_y)
@@ -667,7 +672,7 @@ def _arc_spread(p_x, p_y, centre_x, centre_y, covariance):
     across_x, across_y = -along_y, along_x
     across_variance = (across_x * (covariance[0, 0] * across_x + covariance[0, 1] * across_y)
                        + across_y * (covariance[1, 0] * across_x + covariance[1, 1] * across_y))
-    spread = 0.75 * across_variance ** 2 / radius ** 2
+    spread = factor * across_variance ** 2 / radius ** 2
     covariance[0, 0] += spread * along_x * along_x
     covariance[0, 1] += spread * along_x * along_y
     covariance[1, 0] += spread * along_y * along_x
@@ -708,7 +713,7 @@ def point_model_rows(tx, rx1, rx2, position, is_edge, undecided, covariance):
     corner_covariance, edge_covariance : ndarray, shape (L, 2, 2)
         The paths' covariance (the landmark's through the inverse of its
         model's Jacobian) carried through each model's, plus the arc's spread
-        (:func:`_arc_spread`), m^2; NaN where not valid.
+        (:func:`arc_spread`), m^2; NaN where not valid.
     separation_noise : ndarray, shape (L,)
         ``tr(W D)`` (:class:`sonar_ring.curvature.PointModels`); 0 where not valid.
     valid : ndarray of bool, shape (L,)
@@ -757,9 +762,9 @@ def point_model_rows(tx, rx1, rx2, position, is_edge, undecided, covariance):
         _carry(own_inverse, measured, paths)
         centre_x, centre_y = 0.5 * (tx_x + 0.5 * (r1_x + r2_x)), 0.5 * (tx_y + 0.5 * (r1_y + r2_y))
         _carry(corner_jacobian, paths, corner_covariance[n])
-        _arc_spread(corner_x, corner_y, centre_x, centre_y, corner_covariance[n])
+        arc_spread(corner_x, corner_y, centre_x, centre_y, corner_covariance[n], ARC_SPREAD)
         _carry(edge_jacobian, paths, edge_covariance[n])
-        _arc_spread(edge_x, edge_y, centre_x, centre_y, edge_covariance[n])
+        arc_spread(edge_x, edge_y, centre_x, centre_y, edge_covariance[n], ARC_SPREAD)
         if not _inverse(corner_covariance[n], weight):
             corner_covariance[n], edge_covariance[n] = np.nan, np.nan
             continue
