@@ -216,7 +216,7 @@ def _decide(image, chi2_specular, edge, chi2_edge, dof, image_covariance, edge_c
     of :class:`ConsistencyResult` in order but the confidence (:func:`_result`
     adds it) and the joined rows: the class (N,) uint8, specular (N,) bool, the margin (N,) (0 where
     nothing was decided), the chi-squares, ``dof``, and the fitted points, NaN
-    where untested, and their covariances, NaN also where that model does not fit.
+    where untested, and their covariances, set to NaN in place there and where that model does not fit.
     """
     n_echoes = dof.size
     cls = np.full(n_echoes, UNKNOWN, dtype=np.uint8)
@@ -224,19 +224,19 @@ def _decide(image, chi2_specular, edge, chi2_edge, dof, image_covariance, edge_c
     margin = np.zeros(n_echoes)
     tested_specular, tested_edge = np.full(n_echoes, np.nan), np.full(n_echoes, np.nan)
     tested_image, tested_point = np.full((n_echoes, 2), np.nan), np.full((n_echoes, 2), np.nan)
-    fitting_image, fitting_point = np.full((n_echoes, 2, 2), np.nan), np.full((n_echoes, 2, 2), np.nan)
     threshold = z * z
     for n in range(n_echoes):
         if dof[n] < 1:
+            image_covariance[n] = edge_covariance[n] = np.nan
             continue
         tested_specular[n], tested_edge[n] = chi2_specular[n], chi2_edge[n]
         tested_image[n], tested_point[n] = image[n], edge[n]
         difference = chi2_specular[n] - chi2_edge[n]
         fit_limit = _chi2_upper_quantile(dof[n], z)
-        if chi2_specular[n] <= fit_limit:
-            fitting_image[n] = image_covariance[n]
-        if chi2_edge[n] <= fit_limit:
-            fitting_point[n] = edge_covariance[n]
+        if not chi2_specular[n] <= fit_limit:
+            image_covariance[n] = np.nan
+        if not chi2_edge[n] <= fit_limit:
+            edge_covariance[n] = np.nan
         is_edge = difference > threshold and chi2_edge[n] <= fit_limit
         is_specular = -difference > threshold and chi2_specular[n] <= fit_limit
         if is_edge or is_specular:
@@ -245,8 +245,8 @@ def _decide(image, chi2_specular, edge, chi2_edge, dof, image_covariance, edge_c
             specular[n] = is_specular
             if is_edge:
                 cls[n] = EDGE
-    return (cls, specular, margin, tested_specular, tested_edge, dof, tested_image, tested_point, fitting_image,
-            fitting_point)
+    return (cls, specular, margin, tested_specular, tested_edge, dof, tested_image, tested_point, image_covariance,
+            edge_covariance)
 
 
 @kernel
