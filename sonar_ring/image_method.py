@@ -152,7 +152,7 @@ def _lengths(walls):
     return length
 
 
-@kernel
+@kernel(inline=True)
 def _leg_blocked(x0, y0, x1, y1, walls, length, wall_margin, support, least):
     """:func:`blocked_legs` for one leg ``(x0, y0) -> (x1, y1)``; ``length`` (W,) the walls' lengths, m.
 
@@ -244,13 +244,13 @@ def double_bounces(kind, first, second, group, slot, start, direction, normal, l
     return horizontal, exists, first_point, last_point
 
 
-@kernel
+@kernel(inline=True)
 def _side(x, y, wall, start, normal):
     """Signed distance of ``(x, y)`` from the line of ``wall``, positive on its normal's side, m."""
     return (x - start[wall, 0]) * normal[wall, 0] + (y - start[wall, 1]) * normal[wall, 1]
 
 
-@kernel
+@kernel(inline=True)
 def _crossing(inside_x, inside_y, inside_side, image_x, image_y, image_side, wall, start, direction, length, margin):
     """Where segment inside -> image crosses the line of ``wall``, and whether it does so on the segment.
 
@@ -267,7 +267,7 @@ def _crossing(inside_x, inside_y, inside_side, image_x, image_y, image_side, wal
     return x, y, crosses and along >= -margin and along <= length[wall] + margin
 
 
-@kernel
+@kernel(inline=True)
 def _wall_wall(tx_x, tx_y, rx_x, rx_y, a, b, start, direction, normal, length, margin):
     """T -> wall ``a`` -> wall ``b`` -> R: ``(horizontal, exists, first x, y, last x, y)``."""
     t_side = _side(tx_x, tx_y, a, start, normal)
@@ -283,11 +283,11 @@ def _wall_wall(tx_x, tx_y, rx_x, rx_y, a, b, start, direction, normal, length, m
     last_side = _side(last_x, last_y, a, start, normal)
     first_x, first_y, on_a = _crossing(last_x, last_y, last_side, image_a_x, image_a_y, -t_side, a, start, direction,
                                        length, margin)
-    horizontal = math.hypot(image_ab_x - rx_x, image_ab_y - rx_y)
+    horizontal = _norm(image_ab_x - rx_x, image_ab_y - rx_y)
     return horizontal, on_a and on_b and image_a_side * r_side > 0, first_x, first_y, last_x, last_y
 
 
-@kernel
+@kernel(inline=True)
 def _via_wall(p_x, p_y, x, y, wall, start, direction, normal, length, margin):
     """Point P and a transducer X by way of ``wall``: ``(|P - X_w|, exists, bounce x, y)``.
 
@@ -299,21 +299,21 @@ def _via_wall(p_x, p_y, x, y, wall, start, direction, normal, length, margin):
     p_side = _side(p_x, p_y, wall, start, normal)
     bounce_x, bounce_y, on_wall = _crossing(p_x, p_y, p_side, image_x, image_y, -x_side, wall, start, direction,
                                             length, margin)
-    return math.hypot(p_x - image_x, p_y - image_y), on_wall, bounce_x, bounce_y
+    return _norm(p_x - image_x, p_y - image_y), on_wall, bounce_x, bounce_y
 
 
-@kernel
+@kernel(inline=True)
 def _wall_point(tx_x, tx_y, rx_x, rx_y, a, p_x, p_y, start, direction, normal, length, margin):
     """T -> wall ``a`` -> point P -> R: ``(horizontal, exists, first x, y, last x, y)``."""
     out, on_wall, bounce_x, bounce_y = _via_wall(p_x, p_y, tx_x, tx_y, a, start, direction, normal, length, margin)
-    return out + math.hypot(p_x - rx_x, p_y - rx_y), on_wall, bounce_x, bounce_y, p_x, p_y
+    return out + _norm(p_x - rx_x, p_y - rx_y), on_wall, bounce_x, bounce_y, p_x, p_y
 
 
-@kernel
+@kernel(inline=True)
 def _point_wall(tx_x, tx_y, rx_x, rx_y, p_x, p_y, b, start, direction, normal, length, margin):
     """T -> point P -> wall ``b`` -> R: ``(horizontal, exists, first x, y, last x, y)``."""
     back, on_wall, bounce_x, bounce_y = _via_wall(p_x, p_y, rx_x, rx_y, b, start, direction, normal, length, margin)
-    return math.hypot(p_x - tx_x, p_y - tx_y) + back, on_wall, p_x, p_y, bounce_x, bounce_y
+    return _norm(p_x - tx_x, p_y - tx_y) + back, on_wall, p_x, p_y, bounce_x, bounce_y
 
 
 # --------------------------------------------------------------------------- the map's paths to one ping
@@ -590,8 +590,8 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
     # every receiver that heard the row, with the largest variance a pose error could give
     # (:func:`_row_intervals`); a candidate is checked at the first receiver of each row as it is found
     # (most are near none: 350 of 1592 a ping of the explain bench are kept), then at all of them.  These
-    # lengths only choose what pass 2 computes again, exactly: ``_norm``, not ``math.hypot``.  At most: every
-    # seen wall or point alone, and last with every entry (a point: every wall) first.
+    # lengths only choose what pass 2 computes again with the bounces placed.  At most: every seen wall or point
+    # alone, and last with every entry (a point: every wall) first.
     capacity = 0
     for c in range(channels):
         for w in range(n_walls):
@@ -770,7 +770,7 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
                     tx[g, m, 0], tx[g, m, 1], rx[g, k, 0], rx[g, k, 1], points[a, 0], points[a, 1], b, start,
                     direction, normal, length, extent_margin)
             elif kind[q] == WALL_POINT:
-                h = via_length[t, a, b] + math.hypot(points[b, 0] - rx[g, k, 0], points[b, 1] - rx[g, k, 1])
+                h = via_length[t, a, b] + _norm(points[b, 0] - rx[g, k, 0], points[b, 1] - rx[g, k, 1])
                 exists, first_x, first_y = True, via_bounce[t, a, b, 0], via_bounce[t, a, b, 1]
                 last_x, last_y = points[b, 0], points[b, 1]
             elif kind[q] == WALL:
@@ -778,7 +778,7 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
                                                         direction, normal, length, extent_margin)
                 last_x, last_y = first_x, first_y
             else:
-                h = to_point[t, b] + math.hypot(points[b, 0] - rx[g, k, 0], points[b, 1] - rx[g, k, 1])
+                h = to_point[t, b] + _norm(points[b, 0] - rx[g, k, 0], points[b, 1] - rx[g, k, 1])
                 exists, first_x, first_y, last_x, last_y = True, points[b, 0], points[b, 1], points[b, 0], points[b, 1]
             first_point[kept_count, k, 0], first_point[kept_count, k, 1] = first_x, first_y
             last_point[kept_count, k, 0], last_point[kept_count, k, 1] = last_x, last_y
@@ -859,7 +859,7 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
             first_point[:kept_count], last_point[:kept_count], channel_start)
 
 
-@kernel
+@kernel(inline=True)
 def _points_in_mirror(in_mirror, wall_seen, mirror, c, b, point_side, receiver_side, point_x, point_y):
     """Into ``in_mirror`` (P,): which points some receiver of channel ``c`` that sees wall ``b`` hears by way of it.
 
@@ -895,10 +895,10 @@ def _near_first_heard(horizontal, q, height_offset, g, m, first_heard, low, high
 
 @kernel(inline=True)
 def _norm(x, y):
-    """``sqrt(x^2 + y^2)``, for lengths that only prune.
+    """``sqrt(x^2 + y^2)``: the lengths of the paths and their legs.
 
-    Within an ulp or two of ``math.hypot``, which costs several times more; the gates they meet have a slack far
-    above that.
+    Within an ulp or two of ``math.hypot``, which numba calls in libm at several times the cost (7 % of
+    :func:`map_paths`' time); no length here comes near the overflow or underflow ``hypot`` guards against.
     """
     return math.sqrt(x * x + y * y)
 
@@ -928,7 +928,7 @@ def _row_intervals(row_paths, gate_sigmas, fixed_variance, sigma_speed):
     return low, high
 
 
-@kernel
+@kernel(inline=True)
 def _differences_near(row_paths, n, horizontal, q, squared, image_distance, rx, g, spread, xy_sigma, yaw_sigma,
                       sigma_path, sigma_speed, gate_sigmas):
     """Whether the differences between row ``n``'s receivers match those of candidate ``q`` within the gate.
@@ -1043,7 +1043,7 @@ def _work_arrays(receivers):
             np.empty((receivers, 3)))
 
 
-@kernel
+@kernel(inline=True)
 def _variances(variance, row, predicted, jacobian, q, pose_covariance, sigma_path, sigma_speed, sigma_map):
     """Into ``variance[row]`` (K,): each receiver's variance of predicted path ``q``, the diagonal of the covariance."""
     for k in range(predicted.shape[1]):
@@ -1054,7 +1054,7 @@ def _variances(variance, row, predicted, jacobian, q, pose_covariance, sigma_pat
         variance[row, k] = pose + sigma_speed ** 2 * predicted[q, k] ** 2 + 8.0 * sigma_map ** 2 + sigma_path ** 2
 
 
-@kernel
+@kernel(inline=True)
 def _near_at_every_receiver(paths, n, predicted, q, variance, row, gate_sigmas):
     """Whether path ``q`` reaches every receiver that heard row ``n`` within ``gate_sigmas`` standard deviations there.
 
@@ -1070,7 +1070,7 @@ def _near_at_every_receiver(paths, n, predicted, q, variance, row, gate_sigmas):
     return heard
 
 
-@kernel
+@kernel(inline=True)
 def _distance2(paths, n, predicted, jacobian, q, pose_covariance, sigma_path, sigma_speed, sigma_map, scratch):
     """Squared Mahalanobis distance of row ``n`` of ``paths`` from predicted path ``q``.
 
@@ -1170,7 +1170,7 @@ def reflections_blocked(points, group, slot, tx, rx, walls, normal, margin):
     return blocked
 
 
-@kernel
+@kernel(inline=True)
 def _behind_wall(x0, y0, x1, y1, walls, normal, length, margin):
     """Whether the leg from ``(x0, y0)`` to the point ``(x1, y1)`` crosses a wall the point lies ``margin`` behind.
 
@@ -1236,10 +1236,10 @@ def _accepted(x, y, transducer_x, transducer_y, axis_x, axis_y, acceptance, yaw_
     """Whether ``(x, y)`` is within the widened acceptance angle of a transducer along a unit axis."""
     dx, dy = x - transducer_x, y - transducer_y
     angle = math.atan2(axis_x * dy - axis_y * dx, axis_x * dx + axis_y * dy)
-    return abs(angle) <= acceptance + yaw_margin + position_margin / math.hypot(dx, dy)
+    return abs(angle) <= acceptance + yaw_margin + position_margin / _norm(dx, dy)
 
 
-@kernel
+@kernel(inline=True)
 def _shortened_leg_blocked(x0, y0, x1, y1, start_margin, end_margin, walls, length, wall_margin, support, least):
     """Whether a wall crosses the leg ``(x0, y0) -> (x1, y1)``, less the margins at its ends, inside its own.
 
@@ -1250,7 +1250,7 @@ def _shortened_leg_blocked(x0, y0, x1, y1, start_margin, end_margin, walls, leng
     if start_margin == 0.0 and end_margin == 0.0:
         return _leg_blocked(x0, y0, x1, y1, walls, length, wall_margin, support, least)
     dx, dy = x1 - x0, y1 - y0
-    leg = math.hypot(dx, dy)
+    leg = _norm(dx, dy)
     if not leg > start_margin + end_margin:
         return False
     return _leg_blocked(x0 + start_margin / leg * dx, y0 + start_margin / leg * dy,
@@ -1260,14 +1260,14 @@ def _shortened_leg_blocked(x0, y0, x1, y1, start_margin, end_margin, walls, leng
 
 @kernel
 def _unit(x, y):
-    norm = math.hypot(x, y)
+    norm = _norm(x, y)
     return x / norm, y / norm
 
 
 # --------------------------------------------------------------------------- pruning
 
 
-@kernel
+@kernel(inline=True)
 def _widest_cone(cones, row, distance, acceptance, yaw_margin, position_margin, prune):
     """Into ``cones[row]``: cosine and sine of the widest half-angle at which an entry ``distance`` away is heard.
 
@@ -1294,7 +1294,7 @@ def _points_in_cone(seen, apex_x, apex_y, axis_x, axis_y, cone_cos, cone_sin, po
         seen[p] |= near[p] & (np.isnan(cone_cos[p]) | inside)
 
 
-@kernel
+@kernel(inline=True)
 def _part_in_cone(apex_x, apex_y, axis_x, axis_y, cones, segments, row):
     """The part of ``segments[row]`` inside its widest cone (``cones[row]``) at the apex: ``(any, from, to)``."""
     cos_half, sin_half = cones[row, 0], cones[row, 1]
@@ -1312,7 +1312,7 @@ def _in_wedge(apex_x, apex_y, left_x, left_y, right_x, right_y, x, y):
     return right_x * dy - right_y * dx >= -slack and dx * left_y - dy * left_x >= -slack
 
 
-@kernel
+@kernel(inline=True)
 def _clip_to_wedge(apex_x, apex_y, left_x, left_y, right_x, right_y, segments, row):
     """The part of ``segments[row]`` (of (S, 2, 2)) inside a wedge (< 180 deg), with slack.
 
@@ -1341,7 +1341,7 @@ def _clip_to_wedge(apex_x, apex_y, left_x, left_y, right_x, right_y, segments, r
     return low <= high, low, high
 
 
-@kernel
+@kernel(inline=True)
 def _mirror_cone(mirror, c, k, x, y, wall, ends, low, high, start, normal):
     """The cone from the image of ``(x, y)`` in ``wall`` through part of the wall, into ``mirror[c, k, wall]`` (6,).
 
@@ -1359,7 +1359,7 @@ def _mirror_cone(mirror, c, k, x, y, wall, ends, low, high, start, normal):
     mirror[c, k, wall, 2], mirror[c, k, wall, 3], mirror[c, k, wall, 4], mirror[c, k, wall, 5] = b_x, b_y, a_x, a_y
 
 
-@kernel
+@kernel(inline=True)
 def _segment_distance(x, y, segments, row):
     """Distance from ``(x, y)`` to ``segments[row]`` (of (S, 2, 2)), m."""
     ux, uy = segments[row, 1, 0] - segments[row, 0, 0], segments[row, 1, 1] - segments[row, 0, 1]
