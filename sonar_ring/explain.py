@@ -134,7 +134,6 @@ from sonar_ring.compiled import kernel
 from sonar_ring.geometry import Layout
 from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, Landmarks, make_landmarks
 from sonar_ring.localise import reflector_paths
-from sonar_ring.mapping import transform_landmarks
 from sonar_ring.simulate import Placement, place
 
 NONE, MULTIPATH = 0, 1
@@ -487,11 +486,8 @@ def reflection_points(landmarks: Landmarks, placement: Placement, layout: Layout
     """
     group, slot = _channels(layout, landmarks.group.astype(np.int64), transmitter, "reflection_points")
     _check_placement(placement, layout, "reflection_points")
-    position = np.ascontiguousarray(landmarks.position, dtype=float)
-    on_plane = image_method.plane_reflections(position, np.ascontiguousarray(landmarks.normal, dtype=float), group,
-                                              slot, placement.tx, placement.rx)
-    plane = (landmarks.landmark_class == PLANE)[:, None, None]
-    return np.where(plane, on_plane, position[:, None, :])
+    return _reflection_points(landmarks.position, landmarks.normal, landmarks.landmark_class == PLANE, group, slot,
+                              placement)
 
 
 @dataclass(frozen=True)
@@ -656,10 +652,8 @@ def landmark_paths(landmarks: Landmarks, placement: Placement, layout: Layout) -
     the ones it was solved from; a plane, a corner or an undecided point by its
     virtual image, an edge by itself) with each receiver's height offset.
     """
-    group = np.asarray(landmarks.group, dtype=np.int64)
-    horizontal = reflector_paths(placement.tx[group, 0], placement.rx[group], landmarks.position,
-                                 landmarks.landmark_class == EDGE)
-    return np.sqrt(horizontal ** 2 + layout.plan.height_offset[group, 0, :] ** 2)
+    return _landmark_paths(landmarks.position, landmarks.landmark_class == EDGE,
+                           np.asarray(landmarks.group, dtype=np.int64), placement, layout)
 
 
 @dataclass(frozen=True)
@@ -780,37 +774,39 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     Explained
     """
     count = len(landmarks)
-    nothing = Explained(np.zeros(count, bool), np.zeros(count, bool), np.full((count, 2), np.nan),
-                        np.zeros(len(known), bool))
+    out = Explained(np.zeros(count, bool), np.zeros(count, bool), np.full((count, 2), np.nan),
+                    np.zeros(len(known), bool))
     if count == 0 or len(known) == 0 or layout.group_transmitters.shape[1] != 1:
-        return nothing
+        return out
+    # Only what the tests use goes into the map's frame (not transform_landmarks' every field: a third of
+    # this function's time): the positions, the planes' normals; the margins' eigenvalue does not turn.
     placement = place(layout, sensor_pose)
-    in_map = transform_landmarks(landmarks, sensor_pose)
-    position = in_map.position
-    usable = np.asarray(landmarks.valid, dtype=bool) & np.isfinite(position).all(axis=1)
-    rows = np.flatnonzero(usable)
+    rotation = placement.rotation
+    position = np.asarray(landmarks.position, dtype=float) @ rotation.T + placement.pose[:2]
+    rows = np.flatnonzero(np.asarray(landmarks.valid, dtype=bool) & np.isfinite(position).all(axis=1))
     if rows.size == 0:
-        return nothing
-    if rows.size < count:
-        in_map = in_map.select(rows)
+        return out
+    out.position[:] = position
     tolerance = Tolerance(tests.sigma_path, sensor_covariance, tests.sigma_speed, tests.sigma_map, tests.gate_sigmas)
-    transmitter = np.zeros(rows.size, np.int64)
-    group, slot = _channels(layout, in_map.group.astype(np.int64), transmitter, "explain_landmarks")
-    paths = landmark_paths(in_map, placement, layout)
+    group, slot = _channels(layout, np.asarray(landmarks.group)[rows].astype(np.int64), np.zeros(rows.size, np.int64),
+                            "explain_landmarks")
+    position = position[rows]
+    landmark_class = np.asarray(landmarks.landmark_class)[rows]
+    paths = _landmark_paths(position, landmark_class == EDGE, group, placement, layout)
     # The map's arrays and the rows are checked once (KnownMap, _channels): the private steps of predict,
     # match and impossible, not the public functions that check them again at every ping.
     prediction = _predict(known.reflecting, placement, layout, group, slot, paths, True, tolerance,
                           2.0 * layout.max_range, True, True)
     explanation = _match(prediction, layout, group, slot, paths, tolerance, False)
     multipath = _multipath_of_the_less_seen(prediction, explanation, tests.gate_sigmas)
-    spread = np.sqrt(np.maximum(_largest_eigenvalue(np.asarray(in_map.covariance, dtype=float)), 0.0))
+    spread = np.sqrt(np.maximum(_largest_eigenvalue(np.asarray(landmarks.covariance, dtype=float)[rows]), 0.0))
     margin = tests.gate_sigmas * np.hypot(spread, tests.sigma_map)
     margin = np.where(np.isfinite(margin), margin, 0.0)
-    blocked = _impossible(reflection_points(in_map, placement, layout, transmitter), placement, group, slot,
-                          known.seen, known.unit_normals, margin) & ~multipath
-    out = Explained(np.zeros(count, bool), np.zeros(count, bool), position,
-                    _own_echoes(prediction, explanation.matched, known))
+    normal = np.asarray(landmarks.normal, dtype=float)[rows] @ rotation.T
+    blocked = _impossible(_reflection_points(position, normal, landmark_class == PLANE, group, slot, placement),
+                          placement, group, slot, known.seen, known.unit_normals, margin) & ~multipath
     out.multipath[rows], out.impossible[rows] = multipath, blocked
+    out.heard[:] = _own_echoes(prediction, explanation.matched, known)
     return out
 
 
@@ -926,6 +922,20 @@ def _impossible(points, placement: Placement, group, slot, walls, unit_normals, 
     """:func:`impossible` of checked arrays: points (L, K, 2), walls (W, 2, 2), unit normals (W, 2), margins (L,)."""
     return image_method.reflections_blocked(np.ascontiguousarray(points, dtype=float), group, slot, placement.tx,
                                             placement.rx, walls, unit_normals, margin)
+
+
+def _landmark_paths(position, is_edge, group, placement: Placement, layout: Layout) -> np.ndarray:
+    """:func:`landmark_paths` of arrays: positions (L, 2) and groups (L,) in the placement's frame, edges (L,)."""
+    horizontal = reflector_paths(placement.tx[group, 0], placement.rx[group], position, is_edge)
+    return np.sqrt(horizontal ** 2 + layout.plan.height_offset[group, 0, :] ** 2)
+
+
+def _reflection_points(position, normal, is_plane, group, slot, placement: Placement) -> np.ndarray:
+    """:func:`reflection_points` of arrays: positions and normals (L, 2), planes (L,), groups and slots (L,)."""
+    position = np.ascontiguousarray(position, dtype=float)
+    on_plane = image_method.plane_reflections(position, np.ascontiguousarray(normal, dtype=float), group, slot,
+                                              placement.tx, placement.rx)
+    return np.where(is_plane[:, None, None], on_plane, position[:, None, :])
 
 
 def _own_echoes(prediction: Prediction, chosen: np.ndarray, known: KnownMap) -> np.ndarray:
