@@ -190,7 +190,7 @@ class Tolerance:
     @property
     def xy_sigma(self) -> float:
         """Standard deviation of the pose's position along its worst direction, m (the larger eigenvalue's root)."""
-        (xx, xy), (_, yy) = self.pose_covariance[:2, :2].tolist()  # _largest_eigenvalue's, in floats: 7x faster
+        (xx, xy), (_, yy) = self.pose_covariance[:2, :2].tolist()  # the larger eigenvalue in closed form, as _margins
         largest = 0.5 * (xx + yy) + math.sqrt(0.25 * (xx - yy) ** 2 + xy ** 2)
         return math.sqrt(largest) if largest >= 0 else math.nan
 
@@ -799,9 +799,8 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
                           2.0 * layout.max_range, True, True)
     explanation = _match(prediction, layout, group, slot, paths, tolerance, False)
     multipath = _multipath_of_the_less_seen(prediction, explanation, tests.gate_sigmas)
-    spread = np.sqrt(np.maximum(_largest_eigenvalue(np.asarray(landmarks.covariance, dtype=float)[rows]), 0.0))
-    margin = tests.gate_sigmas * np.hypot(spread, tests.sigma_map)
-    margin = np.where(np.isfinite(margin), margin, 0.0)
+    margin = _margins(np.ascontiguousarray(landmarks.covariance, dtype=float), rows, tests.gate_sigmas,
+                      tests.sigma_map)
     normal = np.asarray(landmarks.normal, dtype=float)[rows] @ rotation.T
     blocked = _impossible(_reflection_points(position, normal, landmark_class == PLANE, group, slot, placement),
                           placement, group, slot, known.seen, known.unit_normals, margin) & ~multipath
@@ -946,15 +945,6 @@ def _own_echoes(prediction: Prediction, chosen: np.ndarray, known: KnownMap) -> 
     return entries
 
 
-def _largest_eigenvalue(covariance: np.ndarray) -> np.ndarray:
-    """The larger eigenvalue of each symmetric 2 x 2 matrix of (L, 2, 2), in closed form.
-
-    ``numpy.linalg.eigvalsh`` cost 0.05 ms a ping here, more than the rest of the margins' arithmetic.
-    """
-    xx, xy, yy = covariance[:, 0, 0], covariance[:, 0, 1], covariance[:, 1, 1]
-    return 0.5 * (xx + yy) + np.sqrt(0.25 * (xx - yy) ** 2 + xy ** 2)
-
-
 def _segments(segments, caller: str, name: str = "walls") -> np.ndarray:
     """Wall segments (W, 2, 2) as a contiguous float array, the shape checked."""
     segments = np.ascontiguousarray(segments, dtype=float)
@@ -1050,6 +1040,23 @@ def _slots(group, transmitter, group_transmitters):
         if slot[n] < 0 and bad < 0:
             bad = n
     return slot, bad
+
+
+@kernel
+def _margins(covariance, rows, gate_sigmas, sigma_map):
+    """The impossible test's margin of each of ``rows`` of the landmarks' covariances (L, 2, 2), m.
+
+    ``gate_sigmas`` times the hypotenuse of the landmark's position error along its worst direction (the
+    larger eigenvalue's root, in closed form) and the map's ``sigma_map``; 0 where that is not finite.
+    """
+    margin = np.zeros(rows.shape[0])
+    for i in range(rows.shape[0]):
+        xx, xy, yy = covariance[rows[i], 0, 0], covariance[rows[i], 0, 1], covariance[rows[i], 1, 1]
+        largest = 0.5 * (xx + yy) + math.sqrt(0.25 * (xx - yy) ** 2 + xy ** 2)
+        if np.isfinite(largest):
+            value = gate_sigmas * math.hypot(math.sqrt(max(largest, 0.0)), sigma_map)
+            margin[i] = value if np.isfinite(value) else 0.0
+    return margin
 
 
 @kernel
