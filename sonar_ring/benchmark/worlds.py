@@ -93,6 +93,9 @@ class Outcome:
     decision_m : ndarray
         Per point the map told an edge or a corner by its curvature: the distance driven from its first
         sighting to the decision, m (:meth:`~sonar_ring.mapping.LandmarkMap.decision_distances`).
+    pose_covariance : ndarray, shape (P, 3, 3)
+        Per ping, the covariance of the pose the mapper's echo tests take for it (SLAM's prediction from
+        its latest keyframe and the odometry since; zero for a mapper in ``odom``), m^2, m rad, rad^2.
     """
 
     score: MapScore
@@ -100,6 +103,7 @@ class Outcome:
     label_ms: np.ndarray = field(default_factory=lambda: np.empty(0))
     map_ms: np.ndarray = field(default_factory=lambda: np.empty(0))
     decision_m: np.ndarray = field(default_factory=lambda: np.empty(0))
+    pose_covariance: np.ndarray = field(default_factory=lambda: np.empty((0, 3, 3)))
 
 
 def mapped(recorded: Recorded, layout, slam: bool, echo_tests: bool = True) -> Outcome:
@@ -115,10 +119,11 @@ def mapped(recorded: Recorded, layout, slam: bool, echo_tests: bool = True) -> O
     stage = PingStage(layout, pipeline.Settings(sigma_speed=pipeline.ROBOT_SIGMA_SPEED))
     tests = EchoTests() if echo_tests else None
     builder = MapBuilder(MapperSettings(slam=slam, pose_history=None, layout=layout, echo_tests=tests), Counts())
-    label_ms, map_ms, estimate = [], [], []
+    label_ms, map_ms, estimate, covariance = [], [], [], []
     for k, (echoes, pose) in enumerate(zip(recorded.echoes, recorded.odometry, strict=True)):
         stamp = int(round(1e9 * (1.0 + k / layout.ping_rate)))
         builder.add_odometry(stamp, pose)
+        covariance.append(np.zeros((3, 3)) if builder.slam is None else builder.slam.pose_at(pose)[1])
         started = time.perf_counter()
         labelled = stage.label(echoes)[1] if echoes is not None else Landmarks.empty()
         placed = time.perf_counter()
@@ -128,7 +133,7 @@ def mapped(recorded: Recorded, layout, slam: bool, echo_tests: bool = True) -> O
         estimate.append(builder.robot_pose)
     return Outcome(score_map(builder.snapshot(), load_scene(SCENE), recorded.heard),
                    trajectory_error(np.array(estimate), recorded.truth), np.array(label_ms), np.array(map_ms),
-                   builder.landmark_map.decision_distances())
+                   builder.landmark_map.decision_distances(), np.array(covariance))
 
 
 MAPPERS: dict[str, Callable[[Recorded, object], Outcome]] = {
