@@ -855,6 +855,7 @@ def load_kernels() -> None:
     landmark_paths(plane, placement, layout)
     impossible(reflection_points(plane, placement, layout, rows), placement, layout, rows, rows, walls,
                [[0.0, 1.0], [-1.0, 0.0]], 0.01)
+    _margins(np.ascontiguousarray(plane.covariance, dtype=float), rows, 4.0, 0.005)
 
 
 # --------------------------------------------------------------------------- checks and set-up
