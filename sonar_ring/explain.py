@@ -132,7 +132,7 @@ import numpy as np
 from sonar_ring import image_method
 from sonar_ring.compiled import kernel
 from sonar_ring.geometry import Layout
-from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, Landmarks, make_landmarks
+from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, Landmarks, check_landmarks, make_landmarks
 from sonar_ring.localise import reflector_paths
 from sonar_ring.simulate import Placement, place
 
@@ -773,6 +773,7 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     -------
     Explained
     """
+    check_landmarks(landmarks, "explain_landmarks")
     count = len(landmarks)
     out = Explained(np.zeros(count, bool), np.zeros(count, bool), np.full((count, 2), np.nan),
                     np.zeros(len(known), bool))

@@ -152,6 +152,24 @@ def make_landmarks(landmark_class, position, *, normal=None, covariance=None, co
     )
 
 
+def check_landmarks(landmarks, caller: str) -> None:
+    """Raise ``ValueError`` (naming ``caller``) unless ``landmarks`` is a :class:`Landmarks` of consistent shapes."""
+    if not isinstance(landmarks, Landmarks):
+        raise ValueError(f"{caller}: expected sonar_ring.landmarks.Landmarks, got {type(landmarks).__name__}")
+    count = len(landmarks)
+    expected = {"position": (count, 2), "normal": (count, 2), "covariance": (count, 2, 2),
+                "segment": (count, 2, 2)}
+    for name, shape in expected.items():
+        actual = np.shape(getattr(landmarks, name))
+        if actual != shape:
+            raise ValueError(f"{caller}: Landmarks.{name} must have shape {shape} for {count} landmarks, "
+                             f"got {actual}")
+    for name in ("confidence", "observations", "group", "valid"):
+        actual = np.shape(getattr(landmarks, name))
+        if actual != (count,):
+            raise ValueError(f"{caller}: Landmarks.{name} must have shape ({count},), got {actual}")
+
+
 def ellipse_outlines(position, covariance, sigma: float = 2.0, sides: int = 48) -> np.ndarray:
     """Closed ``sigma``-sigma outlines of 2-D Gaussians, shape (L, sides + 1, 2), m.
 

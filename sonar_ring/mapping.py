@@ -136,7 +136,16 @@ import numpy as np
 from sonar_ring.compiled import kernel
 from sonar_ring.curvature import CONSISTENCY_Z, CURVATURE_THRESHOLD, PointModels, chi2_quantile, decide
 from sonar_ring.curvature import load_kernels as load_curvature_kernels
-from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, UNKNOWN, Landmarks, make_landmarks
+from sonar_ring.landmarks import (
+    CORNER,
+    CORNER_OR_EDGE,
+    EDGE,
+    PLANE,
+    UNKNOWN,
+    Landmarks,
+    check_landmarks,
+    make_landmarks,
+)
 from sonar_ring.poses import turned_covariances
 
 CHI2_2DOF_99 = 9.2103
@@ -679,23 +688,6 @@ def _pose(pose, caller: str) -> np.ndarray:
     return pose
 
 
-def _check_landmarks(landmarks, caller: str) -> None:
-    if not isinstance(landmarks, Landmarks):
-        raise ValueError(f"{caller}: expected sonar_ring.landmarks.Landmarks, got {type(landmarks).__name__}")
-    count = len(landmarks)
-    expected = {"position": (count, 2), "normal": (count, 2), "covariance": (count, 2, 2),
-                "segment": (count, 2, 2)}
-    for name, shape in expected.items():
-        actual = np.shape(getattr(landmarks, name))
-        if actual != shape:
-            raise ValueError(f"{caller}: Landmarks.{name} must have shape {shape} for {count} landmarks, "
-                             f"got {actual}")
-    for name in ("confidence", "observations", "group", "valid"):
-        actual = np.shape(getattr(landmarks, name))
-        if actual != (count,):
-            raise ValueError(f"{caller}: Landmarks.{name} must have shape ({count},), got {actual}")
-
-
 def transform_landmarks(landmarks: Landmarks, pose) -> Landmarks:
     """Landmarks from the sensor frame into ``odom``, given the sensor pose.
 
@@ -720,7 +712,7 @@ def transform_landmarks(landmarks: Landmarks, pose) -> Landmarks:
         If ``landmarks`` is not a :class:`Landmarks` with consistent shapes or
         ``pose`` is not three numbers.
     """
-    _check_landmarks(landmarks, "transform_landmarks")
+    check_landmarks(landmarks, "transform_landmarks")
     pose = _pose(pose, "transform_landmarks")
     rotation = _rotation(pose[2])
     # Built directly: dataclasses.replace walks the fields in Python (twice a ping in the mapper).
@@ -1447,7 +1439,7 @@ class LandmarkMap:
         Uses the map's settings, never its entries, so any map with the same
         settings gives the same sightings.  Parameters and errors as :meth:`update`.
         """
-        _check_landmarks(landmarks, "LandmarkMap.usable_sightings")
+        check_landmarks(landmarks, "LandmarkMap.usable_sightings")
         pose = _pose(sensor_pose, "LandmarkMap.usable_sightings")
         if not (np.all(np.isfinite(pose)) and np.all(np.abs(pose[:2]) <= MAX_COORDINATE)):
             return None

@@ -1,6 +1,7 @@
 """Echoes the map explains (sonar_ring.explain): double bounces predicted by the image method from the map's
 walls and points, multipath labelled in the realistic world, and landmarks that cannot be where they are."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -524,6 +525,11 @@ def test_error_handling():
         explain.KnownMap(walls, normals, walls, points, support[0], np.ones(3))
     with pytest.raises(ValueError, match="KnownMap: normals must be finite and not zero"):
         explain.KnownMap(walls, 0.0 * normals, walls, points, *support)
+    known = explain.KnownMap(walls, normals, walls, points, *support)
+    torn = make_landmarks([CORNER, EDGE], [[6.0, 0.0], [5.0, 1.0]], group=[3, 4]).select([0])
+    torn = dataclasses.replace(torn, position=np.ones((2, 2)))
+    with pytest.raises(ValueError, match=r"explain_landmarks: Landmarks.position must have shape \(1, 2\)"):
+        explain.explain_landmarks(torn, RING, [2.0, 2.0, 0.0], np.zeros((3, 3)), known, explain.EchoTests())
     with pytest.raises(ValueError, match="walls must have shape"):
         facing(walls[0], [2.0, 2.0])
     with pytest.raises(ValueError, match="point must have shape"):
