@@ -38,7 +38,7 @@ colcon --log-base log build --base-paths "$root" --build-base build --install-ba
   --cmake-args -DPython3_EXECUTABLE="$venv/bin/python" -DBUILD_TESTING=OFF -Wno-dev \
   > "$root/log/colcon-build.txt" 2>&1 || { cat log/colcon-build.txt; echo "bootstrap: colcon build failed"; exit 1; }
 # numba compiles the core's kernels at their first use and caches the machine code
-# beside the installed modules: do it here (under a minute after a change), not in the
+# beside the installed modules: do it here (about 1.5 minutes after a change), not in the
 # first test or the first ping.  An unchanged build keeps the cache.
 (set +u && source "$root/tools/env.sh" && cd / && python -c \
   "from sonar_ring import confidence, echoes, explain, image_method, localise, mapping, pipeline, ring_consistency
