@@ -59,9 +59,10 @@ class ConsistencyResult:
     edge_position : ndarray of float, shape (N, 2)
         Fitted edge position ``P``, m, sensor frame.
     image_covariance, edge_covariance : ndarray of float, shape (N, 2, 2)
-        Covariance of ``virtual_image`` and of ``edge_position``, m^2 (:func:`_fit_covariance`): the joint
-        estimate over every receiver that heard the echo; NaN where not asked for (``covariances``), untested,
-        or where that model does not fit (its chi-square above the fit limit of :func:`geometric_consistency`).
+        Covariance of ``virtual_image`` and of ``edge_position``, m^2 (:func:`_fit_covariance`, with the sag
+        :func:`_result` adds): the joint estimate over every receiver that heard the echo; NaN where not asked
+        for (``covariances``), untested, or where that model does not fit (its chi-square above the fit limit
+        of :func:`geometric_consistency`).
     joined : ndarray of int, shape (N, J)
         The echo's own row, then the rows whose receivers its fits used with its own, -1 padded (one column
         outside a ring).  Rows whose fits share a row are estimates of one echo, not independent.
@@ -194,15 +195,28 @@ def geometric_consistency(transmitter, receivers, paths, sigma_path, z=CONSISTEN
     outward = np.zeros((n_echoes, 2)) if facing is None else np.broadcast_to(np.asarray(facing, dtype=float),
                                                                             (n_echoes, 2))
     relative_sigma_speed = non_negative_number("relative_sigma_speed", relative_sigma_speed)
-    fits = _fit_models(np.ascontiguousarray(transmitter), np.ascontiguousarray(receivers),
-                       np.ascontiguousarray(paths), np.ascontiguousarray(sigma), np.ascontiguousarray(outward),
-                       facing is not None, bool(covariances), relative_sigma_speed)
-    return _result(*_decide(*fits, z), np.arange(n_echoes)[:, None])
+    (image, chi2_specular, edge, chi2_edge, dof, image_covariance, edge_covariance, image_centre,
+     edge_centre) = _fit_models(np.ascontiguousarray(transmitter), np.ascontiguousarray(receivers),
+                                np.ascontiguousarray(paths), np.ascontiguousarray(sigma),
+                                np.ascontiguousarray(outward), facing is not None, bool(covariances),
+                                relative_sigma_speed)
+    decided = _decide(image, chi2_specular, edge, chi2_edge, dof, image_covariance, edge_covariance, z)
+    return _result(decided, image_centre, edge_centre, np.arange(n_echoes)[:, None], covariances)
 
 
-def _result(cls, specular, margin, *tests) -> ConsistencyResult:
-    """The :class:`ConsistencyResult` of :func:`_decide`'s outputs and the joined rows, with the confidences."""
-    return ConsistencyResult(cls, specular, margin, confidence_from_margin(margin), *tests)
+def _result(decided, image_centre, edge_centre, joined, covariances) -> ConsistencyResult:
+    """The :class:`ConsistencyResult` of :func:`_decide`'s outputs, the fits' arc centres and the joined rows.
+
+    Adds the confidences and, where ``covariances``, each fit's sag along the line of sight about its arc's
+    centre (N, 2) as a band (:data:`SAG_BAND`, :func:`sonar_ring.solvers.arc_spread`): here, not in the
+    kernels, which call kernels of their own module only.
+    """
+    cls, specular, margin, chi2_specular, chi2_edge, dof, image, edge, image_covariance, edge_covariance = decided
+    if covariances:
+        solvers.arc_spread_rows(image, image_centre, image_covariance, SAG_BAND)
+        solvers.arc_spread_rows(edge, edge_centre, edge_covariance, SAG_BAND)
+    return ConsistencyResult(cls, specular, margin, confidence_from_margin(margin), chi2_specular, chi2_edge, dof,
+                             image, edge, image_covariance, edge_covariance, joined)
 
 
 @kernel
@@ -324,8 +338,8 @@ def _fit_models(transmitter, receivers, paths, sigma, facing, has_facing, covari
     where its path is finite and positive and the geometry finite.  Returns the
     fitted virtual image (N, 2) and its chi-square (N,), the fitted edge point and
     its chi-square, the degrees of freedom (usable receivers - 2) (N,), and the two
-    fits' covariances (N, 2, 2) (:func:`_fit_covariance`, with ``relative_sigma_speed``) where
-    ``covariances``, else NaN.
+    fits' covariances (N, 2, 2) without their sag and their arcs' centres (N, 2) (:func:`_fit_covariance`,
+    with ``relative_sigma_speed``) where ``covariances``, else NaN.
     """
     n_echoes, n_receivers = paths.shape
     usable = np.zeros((n_echoes, n_receivers), dtype=np.bool_)
@@ -362,11 +376,14 @@ def _fit_models(transmitter, receivers, paths, sigma, facing, has_facing, covari
     edge, chi2_edge = _fit(0.5 * (safe_transmitter + image), safe_receivers, safe_paths, weight, safe_transmitter,
                            True, _GAUSS_NEWTON_STEPS, _CONVERGED)
     if not covariances:
-        return image, chi2_specular, edge, chi2_edge, dof, np.full((n_echoes, 2, 2), np.nan), np.full(
-            (n_echoes, 2, 2), np.nan)
-    return (image, chi2_specular, edge, chi2_edge, dof,
-            _fit_covariance(image, safe_receivers, safe_paths, weight, safe_transmitter, False, relative_sigma_speed),
-            _fit_covariance(edge, safe_receivers, safe_paths, weight, safe_transmitter, True, relative_sigma_speed))
+        return (image, chi2_specular, edge, chi2_edge, dof, np.full((n_echoes, 2, 2), np.nan),
+                np.full((n_echoes, 2, 2), np.nan), np.full((n_echoes, 2), np.nan), np.full((n_echoes, 2), np.nan))
+    image_covariance, image_centre = _fit_covariance(image, safe_receivers, safe_paths, weight, safe_transmitter,
+                                                     False, relative_sigma_speed)
+    edge_covariance, edge_centre = _fit_covariance(edge, safe_receivers, safe_paths, weight, safe_transmitter, True,
+                                                   relative_sigma_speed)
+    return (image, chi2_specular, edge, chi2_edge, dof, image_covariance, edge_covariance, image_centre,
+            edge_centre)
 
 
 @kernel
@@ -459,20 +476,22 @@ def _fit(start, receivers, paths, weight, emitter, edge, steps, converged):
 
 @kernel
 def _fit_covariance(fitted, receivers, paths, weight, emitter, edge, relative_sigma_speed):
-    """Covariance (N, 2, 2) of each echo's fitted point (:func:`_fit`'s arguments and its fitted points), m^2.
+    """Covariance (N, 2, 2) of each echo's fitted point, m^2, without its sag, and its arc's centre (N, 2), m.
+
+    ``fitted`` the fitted points (N, 2), the other arguments :func:`_fit`'s.
 
     The fit's, ``H^-1`` with ``H = J^T W J`` at the fitted point (``J`` the paths' derivatives by the point,
     ``W`` the weights, the paths' inverse variances): the joint Cramer-Rao bound of the receivers that heard
     the echo, evaluated at the estimate.  Plus the speed of sound's share: every path scaled by ``1 + e``,
     ``e`` of standard deviation ``relative_sigma_speed``, moves the fit by ``e v`` with ``v = H^-1 J^T W d``
-    (``d`` the paths; the vertical offset's share of the scale, ``(dz / d)^2``, is left out).  And the
-    sag along the line of sight of a point on an arc, as a band (:data:`SAG_BAND`,
-    :func:`sonar_ring.solvers.arc_spread`): the fit's error across the line of sight is centimetres where its
-    aperture is a few pairs', and moves the point along it by about the path noise, always outwards.  NaN
-    where ``H`` is singular or the point not finite.
+    (``d`` the paths; the vertical offset's share of the scale, ``(dz / d)^2``, is left out).  NaN where ``H``
+    is singular or the point not finite.  The point lies on an arc about the centre (N, 2) returned, m, where
+    its error across the line of sight (centimetres where its aperture is a few pairs') moves it along the
+    line of sight by about the path noise, always outwards: :func:`_result` adds that sag.
     """
     n_echoes, n_receivers = paths.shape
     covariance = np.full((n_echoes, 2, 2), np.nan)
+    centre = np.full((n_echoes, 2), np.nan)
     for n in range(n_echoes):
         x, y = fitted[n, 0], fitted[n, 1]
         emitter_unit_x = emitter_unit_y = 0.0  # the edge's path has a leg from the emitter, the image's not
@@ -508,11 +527,10 @@ def _fit_covariance(fitted, receivers, paths, weight, emitter, edge, relative_si
         covariance[n, 0, 1] = covariance[n, 1, 0] = inverse_xy + speed * shift_x * shift_y
         covariance[n, 1, 1] = inverse_yy + speed * shift_y * shift_y
         # The arc: a virtual image's equal-path circle is about the receivers, an edge's about them and the emitter.
-        centre_x, centre_y = centre_x / used, centre_y / used
+        centre[n, 0], centre[n, 1] = centre_x / used, centre_y / used
         if edge:
-            centre_x, centre_y = 0.5 * (centre_x + emitter[n, 0]), 0.5 * (centre_y + emitter[n, 1])
-        solvers.arc_spread(x, y, centre_x, centre_y, covariance[n], SAG_BAND)
-    return covariance
+            centre[n, 0], centre[n, 1] = 0.5 * (centre[n, 0] + emitter[n, 0]), 0.5 * (centre[n, 1] + emitter[n, 1])
+    return covariance, centre
 
 
 @kernel
@@ -631,9 +649,10 @@ def ring_consistency(layout, group, paths, sigma_path, ping=None, z=CONSISTENCY_
         raise ValueError(f"group indices must be in [0, {layout.n_groups}), got {group[outside]} in row {outside}")
     horizontal = solvers.horizontal_rows(paths.ravel(), height_offsets)[0].reshape(paths.shape)
     slots, spacing = _ring_slots(plan.yaw.tobytes(), float(layout.beam_half_angle), plan.receivers.tobytes())
-    return _result(*_ring_tests(ping.astype(np.int64), group, paths, horizontal, plan.receivers, plan.transmitters,
-                                plan.facing, slots, spacing, sigma_path, z, MAX_ECHOES_PER_GROUP,
-                                bool(covariances), relative_sigma_speed))
+    *decided, joined, image_centre, edge_centre = _ring_tests(
+        ping.astype(np.int64), group, paths, horizontal, plan.receivers, plan.transmitters, plan.facing, slots,
+        spacing, sigma_path, z, MAX_ECHOES_PER_GROUP, bool(covariances), relative_sigma_speed)
+    return _result(decided, image_centre, edge_centre, joined, covariances)
 
 
 @kernel
@@ -690,8 +709,9 @@ def _ring_tests(ping, group, paths, horizontal, receivers, transmitters, facing,
     with more than ``max_per_group`` echoes in a ping is left out.  Returns what
     :func:`_decide` returns, one row per echo (the fits' covariances where ``covariances``, with
     ``relative_sigma_speed``), and
-    the rows joined with each (N, 1 + J), its own first, -1 padded; an echo left out (crowded, too
-    many echoes) has no usable receiver, so is untested, and is joined with no other.
+    the rows joined with each (N, 1 + J), its own first, -1 padded, and the fits' arc centres (N, 2)
+    (:func:`_fit_models`); an echo left out (crowded, too many echoes) has no usable receiver, so is
+    untested, and is joined with no other.
     """
     n_echoes, n_receivers = paths.shape
     n_groups, n_slots = slots.shape
@@ -758,11 +778,13 @@ def _ring_tests(ping, group, paths, horizontal, receivers, transmitters, facing,
                 all_paths[n, column] = horizontal[row, k]
                 all_sigma[n, column] = sigma[row, k]
                 all_receivers[n, column] = receivers[group[row], k]
+    (image, chi2_specular, edge, chi2_edge, dof, image_covariance, edge_covariance, image_centre,
+     edge_centre) = _fit_models(echo_transmitter, all_receivers, all_paths, all_sigma, echo_facing, True, covariances,
+                                relative_sigma_speed)
     (cls, specular, margin, chi2_specular, chi2_edge, dof, image, edge, image_covariance,
-     edge_covariance) = _decide(*_fit_models(echo_transmitter, all_receivers, all_paths, all_sigma, echo_facing, True,
-                                             covariances, relative_sigma_speed), z)
+     edge_covariance) = _decide(image, chi2_specular, edge, chi2_edge, dof, image_covariance, edge_covariance, z)
     return (cls, specular, margin, chi2_specular, chi2_edge, dof, image, edge, image_covariance, edge_covariance,
-            joined_rows)
+            joined_rows, image_centre, edge_centre)
 
 
 @kernel

@@ -680,6 +680,13 @@ def arc_spread(p_x, p_y, centre_x, centre_y, covariance, factor):
 
 
 @kernel
+def arc_spread_rows(points, centres, covariance, factor):
+    """:func:`arc_spread` of each of N points (N, 2) about its centre (N, 2), into ``covariance`` (N, 2, 2)."""
+    for n in range(points.shape[0]):
+        arc_spread(points[n, 0], points[n, 1], centres[n, 0], centres[n, 1], covariance[n], factor)
+
+
+@kernel
 def _inverse(m, out):
     """The inverse of a 2 x 2 array into ``out``; False (``out`` untouched) where it is singular."""
     determinant = m[0, 0] * m[1, 1] - m[0, 1] * m[1, 0]
