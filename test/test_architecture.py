@@ -196,3 +196,27 @@ def test_package_xml_declares_what_the_package_imports():
     assert not missing, f"package.xml lacks these rosdep keys: {sorted(missing)}"
     custom = set(re.findall(r"^([\w-]+):", (ROOT / "rosdep.yaml").read_text(encoding="utf-8"), re.MULTILINE))
     assert custom <= declared["test"], f"rosdep.yaml defines keys package.xml does not use: {custom - declared['test']}"
+
+
+def _kernels(tree: ast.Module) -> list[ast.FunctionDef]:
+    """The module's functions marked ``@kernel`` or ``@kernel(...)``."""
+    def is_kernel(decorator) -> bool:
+        target = decorator.func if isinstance(decorator, ast.Call) else decorator
+        return isinstance(target, ast.Name) and target.id == "kernel"
+    return [node for node in tree.body
+            if isinstance(node, ast.FunctionDef) and any(map(is_kernel, node.decorator_list))]
+
+
+def test_a_kernel_calls_kernels_of_its_own_module_only():
+    """numba's cache of a kernel holds its callees' code and is invalidated by its own file's changes alone."""
+    names = {dotted(path).rsplit(".", 1)[-1]: {kernel.name for kernel in _kernels(ast.parse(path.read_text()))}
+             for path in modules()}
+    crossing = []
+    for path in modules():
+        for kernel in _kernels(ast.parse(path.read_text())):
+            for node in ast.walk(kernel):
+                if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                        and isinstance(node.func.value, ast.Name)
+                        and node.func.attr in names.get(node.func.value.id, ())):
+                    crossing.append(f"{relative(path)}: {kernel.name} calls {node.func.value.id}.{node.func.attr}")
+    assert not crossing, crossing
