@@ -22,6 +22,14 @@ middle from the true line (m) and its angle (rad), and how far a mapped wall's
 extent runs past the true wall's ends (**overshoot**, m: a costmap would put an
 obstacle in free space there).
 
+**Shape**: a map can be right in shape and still off as a whole -- scaled (by
+the speed of sound the nodes assume: every range scales with it) and turned
+and shifted (where ``map`` was anchored: the heading the odometry had drifted
+by before the first landmarks held it).  The similarity transform (scale,
+rotation, shift) that best carries the mapped corners and edges onto their true
+points (least squares, Umeyama 1991) says how much; each point's distance
+after it is its shape error.
+
 :func:`trajectory_error` compares a pose estimate (odometry, SLAM) with the truth.
 
 Frames and units: the scene's world frame, m and rad.
@@ -104,6 +112,11 @@ class MapScore:
     wall_overshoot : ndarray, shape (W,)
         How far each mapped wall's extent runs past the true wall's ends (the
         larger of its two ends; 0 inside), m.
+    similarity : ndarray, shape (4,)
+        Scale, rotation (rad) and shift (m, 2) of the similarity transform that best carries the mapped
+        corners and edges onto their true points (module docstring); NaN with fewer than 3 of them.
+    shape_error : ndarray, shape (P,)
+        Distance of each mapped corner and edge from its true point after that transform, m (as ``point_error``).
     """
 
     per_class: dict
@@ -113,6 +126,8 @@ class MapScore:
     wall_offset: np.ndarray = field(default_factory=lambda: np.empty(0))
     wall_angle: np.ndarray = field(default_factory=lambda: np.empty(0))
     wall_overshoot: np.ndarray = field(default_factory=lambda: np.empty(0))
+    similarity: np.ndarray = field(default_factory=lambda: np.full(4, np.nan))
+    shape_error: np.ndarray = field(default_factory=lambda: np.empty(0))
 
     def total(self, name: str) -> int:
         """Sum of one :class:`ClassScore` count (or property) over the classes."""
@@ -181,7 +196,7 @@ def score_map(landmarks: Landmarks, scene: Scene, heard=None, map_pose=(0.0, 0.0
     is_heard = np.zeros(scene.n_reflectors, bool)
     is_heard[heard] = True
     truth = _Truth(scene)
-    per_class, point_error, walls = {}, [], {}
+    per_class, point_error, mapped_points, true_points, walls = {}, [], [], [], {}
     for code in DECIDED:
         entries = world.select(world.landmark_class == code)
         distance, right, angle = truth.against(entries, code)  # (E, F) each, F = the scene's reflectors of code
@@ -211,13 +226,16 @@ def score_map(landmarks: Landmarks, scene: Scene, heard=None, map_pose=(0.0, 0.0
             walls = truth.wall_errors(entries.select(best_entry[matched]), own[matched])
         else:
             point_error.append(distance[best_entry[matched], matched])
+            mapped_points.append(entries.position[best_entry[matched]])
+            true_points.append(truth.points[code][matched])
     unknown = world.select(world.landmark_class == UNKNOWN)
     fixed = world.select(world.landmark_class == CORNER_OR_EDGE)
     near = np.concatenate([truth.near_any(unknown), truth.near_points(fixed)])
+    similarity, shape_error = _similarity(np.concatenate(mapped_points), np.concatenate(true_points))
     return MapScore(per_class=per_class, undecided=int(np.count_nonzero(near)),
                     unknown_ghosts=int(np.count_nonzero(~near)),
                     point_error=np.concatenate(point_error) if point_error else np.empty(0),
-                    **walls)
+                    similarity=similarity, shape_error=shape_error, **walls)
 
 
 def heard_reflectors(scene: Scene, truth_class, truth_position, truth_normal, tolerance: float = 1e-6) -> np.ndarray:
@@ -340,6 +358,26 @@ class _Truth:
                                   np.einsum("wj,wj->w", segment, unit)))
         return dict(wall_offset=np.abs(np.einsum("wj,wj->w", middle - walls[:, 0], normal)),
                     wall_angle=np.minimum(angle, np.pi - angle), wall_overshoot=overshoot)
+
+
+def _similarity(mapped, true) -> tuple[np.ndarray, np.ndarray]:
+    """The similarity transform carrying ``mapped`` (P, 2) onto ``true`` (P, 2) in least squares, and the residuals.
+
+    ``true ~ scale R(rotation) mapped + shift`` (Umeyama's closed form): ``(scale, rotation, shift_x, shift_y)``
+    (4,) and each point's distance after it (P,), m.  Fewer than 3 points fit any transform exactly: NaN.
+    """
+    if len(mapped) < 3:
+        return np.full(4, np.nan), np.full(len(mapped), np.nan)
+    mapped_mean, true_mean = mapped.mean(axis=0), true.mean(axis=0)
+    a, b = mapped - mapped_mean, true - true_mean
+    # In 2-D the best rotation's angle and scale follow from two sums (Umeyama's SVD reduces to them).
+    along, across = np.sum(a * b), np.sum(a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0])
+    rotation = np.arctan2(across, along)
+    scale = np.hypot(along, across) / np.sum(a * a)
+    c, s = np.cos(rotation), np.sin(rotation)
+    turned = scale * (mapped @ np.array([[c, s], [-s, c]]))
+    shift = true_mean - turned.mean(axis=0)
+    return np.array([scale, rotation, *shift]), np.linalg.norm(turned + shift - true, axis=1)
 
 
 def _points_of(scene: Scene, code: int) -> np.ndarray:

@@ -85,6 +85,8 @@ def test_quick_map_study_writes_its_section_and_readme_table(tmp_path):
         # walls past their ends (median / worst; runs within 2 cm) and the pose's RMS / final error
         assert re.search(r"\| \d+\.\d / \d+\.\d cm, \d of 2 \|", row), row
         assert re.search(r"\| \d+\.\d / \d+\.\d cm \|", row), row
+    # the similarity fit: the shape's point error, the scale and the rotation the whole map is off by
+    assert re.search(r"\| \d+\.\d mm; ×\d\.\d{4}, \d+\.\d\d° \|", section), section
     assert "sonar-ring bench --map" in section and "2 seeds" in section
     summary = readme.read_text()
     assert "old" not in summary and "| realistic | odom-frame map |" in summary

@@ -48,8 +48,35 @@ def test_a_perfect_map_scores_perfect():
 def test_an_empty_map_misses_everything():
     score = score_map(Landmarks.empty(), ROOM)
     assert score.total("missing") == ROOM.n_reflectors and score.entries == 0 and not score.complete
-    assert score.point_error.size == score.wall_offset.size == 0
+    assert score.point_error.size == score.wall_offset.size == score.shape_error.size == 0
+    assert np.all(np.isnan(score.similarity))
     assert "nothing mapped" in score.summary()
+
+
+def test_a_map_right_in_shape_but_scaled_turned_and_shifted():
+    """The similarity fit recovers the transform a map was put through, and the shape error is nil.
+
+    A speed of sound 0.35 % off scales every range; the map's anchoring turns and shifts it.
+    """
+    scale, rotation, shift = 1.0035, math.radians(0.3), np.array([0.01, -0.006])
+    c, s = math.cos(rotation), math.sin(rotation)
+    perfect = _perfect()
+
+    def moved(points):
+        return scale * points @ np.array([[c, s], [-s, c]]) + shift
+
+    entries = make_landmarks(perfect.landmark_class, moved(perfect.position), normal=perfect.normal,
+                             segment=moved(perfect.segment.reshape(-1, 2)).reshape(-1, 2, 2))
+    score = score_map(entries, ROOM)
+    assert score.per_class["corner"].mapped == 4 and score.per_class["edge"].mapped == 7
+    assert np.median(score.point_error) > 0.005
+    back = np.array([[c, s], [-s, c]]) @ shift / scale  # true = R^T (mapped - shift) / scale
+    assert_allclose(score.similarity, [1.0 / scale, -rotation, *(-back)], atol=1e-12)
+    assert score.shape_error.shape == score.point_error.shape
+    assert np.all(score.shape_error < 1e-12)
+    # Two points fit any similarity: no figure rather than a perfect one.
+    two = score_map(entries.select(np.flatnonzero(entries.landmark_class != EDGE)[:12]), ROOM)
+    assert two.shape_error.size == 2 and np.all(np.isnan(two.similarity)) and np.all(np.isnan(two.shape_error))
 
 
 def test_each_fault_is_counted_once():

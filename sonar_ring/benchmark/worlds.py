@@ -226,6 +226,10 @@ def _row(world: str, name: str, outcomes: list[Outcome]) -> str:
     heard = [s.total("heard") for s in scores]
     mapped = [s.total("mapped") for s in scores]
     errors = [np.median(s.point_error) if s.point_error.size else np.nan for s in scores]
+    fitted = np.array([s.similarity for s in scores])
+    fitted = fitted[np.isfinite(fitted).all(axis=1)]
+    shape = (f"{_mm([np.median(s.shape_error) for s in scores])}; ×{np.median(fitted[:, 0]):.4f}, "
+             f"{np.degrees(np.median(np.abs(fitted[:, 1]))):.2f}°" if len(fitted) else "—")
     complete = sum(s.total("missing") == 0 and s.ghosts == 0 and s.total("duplicates") == 0
                    and s.total("wrong_class") == 0 for s in scores)
     rms, final = [o.trajectory[0] for o in outcomes], [o.trajectory[1] for o in outcomes]
@@ -244,16 +248,18 @@ def _row(world: str, name: str, outcomes: list[Outcome]) -> str:
     return (f"| {world} | {name} | {_mean([s.entries for s in scores])} "
             f"| {_mean(mapped)} of {_mean(heard)} | {_mean([s.total('duplicates') for s in scores])} "
             f"| {_mean([s.ghosts for s in scores])} | {_mean([s.total('wrong_class') for s in scores])} "
-            f"| {_mean([s.undecided for s in scores])} | {_mm(errors)} | {overshoot} | {complete} of {len(scores)} "
+            f"| {_mean([s.undecided for s in scores])} | {_mm(errors)} | {shape} | {overshoot} "
+            f"| {complete} of {len(scores)} "
             f"| {100 * np.median(rms):.1f} / {100 * np.median(final):.1f} cm | {classed} of {len(scores)} "
             f"| {decision} | {timing} |")
 
 
 HEADER = ("| world | mapper | entries | mapped right, of heard | duplicates | ghosts | wrong class | undecided "
-          "| median point error | walls past their ends, median / worst; runs within 2 cm | runs complete "
+          "| median point error | after a similarity fit: point error; scale, rotation "
+          "| walls past their ends, median / worst; runs within 2 cm | runs complete "
           "| pose error, RMS / final | runs with every corner and edge right "
           "| driven to tell edge from corner, median / p95 | per ping: label / map |",
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
 
 
 def table(results: dict) -> list[str]:
@@ -281,7 +287,10 @@ def section(results: dict, seeds: int, effect_seeds: int, laps: int, seconds: fl
         "CORNER and every heard edge EDGE, none of the wrong class; *driven to tell edge from corner*: the "
         "distance driven from a point's first sighting until its curvature decided it (over the decided points "
         "of every run); *walls past their ends*: how far a run's mapped walls reach beyond the true walls' ends at "
-        "most (the median and the worst over the runs, and the runs where it is 2 cm or less). Means over the "
+        "most (the median and the worst over the runs, and the runs where it is 2 cm or less); *after a similarity "
+        "fit*: the mapped corners and edges carried onto their true points by the scale, rotation and shift that fit "
+        "them best (`score.MapScore.similarity`): what is left is the map's shape error, the scale and the rotation "
+        "what the whole map is off by (the median of each over the runs, the rotation's size). Means over the "
         "seeds; the point error, the pose errors and the compute per ping are medians (compute with two runs "
         "at once on the machine's CPUs).",
         "",
