@@ -164,6 +164,9 @@ class MapScore:
         if self.point_error.size:
             errors.append(f"points median {1e3 * np.median(self.point_error):.1f} mm, "
                           f"max {1e3 * self.point_error.max():.1f} mm")
+        if np.isfinite(self.similarity).all():
+            errors.append(f"shape {1e3 * np.median(self.shape_error):.1f} mm after scaling by "
+                          f"{self.similarity[0]:.4f} and turning by {np.degrees(self.similarity[1]):.2f} deg")
         if self.wall_offset.size:
             errors.append(f"walls median {1e3 * np.median(self.wall_offset):.1f} mm, max angle "
                           f"{np.degrees(self.wall_angle.max()):.2f} deg, overshoot max "

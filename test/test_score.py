@@ -74,6 +74,7 @@ def test_a_map_right_in_shape_but_scaled_turned_and_shifted():
     assert_allclose(score.similarity, [1.0 / scale, -rotation, *(-back)], atol=1e-12)
     assert score.shape_error.shape == score.point_error.shape
     assert np.all(score.shape_error < 1e-12)
+    assert "shape 0.0 mm after scaling by 0.9965 and turning by -0.30 deg" in score.summary()
     # Two points fit any similarity: no figure rather than a perfect one.
     two = score_map(entries.select(np.flatnonzero(entries.landmark_class != EDGE)[:12]), ROOM)
     assert two.shape_error.size == 2 and np.all(np.isnan(two.similarity)) and np.all(np.isnan(two.shape_error))
