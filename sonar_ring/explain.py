@@ -106,10 +106,11 @@ predictions on random poses), and each has a slack of 1e-9 against rounding:
   on the receiver's side;
 * **rows**: given the measured paths, a pair's lengths are compared with the
   rows of its channel before its bounces are placed, with the largest variance
-  any pose error could give (``|J_xy| <= 2``, ``|J_yaw| <= 2 rho``); for a path whose
-  first reflection is the same for every receiver (a point first, or a wall
-  then a point) the differences between receivers too, with a bound on how a
-  pose error changes them (:func:`sonar_ring.image_method.map_paths`); then, with
+  any pose error could give (``|J_xy| <= 2``, ``|J_yaw| <= 2 rho``), and so are the
+  differences between receivers, with a bound on how a pose error changes them
+  (every path reaches the receivers from one point after a common leg: a point,
+  a point's image in a wall, or the transmitter's image in the walls, which
+  moves with the pose: :func:`sonar_ring.image_method.map_paths`); then, with
   its derivative, by the Mahalanobis distance itself, before its legs are tested
   for blocking.  Each is a necessary condition of a match: the Mahalanobis
   distance bounds that of any one receiver or difference.

@@ -699,15 +699,16 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
             near_count = channel_first
             first_row = row_start[channel_id[c]]
             for q in range(channel_first, count):
-                # A point's paths, and a wall -> point path, leave the transmitter the same way for every
-                # receiver and come to each from one point (the last point, or the first one's image in the last
-                # wall), this far away: the differences between receivers must match too (_differences_near).
-                same_start = kind[q] == POINT or kind[q] == POINT_WALL or kind[q] == WALL_POINT
+                # Every path comes to each receiver from one point X, this far away, after a leg common to all
+                # the receivers: the differences between receivers must match too (_differences_near).  A point's
+                # paths and a wall -> point path leave the transmitter the same way for every receiver, X the last
+                # point or the first one's image in the last wall, fixed in the map; a wall's and a wall -> wall
+                # path come from the transmitter's image in its walls, which moves with the pose.
+                moving = kind[q] == WALL or kind[q] == WALL_WALL
                 for k in range(receivers):
                     squared[k] = horizontal[q, k] ** 2 + height_offset[g, m, k] ** 2
-                    if same_start:
-                        image_distance[k] = horizontal[q, k] - (via_length[t, first[q], second[q]]
-                                                                if kind[q] == WALL_POINT else to_point[t, first[q]])
+                    image_distance[k] = horizontal[q, k] - (0.0 if moving else via_length[t, first[q], second[q]]
+                                                            if kind[q] == WALL_POINT else to_point[t, first[q]])
                 mask = np.uint64(0)
                 for j in range(rows):
                     if not first_low[j] <= squared[first_heard[j]] <= first_high[j]:
@@ -718,9 +719,9 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
                     for k in range(receivers):
                         if low[n, k] <= high[n, k]:
                             near = near and low[n, k] <= squared[k] <= high[n, k]
-                    near = near and (not same_start or _differences_near(
-                        row_paths, n, horizontal, q, squared, image_distance, rx, g, spread, xy_sigma, yaw_sigma,
-                        sigma_path, sigma_speed, gate_sigmas))
+                    near = near and _differences_near(row_paths, n, horizontal, q, squared, image_distance, rx, g,
+                                                      spread, xy_sigma, yaw_sigma, sigma_path, sigma_speed,
+                                                      gate_sigmas, 2.0 if moving else 1.0)
                     if near:
                         mask |= np.uint64(1) << np.uint64(min(r - first_row, 63))
                 if mask:
@@ -930,17 +931,22 @@ def _row_intervals(row_paths, gate_sigmas, fixed_variance, sigma_speed):
 
 @kernel(inline=True)
 def _differences_near(row_paths, n, horizontal, q, squared, image_distance, rx, g, spread, xy_sigma, yaw_sigma,
-                      sigma_path, sigma_speed, gate_sigmas):
+                      sigma_path, sigma_speed, gate_sigmas, ends):
     """Whether the differences between row ``n``'s receivers match those of candidate ``q`` within the gate.
 
-    For a path that leaves the transmitter the same way for every receiver (its
-    first reflection is theirs) and comes to receiver k from one point X at
-    ``image_distance[k]``: a pose error moves receiver k's path less the
-    reference's (the first that heard the row) by ``(J_k - J_r) . delta``, with
-    ``|J_k - J_r|`` in (x, y) at most ``s_k |e_k - e_r| + 2 |s_k - s_r|`` and in yaw at
-    most ``s_k (|e_k - e_r| rho + b) + 2 rho |s_k - s_r|`` (``s = h / d``, ``e`` the unit
-    vectors from X, ``|e_k - e_r| <= 2 b / max |R - X|``, ``b = |R_k - R_r|``, ``rho`` the
-    spread), and the map's common error cancels; so the squared difference of the
+    For a path that comes to receiver k from one point X at ``image_distance[k]``
+    after a leg common to every receiver: a pose error moves receiver k's path
+    less the reference's (the first that heard the row) by ``(J_k - J_r) . delta``.
+    With ``e`` the unit vectors from X (``|e_k - e_r| <= 2 b / max |R - X|``, ``b = |R_k -
+    R_r|``), ``s = h / d`` and ``rho`` the spread: where X is fixed in the map (a
+    point, or a point's image in a wall: ``ends`` 1) only the receivers' ends of
+    the paths turn, and ``|J_k - J_r|`` is at most ``s_k |e_k - e_r| + 2 |s_k - s_r|`` in
+    (x, y) and ``s_k (|e_k - e_r| rho + b) + 2 rho |s_k - s_r|`` in yaw; where X is the
+    transmitter's image in walls (``ends`` 2), it moves with the transmitter by a
+    reflection or a rotation, so the transmitter's end turns by as much: ``2 s_k
+    |e_k - e_r| + 2 |s_k - s_r|`` and ``s_k (2 |e_k - e_r| rho + b) + 2 rho |s_k - s_r|``.
+    The map's error moves every receiver's path alike (:func:`match_rows`' model)
+    and cancels; so the squared difference of the
     errors is at most ``gate_sigmas^2 (2 sigma_path^2 + (|dJ_xy| xy_sigma + |dJ_yaw| yaw_sigma)^2
     + sigma_speed^2 (d_k - d_r)^2)`` for a row within the gate (the Mahalanobis
     distance bounds that of any difference).  ``squared`` (K,): the 3-D lengths squared.
@@ -957,8 +963,8 @@ def _differences_near(row_paths, n, horizontal, q, squared, image_distance, rx, 
         baseline = math.hypot(rx[g, k, 0] - rx[g, reference, 0], rx[g, k, 1] - rx[g, reference, 1])
         turn = 2.0 * baseline / max(image_distance[k], image_distance[reference])
         change = abs(scale - reference_scale)
-        along = scale * turn + 2.0 * change
-        around = scale * (turn * spread + baseline) + 2.0 * spread * change
+        along = scale * turn * ends + 2.0 * change
+        around = scale * (turn * spread * ends + baseline) + 2.0 * spread * change
         variance = (2.0 * sigma_path ** 2 + (along * xy_sigma + around * yaw_sigma) ** 2
                     + sigma_speed ** 2 * (length - reference_length) ** 2)
         error = (row_paths[n, k] - row_paths[n, reference]) - (length - reference_length)

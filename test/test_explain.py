@@ -253,6 +253,32 @@ def test_pruning_drops_no_path_that_exists(tolerance):
     assert total > 2000
 
 
+def test_the_filters_by_the_rows_drop_no_path_a_row_matches():
+    """Predicting near the rows (lengths, differences between receivers: pass 1 of ``map_paths``) gives every row the
+    same matches as predicting every path, at poses 1-3 cm and up to a degree off (SLAM's own uncertainty)."""
+    rng = np.random.default_rng(5)
+    walls, points = _room_map()
+    world = World(ROOM, RING, REALISTIC.only("multipath"), noise=Noise(tof=1e-6), seed=5)
+    gate = UNCERTAIN.gate_sigmas
+    matched = 0
+    for pose in _inside_room(rng, 12):
+        ping = world.ping(pose, 0.0)
+        measured = ping.tof * ping.speed_of_sound
+        guess = pose + np.concatenate([rng.normal(0.0, 0.015, 2), rng.normal(0.0, math.radians(0.4), 1)])
+        placement = place(RING, guess)
+        near = predict(walls, points, placement, RING, ping.group, ping.transmitter, UNCERTAIN, paths=measured)
+        every = predict(walls, points, placement, RING, ping.group, ping.transmitter, UNCERTAIN)
+        found = [match(prediction, RING, ping.group, ping.transmitter, measured, UNCERTAIN)
+                 for prediction in (near, every)]
+        for name in ("residual", "direct_residual"):
+            within = [np.where(getattr(f, name) <= gate, getattr(f, name), np.inf) for f in found]
+            assert_array_equal(*within, err_msg=name)
+        assert_array_equal(found[0].label, found[1].label)
+        assert_array_equal(found[0].double_support, found[1].double_support)
+        matched += int(np.count_nonzero(found[0].residual <= gate))
+    assert matched > 100
+
+
 def test_a_corners_double_bounce_and_a_walls_end_are_not_multipath():
     """Walls that meet are a corner, whose double bounce is the corner's own echo; a point on a wall is its end."""
     placement = place(RING, [2.5, 1.5, 0.3])
