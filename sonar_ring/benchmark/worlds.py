@@ -230,8 +230,7 @@ def _row(world: str, name: str, outcomes: list[Outcome]) -> str:
     fitted = fitted[np.isfinite(fitted).all(axis=1)]
     shape = (f"{_mm([np.median(s.shape_error) for s in scores])}; ×{np.median(fitted[:, 0]):.4f}, "
              f"{np.degrees(np.median(np.abs(fitted[:, 1]))):.2f}°" if len(fitted) else "—")
-    complete = sum(s.total("missing") == 0 and s.ghosts == 0 and s.total("duplicates") == 0
-                   and s.total("wrong_class") == 0 for s in scores)
+    complete = sum(s.complete for s in scores)
     rms, final = [o.trajectory[0] for o in outcomes], [o.trajectory[1] for o in outcomes]
     # how far a run's walls reach past the true walls' ends at most (a costmap's obstacle in free space)
     past = [s.wall_overshoot.max() if s.wall_overshoot.size else np.nan for s in scores]
@@ -248,18 +247,19 @@ def _row(world: str, name: str, outcomes: list[Outcome]) -> str:
     return (f"| {world} | {name} | {_mean([s.entries for s in scores])} "
             f"| {_mean(mapped)} of {_mean(heard)} | {_mean([s.total('duplicates') for s in scores])} "
             f"| {_mean([s.ghosts for s in scores])} | {_mean([s.total('wrong_class') for s in scores])} "
-            f"| {_mean([s.undecided for s in scores])} | {_mm(errors)} | {shape} | {overshoot} "
-            f"| {complete} of {len(scores)} "
+            f"| {_mean([s.total('misplaced') for s in scores])} | {_mean([s.undecided for s in scores])} "
+            f"| {_mm(errors)} | {shape} | {overshoot} | {complete} of {len(scores)} "
             f"| {100 * np.median(rms):.1f} / {100 * np.median(final):.1f} cm | {classed} of {len(scores)} "
             f"| {decision} | {timing} |")
 
 
-HEADER = ("| world | mapper | entries | mapped right, of heard | duplicates | ghosts | wrong class | undecided "
+HEADER = ("| world | mapper | entries | mapped right, of heard | duplicates | ghosts | wrong class | misplaced "
+          "| undecided "
           "| median point error | after a similarity fit: point error; scale, rotation "
           "| walls past their ends, median / worst; runs within 2 cm | runs complete "
           "| pose error, RMS / final | runs with every corner and edge right "
           "| driven to tell edge from corner, median / p95 | per ping: label / map |",
-          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+          "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
 
 
 def table(results: dict) -> list[str]:
@@ -282,8 +282,10 @@ def section(results: dict, seeds: int, effect_seeds: int, laps: int, seconds: fl
         "`realistic`: all); every mapper maps the same simulated pings (σ_t = 1 µs, σ_A = 2 %) from the wheel "
         "odometry's poses. Scored by `sonar_ring.score.score_map` against the reflectors the sensor heard: "
         "*mapped right* within 5 cm (walls: 5 cm and 2° of the true line), *ghosts* with no true reflector within "
-        "10 cm, *runs complete* where every heard reflector is mapped once with its class and no entry is a ghost, "
-        "a duplicate or of the wrong class; *runs with every corner and edge right*: every heard corner mapped "
+        "10 cm, *misplaced*: near a reflector of its class but not right (a wall piece turned more than 2° from "
+        "the wall it lies on, say); *runs complete* where every heard reflector is mapped once with its class and "
+        "no entry is a ghost, a duplicate, of the wrong class, misplaced or undecided (`score.MapScore.complete`); "
+        "*runs with every corner and edge right*: every heard corner mapped "
         "CORNER and every heard edge EDGE, none of the wrong class; *driven to tell edge from corner*: the "
         "distance driven from a point's first sighting until its curvature decided it (over the decided points "
         "of every run); *walls past their ends*: how far a run's mapped walls reach beyond the true walls' ends at "
