@@ -209,11 +209,11 @@ def _kernels(tree: ast.Module) -> list[ast.FunctionDef]:
 
 def test_a_kernel_calls_kernels_of_its_own_module_only():
     """numba's cache of a kernel holds its callees' code and is invalidated by its own file's changes alone."""
-    names = {dotted(path).rsplit(".", 1)[-1]: {kernel.name for kernel in _kernels(ast.parse(path.read_text()))}
-             for path in modules()}
+    kernels = {path: _kernels(ast.parse(path.read_text())) for path in modules()}
+    names = {dotted(path).rsplit(".", 1)[-1]: {kernel.name for kernel in found} for path, found in kernels.items()}
     crossing = []
-    for path in modules():
-        for kernel in _kernels(ast.parse(path.read_text())):
+    for path, found in kernels.items():
+        for kernel in found:
             for node in ast.walk(kernel):
                 if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
                         and isinstance(node.func.value, ast.Name)
