@@ -24,7 +24,9 @@ the map frame (:func:`sonar_ring.simulate.place`), the mapper calls:
   as a mapped reflector's own (a pole on the line of sight to a wall: the
   wall's echo passing it) may be that reflector's, and its landmark is where the
   map already has one -- it is left to the mapper (:func:`explain_landmarks`
-  gives it to the double bounce whose reflectors were both seen more often);
+  gives it to the double bounce whose reflectors were both seen more often,
+  and takes only the closest of a channel's echoes as an entry's own: an entry
+  sends one echo to a channel);
 * :func:`impossible` -- a landmark hypothesis whose straight legs from the
   transmitter or to its receivers cross a mapped wall from the side it was seen
   from is not a reflector there (:func:`reflection_points` gives where the legs
@@ -800,7 +802,8 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     prediction = _predict(known.reflecting, placement, layout, group, slot, paths, True, tolerance,
                           2.0 * layout.max_range, True, True)
     explanation = _match(prediction, layout, group, slot, paths, tolerance, False)
-    multipath = _multipath_of_the_less_seen(prediction, explanation, tests.gate_sigmas)
+    multipath = _multipath_of_the_less_seen(prediction, explanation, tests.gate_sigmas,
+                                            np.asarray(landmarks.echo)[rows])
     margin = _margins(np.ascontiguousarray(landmarks.covariance, dtype=float), rows, tests.gate_sigmas,
                       tests.sigma_map)
     normal = np.asarray(landmarks.normal, dtype=float)[rows] @ rotation.T
@@ -811,7 +814,8 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     return out
 
 
-def _multipath_of_the_less_seen(prediction: Prediction, explanation: Explanation, gate_sigmas: float) -> np.ndarray:
+def _multipath_of_the_less_seen(prediction: Prediction, explanation: Explanation, gate_sigmas: float,
+                                echo) -> np.ndarray:
     """Which rows are multipath, where an echo matches both a double bounce and a mapped entry's own echo.
 
     An echo that a double bounce of entries ``A`` and ``B`` explains and the
@@ -824,15 +828,41 @@ def _multipath_of_the_less_seen(prediction: Prediction, explanation: Explanation
     most as often as ``X``), not the closest: a ghost plane's double bounces
     off itself are as close as the true one, and near a wall's end so is the
     one off the edge there.
+
+    An entry sends one echo to a channel: of the ping's echoes within the gate
+    of ``X``'s own, only the closest (``echo`` (N,): each row's echo in its
+    ping) can be it, and a double bounce explains the others.  With the pose
+    known to 2 cm every echo a few centimetres longer is within that gate: the
+    west wall's echo by way of the pillar's edge, 2 cm longer than the wall's
+    own, placed 15-25 cm along the wall and seen by the pings of a metre of
+    travel, made a wall piece of its own, turned 2.6 deg from the wall.
     """
     double = explanation.residual <= gate_sigmas
     direct = explanation.direct_residual <= gate_sigmas
+    direct[direct] = _closest_echoes(explanation.direct[direct], explanation.direct_residual[direct],
+                                     np.asarray(echo)[direct])
     both = np.flatnonzero(double & direct)
     out = double & ~direct
     if both.size:
         own = explanation.direct[both]
         out[both] = prediction.support[own] < explanation.double_support[both]
     return out
+
+
+def _closest_echoes(path, residual, echo) -> np.ndarray:
+    """Whether each row is of the echo closest to its predicted path.
+
+    ``path`` (R,): each row's closest single bounce (a row of the prediction:
+    one entry, one channel); ``residual`` (R,): its Mahalanobis distance from
+    it; ``echo`` (R,): the row's echo in its ping (two landmarks of one echo
+    are one echo).
+    """
+    order = np.lexsort((residual, path))
+    first = np.ones(order.size, bool)
+    first[1:] = path[order[1:]] != path[order[:-1]]
+    closest = np.empty(order.size, np.int64)
+    closest[order] = np.repeat(order[first], np.diff(np.append(np.flatnonzero(first), order.size)))
+    return echo == echo[closest]
 
 
 def load_kernels() -> None:
