@@ -25,8 +25,8 @@ the map frame (:func:`sonar_ring.simulate.place`), the mapper calls:
   wall's echo passing it) may be that reflector's, and its landmark is where the
   map already has one -- it is left to the mapper (:func:`explain_landmarks`
   gives it to the double bounce whose reflectors were both seen more often,
-  and takes only the closest of a channel's echoes as an entry's own: an entry
-  sends one echo to a channel);
+  and a later echo than the entry's own to a double bounce off the entry: an
+  entry sends one echo to a channel);
 * :func:`impossible` -- a landmark hypothesis whose straight legs from the
   transmitter or to its receivers cross a mapped wall from the side it was seen
   from is not a reflector there (:func:`reflection_points` gives where the legs
@@ -803,7 +803,7 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
                           2.0 * layout.max_range, True, True)
     explanation = _match(prediction, layout, group, slot, paths, tolerance, False)
     multipath = _multipath_of_the_less_seen(prediction, explanation, tests.gate_sigmas,
-                                            np.asarray(landmarks.echo)[rows])
+                                            np.asarray(landmarks.echo)[rows], paths)
     margin = _margins(np.ascontiguousarray(landmarks.covariance, dtype=float), rows, tests.gate_sigmas,
                       tests.sigma_map)
     normal = np.asarray(landmarks.normal, dtype=float)[rows] @ rotation.T
@@ -815,7 +815,7 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
 
 
 def _multipath_of_the_less_seen(prediction: Prediction, explanation: Explanation, gate_sigmas: float,
-                                echo) -> np.ndarray:
+                                echo, paths) -> np.ndarray:
     """Which rows are multipath, where an echo matches both a double bounce and a mapped entry's own echo.
 
     An echo that a double bounce of entries ``A`` and ``B`` explains and the
@@ -829,18 +829,13 @@ def _multipath_of_the_less_seen(prediction: Prediction, explanation: Explanation
     off itself are as close as the true one, and near a wall's end so is the
     one off the edge there.
 
-    An entry sends one echo to a channel: of the ping's echoes within the gate
-    of ``X``'s own, only the closest (``echo`` (N,): each row's echo in its
-    ping) can be it, and a double bounce explains the others.  With the pose
-    known to 2 cm every echo a few centimetres longer is within that gate: the
-    west wall's echo by way of the pillar's edge, 2 cm longer than the wall's
-    own, placed 15-25 cm along the wall and seen by the pings of a metre of
-    travel, made a wall piece of its own, turned 2.6 deg from the wall.
+    Nor is it ``X``'s when it is ``X``'s echo by way of another reflector
+    (:func:`_by_way_of_the_entry`): ``echo`` (N,) is each row's echo in its
+    ping, ``paths`` (N, K) its paths.
     """
     double = explanation.residual <= gate_sigmas
     direct = explanation.direct_residual <= gate_sigmas
-    direct[direct] = _closest_echoes(explanation.direct[direct], explanation.direct_residual[direct],
-                                     np.asarray(echo)[direct])
+    direct &= ~_by_way_of_the_entry(prediction, explanation, direct, np.asarray(echo), paths)
     both = np.flatnonzero(double & direct)
     out = double & ~direct
     if both.size:
@@ -849,20 +844,56 @@ def _multipath_of_the_less_seen(prediction: Prediction, explanation: Explanation
     return out
 
 
-def _closest_echoes(path, residual, echo) -> np.ndarray:
-    """Whether each row is of the echo closest to its predicted path.
+def _by_way_of_the_entry(prediction: Prediction, explanation: Explanation, near, echo, paths) -> np.ndarray:
+    """Which rows are entry ``X``'s echo by way of another reflector, of those ``near`` (N,) ``X``'s own echo.
 
-    ``path`` (R,): each row's closest single bounce (a row of the prediction:
-    one entry, one channel); ``residual`` (R,): its Mahalanobis distance from
-    it; ``echo`` (R,): the row's echo in its ping (two landmarks of one echo
-    are one echo).
+    ``X`` is each row's closest single bounce.
+
+    An entry sends one echo to a channel, and a double bounce off it arrives
+    after that echo: its path through ``X``'s reflection point is at least
+    ``X``'s own (the triangle inequality; a wall's own echo is the shortest
+    path by way of it).  So of a ping's echoes within the gate of ``X``'s own,
+    one that is not the closest (by the Mahalanobis distance), is longer than
+    the closest (mean path over the receivers that heard both) and whose
+    closest double bounce is off ``X`` is that double bounce, not ``X``.  With
+    the pose known to 2 cm every echo a few centimetres longer than a wall's is
+    within the gate of the wall's own: the west wall's echo by way of the
+    pillar's edge, 2 cm longer, placed 15-25 cm along the wall and seen over a
+    metre of travel, made a wall piece of its own, turned 2.6 deg from the wall.
     """
-    order = np.lexsort((residual, path))
-    first = np.ones(order.size, bool)
-    first[1:] = path[order[1:]] != path[order[:-1]]
-    closest = np.empty(order.size, np.int64)
-    closest[order] = np.repeat(order[first], np.diff(np.append(np.flatnonzero(first), order.size)))
-    return echo == echo[closest]
+    rows = np.flatnonzero(near)
+    out = np.zeros(near.shape, bool)
+    if rows.size < 2:
+        return out
+    entry = explanation.direct[rows]
+    order = rows[np.lexsort((explanation.direct_residual[rows], entry))]
+    starts = np.flatnonzero(np.r_[True, explanation.direct[order[1:]] != explanation.direct[order[:-1]]])
+    closest = np.empty(paths.shape[0], np.int64)
+    closest[order] = np.repeat(order[starts], np.diff(np.r_[starts, order.size]))
+    closest = closest[rows]
+    length = np.nanmean(paths, axis=1)
+    out[rows] = ((echo[rows] != echo[closest]) & (length[rows] > length[closest])
+                 & _bounces_off(prediction, explanation.best[rows], entry))
+    return out
+
+
+def _bounces_off(prediction: Prediction, double, single) -> np.ndarray:
+    """Whether each double bounce ``double`` (R,) is off the entry of single bounce ``single`` (R,).
+
+    Both are rows of ``prediction``; -1: none.
+    """
+    out = np.zeros(double.shape, bool)
+    rows = np.flatnonzero((double >= 0) & (single >= 0))
+    kind, first, second = (prediction.kind[double[rows]], prediction.first[double[rows]],
+                           prediction.second[double[rows]])
+    entry = prediction.first[single[rows]]
+    off_wall = (((kind == image_method.WALL_WALL) & ((first == entry) | (second == entry)))
+                | ((kind == image_method.WALL_POINT) & (first == entry))
+                | ((kind == image_method.POINT_WALL) & (second == entry)))
+    off_point = (((kind == image_method.WALL_POINT) & (second == entry))
+                 | ((kind == image_method.POINT_WALL) & (first == entry)))
+    out[rows] = np.where(prediction.kind[single[rows]] == image_method.WALL, off_wall, off_point)
+    return out
 
 
 def load_kernels() -> None:

@@ -410,7 +410,7 @@ def test_an_entrys_own_echo_is_multipath_where_a_double_bounce_of_better_seen_en
             [4.0, 4.0, rival_path])
         explanation = match(prediction, RING, [0], [0], echo, tolerance, direct_wins=False)
         return explanation, explain._multipath_of_the_less_seen(prediction, explanation, tolerance.gate_sigmas,
-                                                                [0])[0]
+                                                                np.zeros(1, np.int64), echo)[0]
 
     explanation, is_multipath = multipath(200, 4.001)
     assert explanation.best[0] == 1 and explanation.direct[0] == 0  # the closest double bounce is off X
@@ -423,24 +423,30 @@ def test_an_entrys_own_echo_is_multipath_where_a_double_bounce_of_better_seen_en
     assert match(far, RING, [0], [0], echo, tolerance).double_support[0] == -np.inf
 
 
-def test_of_two_echoes_within_the_gate_of_an_entrys_own_only_the_closer_is_its_own():
-    # Wall X (entry 0, seen 150 times) and a double bounce off a wall and an edge seen less (100), 20 mm longer:
-    # with 10 mm of path noise (a pose known to about 2 cm) each of the ping's two echoes is within the gate of
-    # both paths.  X sends one echo to the channel: the nearer; the double bounce explains the other.
+def test_an_echo_later_than_an_entrys_own_by_a_double_bounce_off_the_entry_is_that_double_bounce():
+    # Wall X (entry 0, seen 150 times) and its echo by way of an edge seen less (100), 20 mm longer: with 10 mm of
+    # path noise (a pose known to about 2 cm) each of the ping's two echoes is within the gate of both paths.
+    # X sends one echo to the channel, the closer; the later one is the double bounce off X.
     tolerance = Tolerance(sigma_path=1e-2)
-    prediction = _one_channel_prediction([WALL, WALL_POINT], [0, 0], [0, 1], [150, 100], [4.0, 4.02])
     echoes = np.repeat(np.array([[4.0], [4.02]]), RING.receivers_per_group, axis=1)
-    explanation = match(prediction, RING, [0, 0], [0, 0], echoes, tolerance, direct_wins=False)
-    assert (explanation.direct_residual <= tolerance.gate_sigmas).all()
-    assert (explanation.residual <= tolerance.gate_sigmas).all()
-    assert_array_equal(explain._multipath_of_the_less_seen(prediction, explanation, tolerance.gate_sigmas, [7, 8]),
-                       [False, True])
-    # The order of the rows does not matter; alone, the longer echo is X's (it was seen more than the bounce's).
-    assert_array_equal(explain._multipath_of_the_less_seen(
-        prediction, match(prediction, RING, [0, 0], [0, 0], echoes[::-1], tolerance, direct_wins=False),
-        tolerance.gate_sigmas, [8, 7]), [True, False])
-    alone = match(prediction, RING, [0], [0], echoes[1:], tolerance, direct_wins=False)
-    assert not explain._multipath_of_the_less_seen(prediction, alone, tolerance.gate_sigmas, [8])[0]
+
+    def multipath(kinds, firsts, seconds, predicted, rows=(0, 1)):
+        prediction = _one_channel_prediction(kinds, firsts, seconds, [150, 100], predicted)
+        paths = echoes[list(rows)]
+        explanation = match(prediction, RING, [0] * len(rows), [0] * len(rows), paths, tolerance, direct_wins=False)
+        assert (explanation.direct_residual <= tolerance.gate_sigmas).all()
+        assert (explanation.residual <= tolerance.gate_sigmas).all()
+        return explain._multipath_of_the_less_seen(prediction, explanation, tolerance.gate_sigmas,
+                                                   np.array(rows) + 7, paths)
+
+    by_the_edge = ([WALL, WALL_POINT], [0, 0], [0, 1])
+    assert_array_equal(multipath(*by_the_edge, [4.0, 4.02]), [False, True])
+    assert_array_equal(multipath(*by_the_edge, [4.0, 4.02], rows=(1, 0)), [True, False])  # in any order
+    assert_array_equal(multipath(*by_the_edge, [4.0, 4.02], rows=(1,)), [False])  # alone: X's, seen more
+    # The closer echo is the later one: the earlier cannot be a double bounce off X.
+    assert_array_equal(multipath(*by_the_edge, [4.015, 4.025]), [False, False])
+    # A double bounce of other entries (walls 1 and 2) is not X's echo by way of something: X's own echo wins.
+    assert_array_equal(multipath([WALL, WALL_WALL], [0, 1], [0, 2], [4.0, 4.02]), [False, False])
 
 
 # --------------------------------------------------------------------------- impossible
