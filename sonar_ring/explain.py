@@ -835,64 +835,14 @@ def _multipath_of_the_less_seen(prediction: Prediction, explanation: Explanation
     """
     double = explanation.residual <= gate_sigmas
     direct = explanation.direct_residual <= gate_sigmas
-    direct &= ~_by_way_of_the_entry(prediction, explanation, direct, np.asarray(echo), paths)
+    direct &= ~_by_way_of_the_entry(direct, explanation.direct, explanation.direct_residual, explanation.best,
+                                    np.asarray(echo, dtype=np.int64), paths, prediction.kind, prediction.first,
+                                    prediction.second)
     both = np.flatnonzero(double & direct)
     out = double & ~direct
     if both.size:
         own = explanation.direct[both]
         out[both] = prediction.support[own] < explanation.double_support[both]
-    return out
-
-
-def _by_way_of_the_entry(prediction: Prediction, explanation: Explanation, near, echo, paths) -> np.ndarray:
-    """Which rows are entry ``X``'s echo by way of another reflector, of those ``near`` (N,) ``X``'s own echo.
-
-    ``X`` is each row's closest single bounce.
-
-    An entry sends one echo to a channel, and a double bounce off it arrives
-    after that echo: its path through ``X``'s reflection point is at least
-    ``X``'s own (the triangle inequality; a wall's own echo is the shortest
-    path by way of it).  So of a ping's echoes within the gate of ``X``'s own,
-    one that is not the closest (by the Mahalanobis distance), is longer than
-    the closest (mean path over the receivers that heard both) and whose
-    closest double bounce is off ``X`` is that double bounce, not ``X``.  With
-    the pose known to 2 cm every echo a few centimetres longer than a wall's is
-    within the gate of the wall's own: the west wall's echo by way of the
-    pillar's edge, 2 cm longer, placed 15-25 cm along the wall and seen over a
-    metre of travel, made a wall piece of its own, turned 2.6 deg from the wall.
-    """
-    rows = np.flatnonzero(near)
-    out = np.zeros(near.shape, bool)
-    if rows.size < 2:
-        return out
-    entry = explanation.direct[rows]
-    order = rows[np.lexsort((explanation.direct_residual[rows], entry))]
-    starts = np.flatnonzero(np.r_[True, explanation.direct[order[1:]] != explanation.direct[order[:-1]]])
-    closest = np.empty(paths.shape[0], np.int64)
-    closest[order] = np.repeat(order[starts], np.diff(np.r_[starts, order.size]))
-    closest = closest[rows]
-    length = np.nanmean(paths, axis=1)
-    out[rows] = ((echo[rows] != echo[closest]) & (length[rows] > length[closest])
-                 & _bounces_off(prediction, explanation.best[rows], entry))
-    return out
-
-
-def _bounces_off(prediction: Prediction, double, single) -> np.ndarray:
-    """Whether each double bounce ``double`` (R,) is off the entry of single bounce ``single`` (R,).
-
-    Both are rows of ``prediction``; -1: none.
-    """
-    out = np.zeros(double.shape, bool)
-    rows = np.flatnonzero((double >= 0) & (single >= 0))
-    kind, first, second = (prediction.kind[double[rows]], prediction.first[double[rows]],
-                           prediction.second[double[rows]])
-    entry = prediction.first[single[rows]]
-    off_wall = (((kind == image_method.WALL_WALL) & ((first == entry) | (second == entry)))
-                | ((kind == image_method.WALL_POINT) & (first == entry))
-                | ((kind == image_method.POINT_WALL) & (second == entry)))
-    off_point = (((kind == image_method.WALL_POINT) & (second == entry))
-                 | ((kind == image_method.POINT_WALL) & (first == entry)))
-    out[rows] = np.where(prediction.kind[single[rows]] == image_method.WALL, off_wall, off_point)
     return out
 
 
@@ -913,7 +863,8 @@ def load_kernels() -> None:
     tolerance = Tolerance(sigma_path=1e-3)
     paths = np.ones((1, layout.receivers_per_group))
     prediction = predict(walls, points, placement, layout, rows, rows, tolerance, paths=paths)
-    match(prediction, layout, rows, rows, paths, tolerance)
+    _multipath_of_the_less_seen(prediction, match(prediction, layout, rows, rows, paths, tolerance),
+                                tolerance.gate_sigmas, rows, paths)
     plane = make_landmarks([PLANE], [[1.0, 0.0]], normal=[[0.0, 1.0]])
     landmark_paths(plane, placement, layout)
     impossible(reflection_points(plane, placement, layout, rows), placement, layout, rows, rows, walls,
@@ -1085,6 +1036,62 @@ def _row_paths(paths, rows: int, layout: Layout, caller: str) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- kernels
+
+
+@kernel
+def _by_way_of_the_entry(near, single, single_residual, double, echo, paths, kind, first, second):
+    """Which rows are entry ``X``'s echo by way of another reflector, of those ``near`` (N,) ``X``'s own echo.
+
+    ``X`` is each row's closest single bounce ``single`` (N,; a row of the
+    prediction, whose ``kind``, ``first`` and ``second`` (Q,) are given), at
+    Mahalanobis distance ``single_residual``; ``double`` its closest double
+    bounce (-1: none), ``echo`` its echo in its ping and ``paths`` (N, K) its
+    paths.
+
+    An entry sends one echo to a channel, and a double bounce off it arrives
+    after that echo: its path through ``X``'s reflection point is at least
+    ``X``'s own (the triangle inequality; a wall's own echo is the shortest
+    path by way of it).  So of a ping's echoes within the gate of ``X``'s own,
+    one that is not the closest (by the Mahalanobis distance), is longer than
+    the closest (mean path over the receivers that heard both) and whose
+    closest double bounce is off ``X`` is that double bounce, not ``X``.  With
+    the pose known to 2 cm every echo a few centimetres longer than a wall's is
+    within the gate of the wall's own: the west wall's echo by way of the
+    pillar's edge, 2 cm longer, placed 15-25 cm along the wall and seen over a
+    metre of travel, made a wall piece of its own, turned 2.6 deg from the wall.
+    """
+    count = near.shape[0]
+    out = np.zeros(count, dtype=np.bool_)
+    closest = np.full(kind.shape[0], -1, dtype=np.int64)
+    for n in range(count):
+        if near[n] and (closest[single[n]] < 0 or single_residual[n] < single_residual[closest[single[n]]]):
+            closest[single[n]] = n
+    for n in range(count):
+        if not near[n] or double[n] < 0:
+            continue
+        entry, own, bounce = single[n], closest[single[n]], double[n]
+        if echo[n] == echo[own] or not _mean_path(paths, n) > _mean_path(paths, own):
+            continue
+        if kind[entry] == image_method.WALL:
+            out[n] = ((kind[bounce] == image_method.WALL_WALL and (first[bounce] == first[entry]
+                                                                  or second[bounce] == first[entry]))
+                      or (kind[bounce] == image_method.WALL_POINT and first[bounce] == first[entry])
+                      or (kind[bounce] == image_method.POINT_WALL and second[bounce] == first[entry]))
+        else:
+            out[n] = ((kind[bounce] == image_method.WALL_POINT and second[bounce] == first[entry])
+                      or (kind[bounce] == image_method.POINT_WALL and first[bounce] == first[entry]))
+    return out
+
+
+@kernel(inline=True)
+def _mean_path(paths, row):
+    """Mean of row ``row``'s finite paths (NaN where none is)."""
+    total, heard = 0.0, 0
+    for k in range(paths.shape[1]):
+        if np.isfinite(paths[row, k]):
+            total += paths[row, k]
+            heard += 1
+    return total / heard if heard else np.nan
 
 
 @kernel
