@@ -1053,7 +1053,7 @@ def _by_way_of_the_entry(near, single, single_residual, double, echo, paths, kin
     ``X``'s own (the triangle inequality; a wall's own echo is the shortest
     path by way of it).  So of a ping's echoes within the gate of ``X``'s own,
     one that is not the closest (by the Mahalanobis distance), is longer than
-    the closest (mean path over the receivers that heard both) and whose
+    the closest (the mean of its finite paths against the closest's) and whose
     closest double bounce is off ``X`` is that double bounce, not ``X``.  With
     the pose known to 2 cm every echo a few centimetres longer than a wall's is
     within the gate of the wall's own: the west wall's echo by way of the
