@@ -228,7 +228,8 @@ def _row(world: str, name: str, outcomes: list[Outcome]) -> str:
     errors = [np.median(s.point_error) if s.point_error.size else np.nan for s in scores]
     fitted = np.array([s.similarity for s in scores])
     fitted = fitted[np.isfinite(fitted).all(axis=1)]
-    shape = (f"{_mm([np.median(s.shape_error) for s in scores])}; ×{np.median(fitted[:, 0]):.4f}, "
+    shapes = [np.median(s.shape_error) if s.shape_error.size else np.nan for s in scores]
+    shape = (f"{_mm(shapes)}; ×{np.median(fitted[:, 0]):.4f}, "
              f"{np.degrees(np.median(np.abs(fitted[:, 1]))):.2f}°" if len(fitted) else "—")
     complete = sum(s.complete for s in scores)
     rms, final = [o.trajectory[0] for o in outcomes], [o.trajectory[1] for o in outcomes]
