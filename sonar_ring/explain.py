@@ -193,7 +193,7 @@ class Tolerance:
     @property
     def xy_sigma(self) -> float:
         """Standard deviation of the pose's position along its worst direction, m (the larger eigenvalue's root)."""
-        (xx, xy), (_, yy) = self.pose_covariance[:2, :2].tolist()  # the larger eigenvalue in closed form, as _margins
+        (xx, xy), (_, yy) = self.pose_covariance[:2, :2].tolist()  # the larger eigenvalue in closed form
         largest = 0.5 * (xx + yy) + math.sqrt(0.25 * (xx - yy) ** 2 + xy ** 2)
         return math.sqrt(largest) if largest >= 0 else math.nan
 
@@ -489,8 +489,10 @@ def reflection_points(landmarks: Landmarks, placement: Placement, layout: Layout
     """
     group, slot = _channels(layout, landmarks.group.astype(np.int64), transmitter, "reflection_points")
     _check_placement(placement, layout, "reflection_points")
-    return _reflection_points(landmarks.position, landmarks.normal, landmarks.landmark_class == PLANE, group, slot,
-                              placement)
+    return image_method.landmark_reflections(np.ascontiguousarray(landmarks.position, dtype=float),
+                                             np.ascontiguousarray(landmarks.normal, dtype=float),
+                                             landmarks.landmark_class == PLANE, group, slot, placement.tx,
+                                             placement.rx)
 
 
 @dataclass(frozen=True)
@@ -742,7 +744,8 @@ def audible(known: KnownMap, layout: Layout, sensor_pose, sensor_covariance, tes
     prediction = _predict(known.heard, place(layout, sensor_pose), layout, groups, np.zeros(groups.size, np.int64),
                           np.empty((groups.size, layout.receivers_per_group)), False, tolerance,
                           2.0 * layout.max_range, True, False)
-    return _own_echoes(prediction, np.isfinite(prediction.path).any(axis=1), known)
+    return image_method.own_echoes(prediction.kind, prediction.first, np.isfinite(prediction.path).any(axis=1),
+                                   len(known.seen), len(known.points))
 
 
 def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_covariance, known: KnownMap,
@@ -753,10 +756,12 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     the map's walls (grown to where they end) and points make the paths
     :func:`predict` gives at the sensor's pose, with the pose's covariance in
     the tolerance; :func:`match` labels multipath (an entry's own echo does
-    not save it if the entry was seen less than the double bounce's:
-    :func:`_multipath_of_the_less_seen`), :func:`impossible` the rest whose
+    not save it if the entry was seen less than the double bounce's, nor a
+    later echo than the entry's own that a double bounce off it explains:
+    :func:`sonar_ring.image_method.multipath_rows`), :func:`impossible` the rest whose
     legs cross a wall's seen extent from its front (margin: ``gate_sigmas`` times the landmark's and
-    the map's position error).  A layout whose groups have several
+    the map's position error).  The steps after the landmarks' paths run as one compiled call
+    (:func:`sonar_ring.image_method.explain_rows`).  A layout whose groups have several
     transmitters (whose landmark does not say which one sent) is not tested.
 
     Parameters
@@ -797,52 +802,20 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     position = position[rows]
     landmark_class = np.asarray(landmarks.landmark_class)[rows]
     paths = _landmark_paths(position, landmark_class == EDGE, group, placement, layout)
-    # The map's arrays and the rows are checked once (KnownMap, _channels): the private steps of predict,
-    # match and impossible, not the public functions that check them again at every ping.
+    # The map's arrays and the rows are checked once (KnownMap, _channels): the private step of predict, not
+    # the public function that checks them again at every ping; match, the rules above and impossible run as
+    # one compiled call.
     prediction = _predict(known.reflecting, placement, layout, group, slot, paths, True, tolerance,
                           2.0 * layout.max_range, True, True)
-    explanation = _match(prediction, layout, group, slot, paths, tolerance, False)
-    multipath = _multipath_of_the_less_seen(prediction, explanation, tests.gate_sigmas,
-                                            np.asarray(landmarks.echo)[rows], paths)
-    margin = _margins(np.ascontiguousarray(landmarks.covariance, dtype=float), rows, tests.gate_sigmas,
-                      tests.sigma_map)
-    normal = np.asarray(landmarks.normal, dtype=float)[rows] @ rotation.T
-    blocked = _impossible(_reflection_points(position, normal, landmark_class == PLANE, group, slot, placement),
-                          placement, group, slot, known.seen, known.unit_normals, margin) & ~multipath
-    out.multipath[rows], out.impossible[rows] = multipath, blocked
-    out.heard[:] = _own_echoes(prediction, explanation.matched, known)
-    return out
-
-
-def _multipath_of_the_less_seen(prediction: Prediction, explanation: Explanation, gate_sigmas: float,
-                                echo, paths) -> np.ndarray:
-    """Which rows are multipath, where an echo matches both a double bounce and a mapped entry's own echo.
-
-    An echo that a double bounce of entries ``A`` and ``B`` explains and the
-    single bounce of entry ``X`` explains too is ``X``'s (a pole on the line of
-    sight to a wall: the wall's echo passing it) -- unless ``X`` was seen less
-    often than both ``A`` and ``B``: a ghost mapped before the map could explain
-    it has its own echo in the map, and the better-seen entries explain it.
-    ``A`` and ``B`` are the most seen double bounce within the gate
-    (:attr:`Explanation.double_support`; one that bounces off ``X`` is seen at
-    most as often as ``X``), not the closest: a ghost plane's double bounces
-    off itself are as close as the true one, and near a wall's end so is the
-    one off the edge there.
-
-    Nor is it ``X``'s when it is ``X``'s echo by way of another reflector
-    (:func:`_by_way_of_the_entry`): ``echo`` (N,) is each row's echo in its
-    ping, ``paths`` (N, K) its paths.
-    """
-    double = explanation.residual <= gate_sigmas
-    direct = explanation.direct_residual <= gate_sigmas
-    direct &= ~_by_way_of_the_entry(direct, explanation.direct, explanation.direct_residual, explanation.best,
-                                    np.asarray(echo, dtype=np.int64), paths, prediction.kind, prediction.first,
-                                    prediction.second)
-    both = np.flatnonzero(double & direct)
-    out = double & ~direct
-    if both.size:
-        own = explanation.direct[both]
-        out[both] = prediction.support[own] < explanation.double_support[both]
+    out.multipath[rows], out.impossible[rows], out.heard[:] = image_method.explain_rows(
+        prediction.kind, prediction.first, prediction.second, prediction.support, prediction.path,
+        prediction.jacobian, prediction.channel_start, len(known.seen), len(known.points), known.seen,
+        known.unit_normals, placement.tx, placement.rx, group, slot, paths,
+        np.asarray(landmarks.echo, dtype=np.int64)[rows], position,
+        np.ascontiguousarray(np.asarray(landmarks.normal, dtype=float)[rows] @ rotation.T),
+        landmark_class == PLANE, np.ascontiguousarray(np.asarray(landmarks.covariance, dtype=float)[rows]),
+        tolerance.pose_covariance, tolerance.sigma_path, tolerance.sigma_speed, tolerance.sigma_map,
+        tolerance.gate_sigmas)
     return out
 
 
@@ -856,20 +829,23 @@ def load_kernels() -> None:
 
     image_method.load_kernels()
     layout = load_layout("browne_ring")
-    placement = place(layout, [0.5, 0.5, 0.0])
+    pose, covariance = np.array([0.5, 0.5, 0.0]), np.diag([1e-4, 1e-4, 1e-4])
+    placement = place(layout, pose)
     walls = np.array([[[0.0, 0.0], [2.0, 0.0]], [[2.0, 0.0], [2.0, 2.0]]])
     points = np.array([[1.0, 1.5]])
     rows = np.zeros(1, dtype=np.int64)
     tolerance = Tolerance(sigma_path=1e-3)
     paths = np.ones((1, layout.receivers_per_group))
-    prediction = predict(walls, points, placement, layout, rows, rows, tolerance, paths=paths)
-    _multipath_of_the_less_seen(prediction, match(prediction, layout, rows, rows, paths, tolerance),
-                                tolerance.gate_sigmas, rows, paths)
+    match(predict(walls, points, placement, layout, rows, rows, tolerance, paths=paths), layout, rows, rows, paths,
+          tolerance)
     plane = make_landmarks([PLANE], [[1.0, 0.0]], normal=[[0.0, 1.0]])
     landmark_paths(plane, placement, layout)
     impossible(reflection_points(plane, placement, layout, rows), placement, layout, rows, rows, walls,
                [[0.0, 1.0], [-1.0, 0.0]], 0.01)
-    _margins(np.ascontiguousarray(plane.covariance, dtype=float), rows, 4.0, 0.005)
+    known = KnownMap(walls, facing(walls, pose[:2]), walls, points, np.ones(len(walls)), np.ones(len(points)))
+    tests = EchoTests()
+    explain_landmarks(plane, layout, pose, covariance, known, tests)
+    audible(known, layout, pose, covariance, tests)
 
 
 # --------------------------------------------------------------------------- checks and set-up
@@ -942,22 +918,6 @@ def _landmark_paths(position, is_edge, group, placement: Placement, layout: Layo
     """:func:`landmark_paths` of arrays: positions (L, 2) and groups (L,) in the placement's frame, edges (L,)."""
     horizontal = reflector_paths(placement.tx[group, 0], placement.rx[group], position, is_edge)
     return np.sqrt(horizontal ** 2 + layout.plan.height_offset[group, 0, :] ** 2)
-
-
-def _reflection_points(position, normal, is_plane, group, slot, placement: Placement) -> np.ndarray:
-    """:func:`reflection_points` of arrays: positions and normals (L, 2), planes (L,), groups and slots (L,)."""
-    position = np.ascontiguousarray(position, dtype=float)
-    on_plane = image_method.plane_reflections(position, np.ascontiguousarray(normal, dtype=float), group, slot,
-                                              placement.tx, placement.rx)
-    return np.where(is_plane[:, None, None], on_plane, position[:, None, :])
-
-
-def _own_echoes(prediction: Prediction, chosen: np.ndarray, known: KnownMap) -> np.ndarray:
-    """Which entries of ``known`` (walls, then points) have a single bounce among the ``chosen`` paths, (W + P,)."""
-    entries = np.zeros(len(known), bool)
-    entries[prediction.first[chosen & (prediction.kind == image_method.WALL)]] = True
-    entries[len(known.seen) + prediction.first[chosen & (prediction.kind == image_method.POINT)]] = True
-    return entries
 
 
 def _segments(segments, caller: str, name: str = "walls") -> np.ndarray:
@@ -1039,62 +999,6 @@ def _row_paths(paths, rows: int, layout: Layout, caller: str) -> np.ndarray:
 
 
 @kernel
-def _by_way_of_the_entry(near, single, single_residual, double, echo, paths, kind, first, second):
-    """Which rows are entry ``X``'s echo by way of another reflector, of those ``near`` (N,) ``X``'s own echo.
-
-    ``X`` is each row's closest single bounce ``single`` (N,; a row of the
-    prediction, whose ``kind``, ``first`` and ``second`` (Q,) are given), at
-    Mahalanobis distance ``single_residual``; ``double`` its closest double
-    bounce (-1: none), ``echo`` its echo in its ping and ``paths`` (N, K) its
-    paths.
-
-    An entry sends one echo to a channel, and a double bounce off it arrives
-    after that echo: its path through ``X``'s reflection point is at least
-    ``X``'s own (the triangle inequality; a wall's own echo is the shortest
-    path by way of it).  So of a ping's echoes within the gate of ``X``'s own,
-    one that is not the closest (by the Mahalanobis distance), is longer than
-    the closest (the mean of its finite paths against the closest's) and whose
-    closest double bounce is off ``X`` is that double bounce, not ``X``.  With
-    the pose known to 2 cm every echo a few centimetres longer than a wall's is
-    within the gate of the wall's own: the west wall's echo by way of the
-    pillar's edge, 2 cm longer, placed 15-25 cm along the wall and seen over a
-    metre of travel, made a wall piece of its own, turned 2.6 deg from the wall.
-    """
-    count = near.shape[0]
-    out = np.zeros(count, dtype=np.bool_)
-    closest = np.full(kind.shape[0], -1, dtype=np.int64)
-    for n in range(count):
-        if near[n] and (closest[single[n]] < 0 or single_residual[n] < single_residual[closest[single[n]]]):
-            closest[single[n]] = n
-    for n in range(count):
-        if not near[n] or double[n] < 0:
-            continue
-        entry, own, bounce = single[n], closest[single[n]], double[n]
-        if echo[n] == echo[own] or not _mean_path(paths, n) > _mean_path(paths, own):
-            continue
-        if kind[entry] == image_method.WALL:
-            out[n] = ((kind[bounce] == image_method.WALL_WALL and (first[bounce] == first[entry]
-                                                                  or second[bounce] == first[entry]))
-                      or (kind[bounce] == image_method.WALL_POINT and first[bounce] == first[entry])
-                      or (kind[bounce] == image_method.POINT_WALL and second[bounce] == first[entry]))
-        else:
-            out[n] = ((kind[bounce] == image_method.WALL_POINT and second[bounce] == first[entry])
-                      or (kind[bounce] == image_method.POINT_WALL and first[bounce] == first[entry]))
-    return out
-
-
-@kernel(inline=True)
-def _mean_path(paths, row):
-    """Mean of row ``row``'s finite paths (NaN where none is)."""
-    total, heard = 0.0, 0
-    for k in range(paths.shape[1]):
-        if np.isfinite(paths[row, k]):
-            total += paths[row, k]
-            heard += 1
-    return total / heard if heard else np.nan
-
-
-@kernel
 def _slots(group, transmitter, group_transmitters):
     """The slot of each row's transmitter in its group's ``group_transmitters`` row, and the first row without.
 
@@ -1111,23 +1015,6 @@ def _slots(group, transmitter, group_transmitters):
         if slot[n] < 0 and bad < 0:
             bad = n
     return slot, bad
-
-
-@kernel
-def _margins(covariance, rows, gate_sigmas, sigma_map):
-    """The impossible test's margin of each of ``rows`` of the landmarks' covariances (L, 2, 2), m.
-
-    ``gate_sigmas`` times the hypotenuse of the landmark's position error along its worst direction (the
-    larger eigenvalue's root, in closed form) and the map's ``sigma_map``; 0 where that is not finite.
-    """
-    margin = np.zeros(rows.shape[0])
-    for i in range(rows.shape[0]):
-        xx, xy, yy = covariance[rows[i], 0, 0], covariance[rows[i], 0, 1], covariance[rows[i], 1, 1]
-        largest = 0.5 * (xx + yy) + math.sqrt(0.25 * (xx - yy) ** 2 + xy ** 2)
-        if np.isfinite(largest):
-            value = gate_sigmas * math.hypot(math.sqrt(max(largest, 0.0)), sigma_map)
-            margin[i] = value if np.isfinite(value) else 0.0
-    return margin
 
 
 @kernel

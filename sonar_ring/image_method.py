@@ -8,7 +8,9 @@ from the scene's walls and edges; the map's explanation of echoes
 (:mod:`sonar_ring.explain`) predicts the same paths from the map's walls and
 points with :func:`map_paths`, which bounces by the same functions, matches
 echoes to them with :func:`match_rows` and tests landmark hypotheses with
-:func:`reflections_blocked`, which blocks by the same test, a wall from its front only.
+:func:`reflections_blocked`, which blocks by the same test, a wall from its front only;
+:func:`explain_rows` runs a ping's match, its rules (:func:`multipath_rows`) and
+that test in one call.
 
 Walls are vertical planes given as segments ``[[x0, y0], [x1, y1]]``
 (:func:`wall_frames` gives each its start, unit direction, unit normal and
@@ -1203,23 +1205,26 @@ def _behind_wall(x0, y0, x1, y1, walls, normal, length, margin):
 
 
 @kernel
-def plane_reflections(position, normal, group, slot, tx, rx):
-    """Where planes reflect each group's transmitter to each of its receivers: the single bounce of :func:`map_paths`.
+def landmark_reflections(position, normal, is_plane, group, slot, tx, rx):
+    """Where landmark hypotheses reflect each group's transmitter to its receivers, for :func:`reflections_blocked`.
+
+    A plane reflects where :func:`map_paths` puts a wall's single bounce; any other hypothesis at its position.
 
     Parameters
     ----------
     position, normal : ndarray, shape (L, 2)
-        A point of each plane's line and its unit normal, m.
+        Each hypothesis' position (a point of a plane's line) and a plane's unit normal, m.
+    is_plane : ndarray of bool, shape (L,)
     group, slot : ndarray of int, shape (L,)
-        The receiver group and transmitter slot of each plane.
+        The receiver group and transmitter slot of each hypothesis.
     tx, rx : ndarray, shape (G, M, 2) and (G, K, 2)
         Transmitters and receivers, m.
 
     Returns
     -------
     ndarray, shape (L, K, 2)
-        The reflection point on the (unbounded) line, m; NaN where the
-        transmitter and the receiver are not on one side of it.
+        The reflection point, m; for a plane on its (unbounded) line, NaN where
+        the transmitter and the receiver are not on one side of it.
     """
     count, receivers = position.shape[0], rx.shape[1]
     direction = np.empty((count, 2))
@@ -1230,6 +1235,9 @@ def plane_reflections(position, normal, group, slot, tx, rx):
     for n in range(count):
         g, m = group[n], slot[n]
         for k in range(receivers):
+            if not is_plane[n]:
+                points[n, k, 0], points[n, k, 1] = position[n, 0], position[n, 1]
+                continue
             _, exists, x, y = _via_wall(rx[g, k, 0], rx[g, k, 1], tx[g, m, 0], tx[g, m, 1], n, position, direction,
                                         normal, length, np.inf)
             if exists:
@@ -1268,6 +1276,200 @@ def _shortened_leg_blocked(x0, y0, x1, y1, start_margin, end_margin, walls, leng
 def _unit(x, y):
     norm = _norm(x, y)
     return x / norm, y / norm
+
+
+# --------------------------------------------------------------------------- a ping's landmarks explained
+
+
+@kernel
+def explain_rows(kind, first, second, support, path, jacobian, channel_start, n_walls, n_points, blocking,
+                 blocking_normal, tx, rx, group, slot, row_paths, echo, position, row_normal, is_plane, covariance,
+                 pose_covariance, sigma_path, sigma_speed, sigma_map, gate_sigmas):
+    """Which of one ping's landmark hypotheses the map explains, given :func:`map_paths` of their channels.
+
+    The steps of :func:`sonar_ring.explain.explain_landmarks` after the prediction, in one compiled call (a
+    ping's glue between them in numpy cost a third of the call): :func:`match_rows`;
+    :func:`multipath_rows`; the rest, :func:`reflections_blocked` from :func:`landmark_reflections` with
+    :func:`impossible_margins`; and :func:`own_echoes` of the matched paths.  :func:`map_paths` is called
+    apart: compiled into this kernel, its code would be optimised a second time (30 s more to compile).
+
+    Parameters
+    ----------
+    kind, first, second, support, path, jacobian, channel_start
+        :func:`map_paths`' paths for the rows' channels (gated by their paths).
+    n_walls, n_points : int
+        The map's walls and points (W, P).
+    blocking, blocking_normal : ndarray, shape (W, 2, 2) and (W, 2)
+        The walls that make a hypothesis impossible (their seen extents) and their unit normals towards their fronts.
+    tx, rx : ndarray, shape (G, M, 2) and (G, K, 2)
+        The transmitters and receivers at the ping's pose, m.
+    group, slot : ndarray of int, shape (N,)
+        Each hypothesis' receiver group and transmitter slot.
+    row_paths : ndarray, shape (N, K)
+        The paths each implies, m (NaN: not heard).
+    echo : ndarray of int, shape (N,)
+        The echo of its ping it came from.
+    position, row_normal : ndarray, shape (N, 2)
+        Its position and (a plane's) unit normal, map frame, m.
+    is_plane : ndarray of bool, shape (N,)
+    covariance : ndarray, shape (N, 2, 2)
+        Its position's covariance, m^2.
+    pose_covariance, sigma_path, sigma_speed, sigma_map, gate_sigmas
+        The tolerance, as :func:`match_rows` takes it.
+
+    Returns
+    -------
+    multipath, impossible : ndarray of bool, shape (N,)
+        The map explains the hypothesis' echo as a double bounce (:func:`multipath_rows`), or a leg of it
+        crosses a wall's front (and it is not multipath).
+    heard : ndarray of bool, shape (W + P,)
+        The entries (walls, then points) whose own echo some row is within the gate of.
+    """
+    channel = group * tx.shape[1] + slot
+    double, single, double_distance, single_distance, double_support, matched = match_rows(
+        channel, row_paths, channel_start, kind, support, path, jacobian, pose_covariance, sigma_path, sigma_speed,
+        sigma_map, gate_sigmas)
+    multipath = multipath_rows(kind, first, second, support, double, double_distance, single, single_distance,
+                               double_support, echo, row_paths, gate_sigmas)
+    impossible = reflections_blocked(landmark_reflections(position, row_normal, is_plane, group, slot, tx, rx), group,
+                                     slot, tx, rx, blocking, blocking_normal,
+                                     impossible_margins(covariance, gate_sigmas, sigma_map))
+    for n in range(impossible.shape[0]):
+        impossible[n] = impossible[n] and not multipath[n]
+    return multipath, impossible, own_echoes(kind, first, matched, n_walls, n_points)
+
+
+@kernel
+def multipath_rows(kind, first, second, support, double, double_distance, single, single_distance, double_support,
+                   echo, paths, gate_sigmas):
+    """Which rows are multipath, where an echo may match both a double bounce and a mapped entry's own echo.
+
+    An echo that a double bounce of entries ``A`` and ``B`` explains and the
+    single bounce of entry ``X`` explains too is ``X``'s (a pole on the line of
+    sight to a wall: the wall's echo passing it) -- unless ``X`` was seen less
+    often than both ``A`` and ``B``: a ghost mapped before the map could explain
+    it has its own echo in the map, and the better-seen entries explain it.
+    ``A`` and ``B`` are the most seen double bounce within the gate
+    (``double_support``; one that bounces off ``X`` is seen at most as often as
+    ``X``), not the closest: a ghost plane's double bounces off itself are as
+    close as the true one, and near a wall's end so is the one off the edge
+    there.  Nor is it ``X``'s when it is ``X``'s echo by way of another
+    reflector (:func:`_by_way_of_the_entry`).
+
+    Parameters
+    ----------
+    kind, first, second : ndarray of int, shape (Q,)
+        The predicted paths (:func:`map_paths`).
+    support : ndarray, shape (Q,)
+        The observations of each path's less seen reflector.
+    double, double_distance, single, single_distance, double_support : ndarray, shape (N,)
+        :func:`match_rows` of the rows.
+    echo : ndarray of int, shape (N,)
+        Each row's echo in its ping.
+    paths : ndarray, shape (N, K)
+        Its paths, m.
+    gate_sigmas : float
+
+    Returns
+    -------
+    ndarray of bool, shape (N,)
+    """
+    rows = double.shape[0]
+    near_single = np.empty(rows, dtype=np.bool_)
+    for n in range(rows):
+        near_single[n] = single_distance[n] <= gate_sigmas
+    by_way = _by_way_of_the_entry(near_single, single, single_distance, double, echo, paths, kind, first, second)
+    out = np.zeros(rows, dtype=np.bool_)
+    for n in range(rows):
+        if not double_distance[n] <= gate_sigmas:
+            continue
+        out[n] = not near_single[n] or by_way[n] or support[single[n]] < double_support[n]
+    return out
+
+
+@kernel
+def _by_way_of_the_entry(near, single, single_residual, double, echo, paths, kind, first, second):
+    """Which rows are entry ``X``'s echo by way of another reflector, of those ``near`` (N,) ``X``'s own echo.
+
+    ``X`` is each row's closest single bounce ``single`` (N,; a row of the
+    prediction, whose ``kind``, ``first`` and ``second`` (Q,) are given), at
+    Mahalanobis distance ``single_residual``; ``double`` its closest double
+    bounce (-1: none), ``echo`` its echo in its ping and ``paths`` (N, K) its
+    paths.
+
+    An entry sends one echo to a channel, and a double bounce off it arrives
+    after that echo: its path through ``X``'s reflection point is at least
+    ``X``'s own (the triangle inequality; a wall's own echo is the shortest
+    path by way of it).  So of a ping's echoes within the gate of ``X``'s own,
+    one that is not the closest (by the Mahalanobis distance), is longer than
+    the closest (the mean of its finite paths against the closest's) and whose
+    closest double bounce is off ``X`` is that double bounce, not ``X``.  With
+    the pose known to 2 cm every echo a few centimetres longer than a wall's is
+    within the gate of the wall's own: the west wall's echo by way of the
+    pillar's edge, 2 cm longer, placed 15-25 cm along the wall and seen over a
+    metre of travel, made a wall piece of its own, turned 2.6 deg from the wall.
+    """
+    count = near.shape[0]
+    out = np.zeros(count, dtype=np.bool_)
+    closest = np.full(kind.shape[0], -1, dtype=np.int64)
+    for n in range(count):
+        if near[n] and (closest[single[n]] < 0 or single_residual[n] < single_residual[closest[single[n]]]):
+            closest[single[n]] = n
+    for n in range(count):
+        if not near[n] or double[n] < 0:
+            continue
+        entry, own, bounce = single[n], closest[single[n]], double[n]
+        if echo[n] == echo[own] or not _mean_path(paths, n) > _mean_path(paths, own):
+            continue
+        if kind[entry] == WALL:
+            out[n] = ((kind[bounce] == WALL_WALL and (first[bounce] == first[entry]
+                                                                  or second[bounce] == first[entry]))
+                      or (kind[bounce] == WALL_POINT and first[bounce] == first[entry])
+                      or (kind[bounce] == POINT_WALL and second[bounce] == first[entry]))
+        else:
+            out[n] = ((kind[bounce] == WALL_POINT and second[bounce] == first[entry])
+                      or (kind[bounce] == POINT_WALL and first[bounce] == first[entry]))
+    return out
+
+
+@kernel(inline=True)
+def _mean_path(paths, row):
+    """Mean of row ``row``'s finite paths (NaN where none is)."""
+    total, heard = 0.0, 0
+    for k in range(paths.shape[1]):
+        if np.isfinite(paths[row, k]):
+            total += paths[row, k]
+            heard += 1
+    return total / heard if heard else np.nan
+
+
+@kernel
+def impossible_margins(covariance, gate_sigmas, sigma_map):
+    """The margin of :func:`reflections_blocked` for hypotheses of position covariance ``covariance`` (L, 2, 2), m (L,).
+
+    ``gate_sigmas`` times the hypotenuse of the hypothesis' position error along its worst direction (the
+    larger eigenvalue's root, in closed form) and the map's ``sigma_map``; 0 where that is not finite.
+    """
+    margin = np.zeros(covariance.shape[0])
+    for i in range(covariance.shape[0]):
+        xx, xy, yy = covariance[i, 0, 0], covariance[i, 0, 1], covariance[i, 1, 1]
+        largest = 0.5 * (xx + yy) + math.sqrt(0.25 * (xx - yy) ** 2 + xy ** 2)
+        if np.isfinite(largest):
+            value = gate_sigmas * math.hypot(math.sqrt(max(largest, 0.0)), sigma_map)
+            margin[i] = value if np.isfinite(value) else 0.0
+    return margin
+
+
+@kernel
+def own_echoes(kind, first, chosen, n_walls, n_points):
+    """Which entries (walls, then points) have their own echo among the ``chosen`` (Q,) paths, (W + P,) bool."""
+    entries = np.zeros(n_walls + n_points, dtype=np.bool_)
+    for q in range(kind.shape[0]):
+        if chosen[q] and kind[q] == WALL:
+            entries[first[q]] = True
+        elif chosen[q] and kind[q] == POINT:
+            entries[n_walls + first[q]] = True
+    return entries
 
 
 # --------------------------------------------------------------------------- pruning

@@ -398,6 +398,14 @@ def _one_channel_prediction(kinds, firsts, seconds, supports, paths):
         channel_start=channel_start)
 
 
+def _multipath_rows(prediction, explanation, gate_sigmas, echo, paths):
+    """image_method.multipath_rows (the rule explain_landmarks applies) of a prediction and its match."""
+    return image_method.multipath_rows(prediction.kind, prediction.first, prediction.second, prediction.support,
+                                       explanation.best, explanation.residual, explanation.direct,
+                                       explanation.direct_residual, explanation.double_support, echo, paths,
+                                       gate_sigmas)
+
+
 def test_an_entrys_own_echo_is_multipath_where_a_double_bounce_of_better_seen_entries_within_the_gate_explains_it():
     # Entry X (wall 0, seen 150 times) explains the echo; so do a double bounce off X itself (the closest) and one
     # off walls 1 and 2, 1 mm longer: still within the gate of 3 mm of path noise.
@@ -409,8 +417,8 @@ def test_an_entrys_own_echo_is_multipath_where_a_double_bounce_of_better_seen_en
             [WALL, WALL_WALL, WALL_WALL], [0, 0, 1], [0, 1, 2], [150, 150, second_support],
             [4.0, 4.0, rival_path])
         explanation = match(prediction, RING, [0], [0], echo, tolerance, direct_wins=False)
-        return explanation, explain._multipath_of_the_less_seen(prediction, explanation, tolerance.gate_sigmas,
-                                                                np.zeros(1, np.int64), echo)[0]
+        return explanation, _multipath_rows(prediction, explanation, tolerance.gate_sigmas, np.zeros(1, np.int64),
+                                            echo)[0]
 
     explanation, is_multipath = multipath(200, 4.001)
     assert explanation.best[0] == 1 and explanation.direct[0] == 0  # the closest double bounce is off X
@@ -436,8 +444,7 @@ def test_an_echo_later_than_an_entrys_own_by_a_double_bounce_off_the_entry_is_th
         explanation = match(prediction, RING, [0] * len(rows), [0] * len(rows), paths, tolerance, direct_wins=False)
         assert (explanation.direct_residual <= tolerance.gate_sigmas).all()
         assert (explanation.residual <= tolerance.gate_sigmas).all()
-        return explain._multipath_of_the_less_seen(prediction, explanation, tolerance.gate_sigmas,
-                                                   np.array(rows) + 7, paths)
+        return _multipath_rows(prediction, explanation, tolerance.gate_sigmas, np.array(rows) + 7, paths)
 
     by_the_edge = ([WALL, WALL_POINT], [0, 0], [0, 1])
     assert_array_equal(multipath(*by_the_edge, [4.0, 4.02]), [False, True])
@@ -653,6 +660,51 @@ def test_explain_landmarks_flags_a_pings_multipath_landmarks_and_places_them_in_
         from_multipath += np.count_nonzero(origin == simulate.MULTIPATH)
     # Measured: all 5293 landmarks flagged in 60 pings came from double bounces.
     assert flagged > 100 and from_multipath / flagged >= 0.99, (flagged, from_multipath)
+
+
+def test_explain_landmarks_is_predict_match_the_rule_and_impossible_in_one_call():
+    """Its compiled call (image_method.explain_rows) decides as the public steps do, on pings with multipath.
+
+    With the room's map, and with its walls alone: the echoes by way of corners and edges are then not
+    explained, and their landmarks, beyond the walls, are impossible.
+    """
+    stage = PingStage(RING, pipeline.Settings(sigma_speed=pipeline.ROBOT_SIGMA_SPEED))
+    walls, points = _room_map()
+    tests = explain.EchoTests()
+    covariance = np.diag([0.02 ** 2, 0.02 ** 2, math.radians(0.5) ** 2])  # SLAM's pose uncertainty, about
+    tolerance = Tolerance(tests.sigma_path, covariance, tests.sigma_speed, tests.sigma_map, tests.gate_sigmas)
+    # Walls seen more often than points, one of them less than the rest: the rule's supports differ.
+    wall_support = np.full(len(walls), 200.0)
+    wall_support[0] = 20.0
+    decided = np.zeros(2, int)
+    for pose, _, _, usable in worlds.simulated("multipath alone", 1, 30):
+        landmarks = stage.label(usable)[1]
+        placement = place(RING, pose)
+        moved = transform_landmarks(landmarks, pose)
+        rows = np.flatnonzero(moved.valid & np.isfinite(moved.position).all(axis=1))
+        moved = moved.select(rows)
+        group, transmitter = moved.group.astype(np.int64), np.zeros(rows.size, np.int64)
+        paths = explain.landmark_paths(moved, placement, RING)
+        margin = tests.gate_sigmas * np.hypot(np.sqrt(np.linalg.eigvalsh(moved.covariance)[:, -1]), tests.sigma_map)
+        for mapped in (points, points[:0]):
+            point_support = np.full(len(mapped), 50.0)
+            known = explain.KnownMap(walls, facing(walls, pose[:2]), walls, mapped, wall_support, point_support)
+            explained = explain.explain_landmarks(landmarks, RING, pose, covariance, known, tests)
+            prediction = predict(known.walls, known.points, placement, RING, group, transmitter, tolerance,
+                                 paths=paths, seen=known.seen, wall_support=wall_support, point_support=point_support)
+            explanation = match(prediction, RING, group, transmitter, paths, tolerance, direct_wins=False)
+            multipath = _multipath_rows(prediction, explanation, tests.gate_sigmas, moved.echo.astype(np.int64),
+                                        paths)
+            blocked = impossible(reflection_points(moved, placement, RING, transmitter), placement, RING, group,
+                                 transmitter, known.seen, known.normals, margin) & ~multipath
+            assert_array_equal(explained.multipath[rows], multipath)
+            assert_array_equal(explained.impossible[rows], blocked)
+            own = explanation.matched & np.isin(prediction.kind, (WALL, POINT))
+            heard = np.zeros(len(known), bool)
+            heard[np.where(prediction.kind[own] == WALL, 0, len(walls)) + prediction.first[own]] = True
+            assert_array_equal(explained.heard, heard)
+            decided += np.count_nonzero(multipath), np.count_nonzero(blocked)
+    assert np.all(decided > 20), decided  # multipath and impossible both
 
 
 def test_audible_entries_are_heard_where_real_and_a_ghost_never_is():
