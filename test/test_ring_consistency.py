@@ -9,7 +9,9 @@ from sonar_ring import localise
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN
 from sonar_ring.ring_consistency import (
+    CHI2_3_SIGMA,
     CONSISTENCY_Z,
+    SAG_BAND,
     _chi2_upper_quantile,
     geometric_consistency,
     overlapping_groups,
@@ -145,7 +147,8 @@ def test_joint_fit_covariance_is_the_weighted_least_squares_one():
         centre = receivers.mean(axis=0) / (2 if cls == EDGE else 1)  # the emitter at the origin
         along = (point - centre) / np.linalg.norm(point - centre)
         across = np.array([-along[1], along[0]])
-        expected += (1.5 * (across @ expected @ across)) ** 2 / np.sum((point - centre) ** 2) * np.outer(along, along)
+        expected += (SAG_BAND * (across @ expected @ across) ** 2 / np.sum((point - centre) ** 2)
+                     * np.outer(along, along))
         covariance = result.edge_covariance if cls == EDGE else result.image_covariance
         assert_allclose(covariance[0], expected, rtol=1e-5)
 
@@ -165,6 +168,23 @@ def test_joint_fit_covariance_holds_the_spread_of_noisy_fits():
     assert 1.85 < normalised.mean() < 2.15
     assert np.mean(normalised <= 11.83) > 0.99  # 11.83: the 2-D chi-square's 99.73 % point
     assert_allclose(np.cov(error.T), 0.25 * result.image_covariance.mean(axis=0), rtol=0.1)
+
+
+def test_joint_fit_covariance_holds_a_far_corners_sag_within_its_3_sigma_ellipse():
+    # 4000 noisy echoes of a corner 4 m away heard by two pairs (sigma_t = 2 us): the fits scatter 10 mm across
+    # the line of sight and sag 0.1-0.5 mm along it, where the paths' noise moves them 0.1 mm.  The ellipse must
+    # still hold a Gaussian's share, 99.73 % (99.5 %: 3 binomial standard deviations of 4000 trials below it; a
+    # band whose own 3 sigma held the sag alone held 99.02 %).
+    rng = np.random.default_rng(11)
+    receivers = ring_receivers((0, 1))
+    trials, sigma = 4000, SPEED * 2e-6
+    truth = 4.0 * np.array([np.cos(0.05), np.sin(0.05)])
+    paths = exact_paths(CORNER, receivers, 4.0, np.full(trials, 0.05)) + rng.normal(0, sigma, (trials, 4))
+    result = geometric_consistency(np.zeros(2), np.broadcast_to(receivers, (trials, 4, 2)), paths, sigma,
+                                   covariances=True)
+    error = 0.5 * result.virtual_image - truth
+    normalised = np.einsum("ni,nij,nj->n", error, np.linalg.inv(0.25 * result.image_covariance), error)
+    assert np.mean(normalised <= CHI2_3_SIGMA) >= 0.995
 
 
 def test_ring_consistency_says_which_rows_each_fit_joined():
