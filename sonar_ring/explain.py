@@ -558,7 +558,9 @@ class Explained:
     position : ndarray, shape (L, 2)
         Each landmark's position in the map's frame, m, for drawing (all NaN when none was tested).
     heard : ndarray of bool, shape (W + P,)
-        Each entry of the map (walls, then points) whose own echo a landmark matches within the gate.
+        Each entry of the map (walls, then points) whose own echo is the closest single bounce to the echo
+        of a landmark that is not multipath, within the gate: an echo comes from one reflector, and a
+        clutter point mapped beside the double bounces its gate takes in is not heard by them.
     """
 
     multipath: np.ndarray

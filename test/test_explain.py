@@ -699,12 +699,40 @@ def test_explain_landmarks_is_predict_match_the_rule_and_impossible_in_one_call(
                                  transmitter, known.seen, known.normals, margin) & ~multipath
             assert_array_equal(explained.multipath[rows], multipath)
             assert_array_equal(explained.impossible[rows], blocked)
-            own = explanation.matched & np.isin(prediction.kind, (WALL, POINT))
+            closest = explanation.direct[(explanation.direct_residual <= tests.gate_sigmas) & ~multipath]
             heard = np.zeros(len(known), bool)
-            heard[np.where(prediction.kind[own] == WALL, 0, len(walls)) + prediction.first[own]] = True
+            heard[np.where(prediction.kind[closest] == WALL, 0, len(walls)) + prediction.first[closest]] = True
             assert_array_equal(explained.heard, heard)
             decided += np.count_nonzero(multipath), np.count_nonzero(blocked)
     assert np.all(decided > 20), decided  # multipath and impossible both
+
+
+def test_an_entry_is_not_heard_by_echoes_the_map_explains_as_double_bounces():
+    """A point mapped inside the room where double bounces put their landmarks (a clutter point beside them).
+
+    Their echoes are within its own echo's gate, but the map explains them as multipath: they do not hear
+    it, and the test of entries not heard where expected can remove it.  (Behind a wall its own echo would
+    be blocked: not heard either way.)
+    """
+    stage = PingStage(RING, pipeline.Settings(sigma_speed=pipeline.ROBOT_SIGMA_SPEED))
+    walls, points = _room_map()
+    tests = explain.EchoTests()
+    wall_support, point_support = np.full(len(walls), 100.0), np.full(len(points), 100.0)
+    tried = heard = 0
+    for pose, _, _, usable in worlds.simulated("multipath alone", 0, 40):
+        landmarks = stage.label(usable)[1]
+        known = explain.KnownMap(walls, facing(walls, pose[:2]), walls, points, wall_support, point_support)
+        explained = explain.explain_landmarks(landmarks, RING, pose, np.zeros((3, 3)), known, tests)
+        inside = np.all((explained.position > 0.2) & (explained.position < [5.8, 4.3]), axis=1)
+        for row in np.flatnonzero(explained.multipath & inside)[:3]:
+            ghost = np.vstack([points, explained.position[row]])
+            with_ghost = explain.KnownMap(walls, facing(walls, pose[:2]), walls, ghost, wall_support,
+                                          np.append(point_support, 1.0))
+            again = explain.explain_landmarks(landmarks, RING, pose, np.zeros((3, 3)), with_ghost, tests)
+            assert again.multipath[row]  # seen once, less than the double bounce's walls
+            tried += 1
+            heard += again.heard[-1]
+    assert tried >= 30 and heard == 0, (tried, heard)
 
 
 def test_audible_entries_are_heard_where_real_and_a_ghost_never_is():
