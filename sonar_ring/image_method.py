@@ -1432,7 +1432,7 @@ def _by_way_of_the_entry(near, single, single_residual, double, echo, paths, kin
             continue
         if kind[entry] == WALL:
             out[n] = ((kind[bounce] == WALL_WALL and (first[bounce] == first[entry]
-                                                                  or second[bounce] == first[entry]))
+                                                     or second[bounce] == first[entry]))
                       or (kind[bounce] == WALL_POINT and first[bounce] == first[entry])
                       or (kind[bounce] == POINT_WALL and second[bounce] == first[entry]))
         else:
