@@ -267,8 +267,6 @@ class Explanation:
     double_support : ndarray, shape (N,)
         The most seen double bounce within the gate, by the observations of its
         less seen reflector (:attr:`Prediction.support`); -inf where there is none.
-    matched : ndarray of bool, shape (Q,)
-        Each path of the :class:`Prediction` some row lies within the gate of.
     """
 
     label: np.ndarray
@@ -277,7 +275,6 @@ class Explanation:
     direct: np.ndarray
     direct_residual: np.ndarray
     double_support: np.ndarray
-    matched: np.ndarray
 
 
 # --------------------------------------------------------------------------- public functions
@@ -899,7 +896,7 @@ def _match(prediction: Prediction, layout: Layout, group, slot, paths, tolerance
            direct_wins: bool) -> Explanation:
     """:func:`match` of checked rows: their groups and transmitter slots (N,) and paths (N, K), contiguous."""
     channel = group * layout.group_transmitters.shape[1] + slot
-    best, direct, residual, direct_residual, double_support, matched = image_method.match_rows(
+    best, direct, residual, direct_residual, double_support = image_method.match_rows(
         channel, paths, prediction.channel_start, prediction.kind, prediction.support, prediction.path,
         prediction.jacobian, tolerance.pose_covariance, tolerance.sigma_path, tolerance.sigma_speed,
         tolerance.sigma_map, tolerance.gate_sigmas)
@@ -907,7 +904,7 @@ def _match(prediction: Prediction, layout: Layout, group, slot, paths, tolerance
     label = np.where((residual <= tolerance.gate_sigmas)
                      & ~(direct_wins & (direct_residual <= tolerance.gate_sigmas)), MULTIPATH, NONE)
     return Explanation(label=label.astype(np.uint8), best=best, residual=residual, direct=direct,
-                       direct_residual=direct_residual, double_support=double_support, matched=matched)
+                       direct_residual=direct_residual, double_support=double_support)
 
 
 def _impossible(points, placement: Placement, group, slot, walls, unit_normals, margin) -> np.ndarray:

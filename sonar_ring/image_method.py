@@ -1010,11 +1010,8 @@ def match_rows(channel, paths, channel_start, kind, support, predicted, jacobian
         Their Mahalanobis distances; inf where none, NaN where no receiver heard the row.
     double_support : ndarray, shape (N,)
         The highest ``support`` of a double bounce within the gate; -inf where none.
-    matched : ndarray of bool, shape (Q,)
-        Each predicted path some row is within the gate of.
     """
     rows = paths.shape[0]
-    matched = np.zeros(predicted.shape[0], dtype=np.bool_)
     best = np.full((2, rows), -1, dtype=np.int64)
     distance = np.full((2, rows), np.inf)
     double_support = np.full(rows, -np.inf)
@@ -1036,12 +1033,11 @@ def match_rows(channel, paths, channel_start, kind, support, predicted, jacobian
             squared = _distance2(paths, n, predicted, jacobian, q, pose_covariance, sigma_path, sigma_speed, sigma_map,
                                  scratch)
             bounces = 1 if kind[q] == WALL or kind[q] == POINT else 0
-            matched[q] = matched[q] or squared <= gate2
             if squared < distance[bounces, n]:
                 distance[bounces, n], best[bounces, n] = squared, q
             if bounces == 0 and squared <= gate2 and support[q] > double_support[n]:
                 double_support[n] = support[q]
-    return best[0], best[1], np.sqrt(distance[0]), np.sqrt(distance[1]), double_support, matched
+    return best[0], best[1], np.sqrt(distance[0]), np.sqrt(distance[1]), double_support
 
 
 @kernel
@@ -1328,7 +1324,7 @@ def explain_rows(kind, first, second, support, path, jacobian, channel_start, n_
         row that is not multipath.
     """
     channel = group * tx.shape[1] + slot
-    double, single, double_distance, single_distance, double_support, _ = match_rows(
+    double, single, double_distance, single_distance, double_support = match_rows(
         channel, row_paths, channel_start, kind, support, path, jacobian, pose_covariance, sigma_path, sigma_speed,
         sigma_map, gate_sigmas)
     multipath = multipath_rows(kind, first, second, support, double, double_distance, single, single_distance,
