@@ -171,8 +171,9 @@ def test_joint_fit_covariance_holds_the_spread_of_noisy_fits():
 
 
 def test_joint_fit_covariance_holds_a_far_corners_sag_within_its_3_sigma_ellipse():
-    # 4000 noisy echoes of a corner 4 m away heard by two pairs (sigma_t = 2 us): the fits scatter 10 mm across
-    # the line of sight and sag 0.1-0.5 mm along it, where the paths' noise moves them 0.1 mm.  The ellipse must
+    # 4000 noisy echoes of a corner 4 m away heard by two pairs (sigma_t = 2 us): the fits scatter 46 mm across
+    # the line of sight (standard deviation) and sag along it by up to 1.8 mm (99th percentile), four times their
+    # whole spread along it (0.43 mm).  The ellipse must
     # still hold a Gaussian's share, 99.73 % (99.5 %: 3 binomial standard deviations of 4000 trials below it; a
     # band whose own 3 sigma held the sag alone held 99.02 %).
     rng = np.random.default_rng(11)
