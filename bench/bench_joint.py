@@ -35,8 +35,6 @@ RESULT = ROOT / "bench" / "results" / "joint.md"
 SEED = 23
 SIGMAS_US = (0.3, 1.0, 2.0)
 CLASSES = {"plane": PLANE, "corner": CORNER, "edge": EDGE}
-WITHIN_3_SIGMA = 11.829
-"""The 2-D chi-square's 99.73 % point: a Gaussian's 3 sigma."""
 
 
 def joint_crlb(layout, table, result, horizontal, sigma, truth, edge):
@@ -121,7 +119,7 @@ def level(scenes, sigma_tof, rng):
         everything = np.where(chosen, distance, pair)[of_class]
         lines.append(dict(
             sigma=sigma_tof, name=name, echoes=int(of_class.sum()), joint=int(chosen.sum()), rms=rms, crlb=crlb,
-            within=float(np.mean(normalised <= WITHIN_3_SIGMA)), nees=float(np.mean(normalised)),
+            within=float(np.mean(normalised <= ring_consistency.CHI2_3_SIGMA)), nees=float(np.mean(normalised)),
             pair_rms=pair_rms, median=float(np.median(distance[chosen])), pair_median=float(np.median(pair[chosen])),
             all_median=float(np.median(everything)), all_pair_median=float(np.median(pair[of_class]))))
     return lines

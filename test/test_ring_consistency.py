@@ -166,16 +166,16 @@ def test_joint_fit_covariance_holds_the_spread_of_noisy_fits():
     error = 0.5 * result.virtual_image - truth  # the corner (T + T') / 2, T at the origin
     normalised = np.einsum("ni,nij,nj->n", error, np.linalg.inv(0.25 * result.image_covariance), error)
     assert 1.85 < normalised.mean() < 2.15
-    assert np.mean(normalised <= 11.83) > 0.99  # 11.83: the 2-D chi-square's 99.73 % point
+    assert np.mean(normalised <= CHI2_3_SIGMA) > 0.99
     assert_allclose(np.cov(error.T), 0.25 * result.image_covariance.mean(axis=0), rtol=0.1)
 
 
 def test_joint_fit_covariance_holds_a_far_corners_sag_within_its_3_sigma_ellipse():
     # 4000 noisy echoes of a corner 4 m away heard by two pairs (sigma_t = 2 us): the fits scatter 46 mm across
     # the line of sight (standard deviation) and sag along it by up to 1.8 mm (99th percentile), four times their
-    # whole spread along it (0.43 mm).  The ellipse must
-    # still hold a Gaussian's share, 99.73 % (99.5 %: 3 binomial standard deviations of 4000 trials below it; a
-    # band whose own 3 sigma held the sag alone held 99.02 %).
+    # whole spread along it (0.43 mm).  The ellipse must still hold a Gaussian's share, 99.73 % (99.5 %: 3
+    # binomial standard deviations of 4000 trials below it; a band whose own 3 sigma held the sag alone held
+    # 99.02 %).
     rng = np.random.default_rng(11)
     receivers = ring_receivers((0, 1))
     trials, sigma = 4000, SPEED * 2e-6
