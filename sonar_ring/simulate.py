@@ -63,6 +63,7 @@ from pathlib import Path
 import numpy as np
 
 from sonar_ring import image_method
+from sonar_ring.compiled import kernel
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import Layout, config_path, read_config, speed_of_sound
 
@@ -770,27 +771,37 @@ def place(layout: Layout, pose) -> Placement:
     pose = np.asarray(pose, dtype=float)
     if pose.shape != (3,) or not all(math.isfinite(value) for value in pose.tolist()):
         raise ValueError(f"place: pose must be finite (x, y, yaw), got {pose!r}")
+    plan = layout.plan
+    rotation, tx, rx, tx_axis, rx_axis = _placed(plan.transmitters, plan.receivers, plan.transmitter_yaw,
+                                                 plan.receiver_yaw, pose)
+    return Placement(pose=pose, rotation=rotation, tx=tx, rx=rx, tx_axis=tx_axis, rx_axis=rx_axis)
+
+
+@kernel
+def _placed(transmitters, receivers, transmitter_yaw, receiver_yaw, pose):
+    """:func:`place`'s arithmetic: the rotation (2, 2) by the pose's yaw, and tx, rx, tx_axis, rx_axis as there.
+
+    Transmitters (G, M, 2) and receivers (G, K, 2) turned by one product and moved (the product numpy's, so
+    the numbers are the same whichever of the two computes them); the axes from the layout's yaws (G, M) and
+    (G, K) plus the pose's.
+    """
     cos_yaw, sin_yaw = math.cos(pose[2]), math.sin(pose[2])
     rotation = np.array([[cos_yaw, -sin_yaw], [sin_yaw, cos_yaw]])
-    plan = layout.plan
-    # Once a ping in the mapper and the simulator: as few numpy calls as the arithmetic allows (2-D products,
-    # one cosine and one sine for every axis), the same numbers as the textbook forms bit for bit.
-    groups, slots, receivers = plan.receivers.shape[0], plan.transmitters.shape[1], plan.receivers.shape[1]
-    positions = np.concatenate([plan.transmitters.reshape(-1, 2), plan.receivers.reshape(-1, 2)]) @ rotation.T
-    positions += pose[:2]
-    yaw = np.concatenate([plan.transmitter_yaw.ravel(), plan.receiver_yaw.ravel()]) + pose[2]
-    axes = np.empty((yaw.size, 2))
-    np.cos(yaw, out=axes[:, 0])
-    np.sin(yaw, out=axes[:, 1])
+    groups, slots, receiving = receivers.shape[0], transmitters.shape[1], receivers.shape[1]
     split = groups * slots
-    return Placement(
-        pose=pose,
-        rotation=rotation,
-        tx=positions[:split].reshape(groups, slots, 2),
-        rx=positions[split:].reshape(groups, receivers, 2),
-        tx_axis=axes[:split].reshape(groups, slots, 1, 2),
-        rx_axis=axes[split:].reshape(groups, 1, receivers, 2),
-    )
+    positions = np.concatenate((np.ascontiguousarray(transmitters).reshape(-1, 2),
+                                np.ascontiguousarray(receivers).reshape(-1, 2))) @ np.ascontiguousarray(rotation.T)
+    positions[:, 0] += pose[0]
+    positions[:, 1] += pose[1]
+    axes = np.empty((split + groups * receiving, 2))
+    for n in range(split):
+        yaw = transmitter_yaw[n // slots, n % slots] + pose[2]
+        axes[n, 0], axes[n, 1] = math.cos(yaw), math.sin(yaw)
+    for n in range(groups * receiving):
+        yaw = receiver_yaw[n // receiving, n % receiving] + pose[2]
+        axes[split + n, 0], axes[split + n, 1] = math.cos(yaw), math.sin(yaw)
+    return (rotation, positions[:split].reshape(groups, slots, 2), positions[split:].reshape(groups, receiving, 2),
+            axes[:split].reshape(groups, slots, 1, 2), axes[split:].reshape(groups, 1, receiving, 2))
 
 
 class Simulator:
