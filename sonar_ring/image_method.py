@@ -609,6 +609,7 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
     low, high = _row_intervals(row_paths, gate_sigmas, fixed_variance, sigma_speed)
     squared = np.empty(receivers)
     image_distance = np.empty(receivers)
+    baseline = np.empty((receivers, receivers))
     back = np.empty(receivers)
     transmitter_side = np.empty(n_walls)
     receiver_side = np.empty(receivers)
@@ -700,6 +701,9 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
         if gated:
             near_count = channel_first
             first_row = row_start[channel_id[c]]
+            for k in range(receivers):  # once a channel, not for every candidate and row
+                for j in range(receivers):
+                    baseline[k, j] = math.hypot(rx[g, k, 0] - rx[g, j, 0], rx[g, k, 1] - rx[g, j, 1])
             for q in range(channel_first, count):
                 # Every path comes to each receiver from one point X, this far away, after a leg common to all
                 # the receivers: the differences between receivers must match too (_differences_near).  A point's
@@ -721,8 +725,8 @@ def map_paths(start, direction, normal, length, seen_extent, points, wall_suppor
                     for k in range(receivers):
                         if low[n, k] <= high[n, k]:
                             near = near and low[n, k] <= squared[k] <= high[n, k]
-                    near = near and _differences_near(row_paths, n, horizontal, q, squared, image_distance, rx, g,
-                                                      spread, xy_sigma, yaw_sigma, sigma_path, sigma_speed,
+                    near = near and _differences_near(row_paths, n, horizontal, q, squared, image_distance,
+                                                      baseline, spread, xy_sigma, yaw_sigma, sigma_path, sigma_speed,
                                                       gate_sigmas, 2.0 if moving else 1.0)
                     if near:
                         mask |= np.uint64(1) << np.uint64(min(r - first_row, 63))
@@ -932,7 +936,7 @@ def _row_intervals(row_paths, gate_sigmas, fixed_variance, sigma_speed):
 
 
 @kernel(inline=True)
-def _differences_near(row_paths, n, horizontal, q, squared, image_distance, rx, g, spread, xy_sigma, yaw_sigma,
+def _differences_near(row_paths, n, horizontal, q, squared, image_distance, baseline, spread, xy_sigma, yaw_sigma,
                       sigma_path, sigma_speed, gate_sigmas, ends):
     """Whether the differences between row ``n``'s receivers match those of candidate ``q`` within the gate.
 
@@ -951,7 +955,8 @@ def _differences_near(row_paths, n, horizontal, q, squared, image_distance, rx, 
     and cancels; so the squared difference of the
     errors is at most ``gate_sigmas^2 (2 sigma_path^2 + (|dJ_xy| xy_sigma + |dJ_yaw| yaw_sigma)^2
     + sigma_speed^2 (d_k - d_r)^2)`` for a row within the gate (the Mahalanobis
-    distance bounds that of any difference).  ``squared`` (K,): the 3-D lengths squared.
+    distance bounds that of any difference).  ``squared`` (K,): the 3-D lengths squared; ``baseline`` (K, K): the
+    distances between the channel's receivers, m.
     """
     reference = -1
     for k in range(row_paths.shape[1]):
@@ -962,11 +967,10 @@ def _differences_near(row_paths, n, horizontal, q, squared, image_distance, rx, 
             continue
         length, reference_length = math.sqrt(squared[k]), math.sqrt(squared[reference])
         scale, reference_scale = horizontal[q, k] / length, horizontal[q, reference] / reference_length
-        baseline = math.hypot(rx[g, k, 0] - rx[g, reference, 0], rx[g, k, 1] - rx[g, reference, 1])
-        turn = 2.0 * baseline / max(image_distance[k], image_distance[reference])
+        turn = 2.0 * baseline[k, reference] / max(image_distance[k], image_distance[reference])
         change = abs(scale - reference_scale)
         along = scale * turn * ends + 2.0 * change
-        around = scale * (turn * spread * ends + baseline) + 2.0 * spread * change
+        around = scale * (turn * spread * ends + baseline[k, reference]) + 2.0 * spread * change
         variance = (2.0 * sigma_path ** 2 + (along * xy_sigma + around * yaw_sigma) ** 2
                     + sigma_speed ** 2 * (length - reference_length) ** 2)
         error = (row_paths[n, k] - row_paths[n, reference]) - (length - reference_length)
