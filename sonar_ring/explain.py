@@ -132,11 +132,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sonar_ring import image_method
+from sonar_ring import image_method, solvers
 from sonar_ring.compiled import kernel
 from sonar_ring.geometry import Layout
 from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, Landmarks, check_landmarks, make_landmarks
-from sonar_ring.localise import reflector_paths
 from sonar_ring.simulate import Placement, place
 
 NONE, MULTIPATH = 0, 1
@@ -655,9 +654,21 @@ def landmark_paths(landmarks: Landmarks, placement: Placement, layout: Layout) -
     (:func:`sonar_ring.localise.reflector_paths`: for the pair that placed it,
     the ones it was solved from; a plane, a corner or an undecided point by its
     virtual image, an edge by itself) with each receiver's height offset.
+
+    Raises
+    ------
+    ValueError
+        On landmarks of inconsistent shapes, a group not of the layout, or a placement of another layout.
     """
-    return _landmark_paths(landmarks.position, landmarks.landmark_class == EDGE,
-                           np.asarray(landmarks.group, dtype=np.int64), placement, layout)
+    check_landmarks(landmarks, "landmark_paths")
+    _check_placement(placement, layout, "landmark_paths")
+    group = np.asarray(landmarks.group, dtype=np.int64)
+    outside = np.flatnonzero((group < 0) | (group >= layout.n_groups))
+    if outside.size:
+        raise ValueError(f"landmark_paths: group must be in 0..{layout.n_groups - 1}, got {group[outside[0]]}")
+    return solvers.grouped_path_rows(placement.tx, placement.rx, layout.plan.height_offset, group,
+                                     np.ascontiguousarray(landmarks.position, dtype=float),
+                                     np.asarray(landmarks.landmark_class) == EDGE)
 
 
 @dataclass(frozen=True)
@@ -782,26 +793,26 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     """
     check_landmarks(landmarks, "explain_landmarks")
     count = len(landmarks)
-    out = Explained(np.zeros(count, bool), np.zeros(count, bool), np.full((count, 2), np.nan),
-                    np.zeros(len(known), bool))
     if count == 0 or len(known) == 0 or layout.group_transmitters.shape[1] != 1:
-        return out
-    # Only what the tests use goes into the map's frame (not transform_landmarks' every field: a third of
-    # this function's time): the positions, the planes' normals; the margins' eigenvalue does not turn.
+        return Explained(np.zeros(count, bool), np.zeros(count, bool), np.full((count, 2), np.nan),
+                         np.zeros(len(known), bool))
+    # Only what the tests use goes into the map's frame (not transform_landmarks' every field), and the rows
+    # they take, in one compiled call: the glue around the kernels was a quarter of this function's time.
     placement = place(layout, sensor_pose)
-    rotation = placement.rotation
-    position = np.asarray(landmarks.position, dtype=float) @ rotation.T + placement.pose[:2]
-    rows = np.flatnonzero(np.asarray(landmarks.valid, dtype=bool) & np.isfinite(position).all(axis=1))
+    in_map, rows, group, position, normal, is_plane, is_edge, echo, covariance, bad = _rows_in_map(
+        np.asarray(landmarks.position, dtype=float), np.asarray(landmarks.normal, dtype=float),
+        np.asarray(landmarks.valid, dtype=bool), np.asarray(landmarks.group, dtype=np.int64),
+        np.asarray(landmarks.landmark_class, dtype=np.uint8), np.asarray(landmarks.echo, dtype=np.int64),
+        np.asarray(landmarks.covariance, dtype=float), placement.rotation, placement.pose, layout.n_groups)
+    if bad >= 0:
+        raise ValueError(f"explain_landmarks: group must be in 0..{layout.n_groups - 1}, got {landmarks.group[bad]}")
+    out = Explained(np.zeros(count, bool), np.zeros(count, bool), in_map, np.zeros(len(known), bool))
     if rows.size == 0:
         return out
-    out.position[:] = position
+    slot = np.zeros(rows.size, np.int64)
     tolerance = Tolerance(tests.sigma_path, sensor_covariance, tests.sigma_speed, tests.sigma_map, tests.gate_sigmas)
-    group, slot = _channels(layout, np.asarray(landmarks.group)[rows].astype(np.int64), np.zeros(rows.size, np.int64),
-                            "explain_landmarks")
-    position = position[rows]
-    landmark_class = np.asarray(landmarks.landmark_class)[rows]
-    paths = _landmark_paths(position, landmark_class == EDGE, group, placement, layout)
-    # The map's arrays and the rows are checked once (KnownMap, _channels): the private step of predict, not
+    paths = solvers.grouped_path_rows(placement.tx, placement.rx, layout.plan.height_offset, group, position, is_edge)
+    # The map's arrays and the rows are checked once (KnownMap, _rows_in_map): the private step of predict, not
     # the public function that checks them again at every ping; match, the rules above and impossible run as
     # one compiled call.
     prediction = _predict(known.reflecting, placement, layout, group, slot, paths, True, tolerance,
@@ -809,11 +820,8 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     out.multipath[rows], out.impossible[rows], out.heard[:] = image_method.explain_rows(
         prediction.kind, prediction.first, prediction.second, prediction.support, prediction.path,
         prediction.jacobian, prediction.channel_start, len(known.seen), len(known.points), known.seen,
-        known.unit_normals, placement.tx, placement.rx, group, slot, paths,
-        np.asarray(landmarks.echo, dtype=np.int64)[rows], position,
-        np.ascontiguousarray(np.asarray(landmarks.normal, dtype=float)[rows] @ rotation.T),
-        landmark_class == PLANE, np.ascontiguousarray(np.asarray(landmarks.covariance, dtype=float)[rows]),
-        tolerance.pose_covariance, tolerance.sigma_path, tolerance.sigma_speed, tolerance.sigma_map,
+        known.unit_normals, placement.tx, placement.rx, group, slot, paths, echo, position, normal, is_plane,
+        covariance, tolerance.pose_covariance, tolerance.sigma_path, tolerance.sigma_speed, tolerance.sigma_map,
         tolerance.gate_sigmas)
     return out
 
@@ -913,12 +921,6 @@ def _impossible(points, placement: Placement, group, slot, walls, unit_normals, 
                                             placement.rx, walls, unit_normals, margin)
 
 
-def _landmark_paths(position, is_edge, group, placement: Placement, layout: Layout) -> np.ndarray:
-    """:func:`landmark_paths` of arrays: positions (L, 2) and groups (L,) in the placement's frame, edges (L,)."""
-    horizontal = reflector_paths(placement.tx[group, 0], placement.rx[group], position, is_edge)
-    return np.sqrt(horizontal ** 2 + layout.plan.height_offset[group, 0, :] ** 2)
-
-
 def _segments(segments, caller: str, name: str = "walls") -> np.ndarray:
     """Wall segments (W, 2, 2) as a contiguous float array, the shape checked."""
     segments = np.ascontiguousarray(segments, dtype=float)
@@ -1014,6 +1016,49 @@ def _slots(group, transmitter, group_transmitters):
         if slot[n] < 0 and bad < 0:
             bad = n
     return slot, bad
+
+
+@kernel
+def _rows_in_map(position, normal, valid, group, landmark_class, echo, covariance, rotation, pose, n_groups):
+    """One ping's L landmarks (sensor frame) in the map's frame, and the rows the echo tests take.
+
+    ``position`` (L, 2) turned by ``rotation`` (2, 2) and moved to the pose's position (NaN stays NaN); the rows:
+    valid landmarks of finite position, with their group, map-frame position and normal (N, 2), whether each is
+    a plane or an edge, its echo and its covariance (N, 2, 2, as given: the margins' eigenvalue does not turn).
+    The last value is the first landmark whose group is not in ``0..n_groups - 1`` (-1: none).
+    """
+    count = position.shape[0]
+    turned = np.ascontiguousarray(rotation.T)
+    in_map = np.ascontiguousarray(position) @ turned  # numpy's product: the same numbers as numpy gives
+    normal_in_map = np.ascontiguousarray(normal) @ turned
+    used = np.zeros(count, dtype=np.bool_)
+    bad = -1
+    for n in range(count):
+        in_map[n, 0] += pose[0]
+        in_map[n, 1] += pose[1]
+        used[n] = valid[n] and np.isfinite(in_map[n, 0]) and np.isfinite(in_map[n, 1])
+        if used[n] and not 0 <= group[n] < n_groups and bad < 0:
+            bad = n
+    rows = np.flatnonzero(used)
+    size = rows.shape[0]
+    row_group = np.empty(size, dtype=np.int64)
+    row_position = np.empty((size, 2))
+    row_normal = np.empty((size, 2))
+    is_plane = np.empty(size, dtype=np.bool_)
+    is_edge = np.empty(size, dtype=np.bool_)
+    row_echo = np.empty(size, dtype=np.int64)
+    row_covariance = np.empty((size, 2, 2))
+    for i in range(size):
+        n = rows[i]
+        row_group[i] = group[n]
+        for axis in range(2):
+            row_position[i, axis] = in_map[n, axis]
+            row_normal[i, axis] = normal_in_map[n, axis]
+        is_plane[i] = landmark_class[n] == PLANE
+        is_edge[i] = landmark_class[n] == EDGE
+        row_echo[i] = echo[n]
+        row_covariance[i] = covariance[n]
+    return in_map, rows, row_group, row_position, row_normal, is_plane, is_edge, row_echo, row_covariance, bad
 
 
 @kernel

@@ -17,7 +17,9 @@ caller holds its callees, so they share one module: see
 * :func:`horizontal_rows` and :func:`path_covariance_rows`: the vertical
   correction and the paths' covariance, per entry;
 * :func:`reflector_path_rows` (the paths a landmark implies, for
-  :func:`sonar_ring.localise.reflector_paths`), :func:`jacobian_rows` (each model's derivative by the paths, for
+  :func:`sonar_ring.localise.reflector_paths`; :func:`grouped_path_rows` the
+  same in 3-D to each landmark's group, for :func:`sonar_ring.explain.landmark_paths`
+  and the mapper's echo tests), :func:`jacobian_rows` (each model's derivative by the paths, for
   :func:`sonar_ring.uncertainty.position_jacobian`) and :func:`point_model_rows`
   (both point models of a sighting, for :func:`sonar_ring.curvature.point_models`,
   which the mapper calls every ping).
@@ -587,6 +589,23 @@ def reflector_path_rows(tx, rx, position, is_edge):
         for k in range(rx.shape[1]):
             paths[n, k] = _reflector_path(tx[n, 0], tx[n, 1], rx[n, k, 0], rx[n, k, 1], position[n, 0],
                                           position[n, 1], is_edge[n])
+    return paths
+
+
+@kernel
+def grouped_path_rows(tx, rx, height_offset, group, position, is_edge):
+    """The 3-D paths each of L landmarks implies for every receiver of its group, (L, K), m.
+
+    :func:`_reflector_path` from the group's first transmitter ``tx[group, 0]`` (G, M, 2) to its receivers
+    ``rx[group]`` (G, K, 2), with the height offsets ``height_offset[group, 0]`` (G, M, K), m: positions (L, 2), m.
+    """
+    paths = np.empty((position.shape[0], rx.shape[1]))
+    for n in range(position.shape[0]):
+        g = group[n]
+        for k in range(rx.shape[1]):
+            horizontal = _reflector_path(tx[g, 0, 0], tx[g, 0, 1], rx[g, k, 0], rx[g, k, 1], position[n, 0],
+                                         position[n, 1], is_edge[n])
+            paths[n, k] = np.sqrt(horizontal ** 2 + height_offset[g, 0, k] ** 2)
     return paths
 
 

@@ -591,6 +591,13 @@ def test_error_handling():
     torn = dataclasses.replace(torn, position=np.ones((2, 2)))
     with pytest.raises(ValueError, match=r"explain_landmarks: Landmarks.position must have shape \(1, 2\)"):
         explain.explain_landmarks(torn, RING, [2.0, 2.0, 0.0], np.zeros((3, 3)), known, explain.EchoTests())
+    stray = make_landmarks([CORNER, EDGE], [[6.0, 0.0], [5.0, 1.0]], group=[3, RING.n_groups])
+    with pytest.raises(ValueError, match=f"explain_landmarks: group must be in 0..{RING.n_groups - 1}, got 48"):
+        explain.explain_landmarks(stray, RING, [2.0, 2.0, 0.0], np.zeros((3, 3)), known, explain.EchoTests())
+    with pytest.raises(ValueError, match=f"landmark_paths: group must be in 0..{RING.n_groups - 1}, got 48"):
+        explain.landmark_paths(stray, placement, RING)
+    with pytest.raises(ValueError, match="landmark_paths: the placement is of another layout"):
+        explain.landmark_paths(stray.select([0]), place(load_layout("kreczmer_triad"), [0.0, 0.0, 0.0]), RING)
     with pytest.raises(ValueError, match="walls must have shape"):
         facing(walls[0], [2.0, 2.0])
     with pytest.raises(ValueError, match="point must have shape"):
