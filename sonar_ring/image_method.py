@@ -1333,11 +1333,14 @@ def explain_rows(kind, first, second, support, path, jacobian, channel_start, n_
         sigma_map, gate_sigmas)
     multipath = multipath_rows(kind, first, second, support, double, double_distance, single, single_distance,
                                double_support, echo, row_paths, gate_sigmas)
-    impossible = reflections_blocked(landmark_reflections(position, row_normal, is_plane, group, slot, tx, rx), group,
-                                     slot, tx, rx, blocking, blocking_normal,
-                                     impossible_margins(covariance, gate_sigmas, sigma_map))
-    for n in range(impossible.shape[0]):
-        impossible[n] = impossible[n] and not multipath[n]
+    # Impossible is asked of the rows that are not multipath only (a multipath row stays so): in the realistic
+    # world two of three rows are multipath.
+    tested = np.flatnonzero(~multipath)
+    impossible = np.zeros(multipath.shape[0], dtype=np.bool_)
+    impossible[tested] = reflections_blocked(
+        landmark_reflections(position[tested], row_normal[tested], is_plane[tested], group[tested], slot[tested], tx,
+                             rx), group[tested], slot[tested], tx, rx, blocking, blocking_normal,
+        impossible_margins(covariance[tested], gate_sigmas, sigma_map))
     # An echo comes from one reflector: the entry whose own echo is the closest to it within the gate is heard,
     # not every entry within the gate, and none by an echo the map explains as a double bounce (a clutter
     # point mapped beside a wall was heard in 26 of 194 pings by the double bounces its gate took in).
