@@ -119,6 +119,17 @@ def known_map(walls, points, poses) -> explain.KnownMap:
     return explain.KnownMap(walls, normals, walls, points, np.ones(len(walls)), np.ones(len(points)))
 
 
+def preparation_seconds(known: explain.KnownMap, passes: int = 50) -> float:
+    """CPU seconds to prepare the map for the tests (:class:`sonar_ring.explain.KnownMap`), best of ``passes``."""
+    best = math.inf
+    for _ in range(passes):
+        start = time.thread_time()
+        explain.KnownMap(known.seen, known.normals, known.walls, known.points, known.wall_support,
+                         known.point_support)
+        best = min(best, time.thread_time() - start)
+    return best
+
+
 def measure_mapper(labelled, poses, layout, known, covariance):
     """CPU seconds per ping of explain_landmarks (the mapper's call) on each ping's labelled landmarks."""
     tests = explain.EchoTests()
@@ -147,6 +158,7 @@ def main() -> None:
     pipeline.load_kernels()
     labelled = [landmarks for _, landmarks in pipeline.label_pings(layout, pings)]
     known = known_map(walls, points, poses)
+    preparation = preparation_seconds(known)
     sigma_path = 1e-6 * scene.speed_of_sound
     slam_xy, slam_yaw = slam_pose_sigmas()
     cases = {**CASES, f"SLAM's own ({100 * slam_xy:.1f} cm, {math.degrees(slam_yaw):.2f} deg)": (slam_xy, slam_yaw)}
@@ -215,10 +227,15 @@ def main() -> None:
                                                           for name in pruned) + "."]
     verdicts = [f"{row['case']}: {1e3 * row['median']:.3f} and {1e3 * np.median(row['mapper']):.3f} ms, "
                 + ("both met" if max(row["median"], np.median(row["mapper"])) <= TARGET else
-                   "met by the three steps" if row["median"] <= TARGET else "missed")
+                   "met by the three steps" if row["median"] <= TARGET else
+                   "met as the mapper runs them" if np.median(row["mapper"]) <= TARGET else "missed")
                 for row in table if row["prune"]]
     lines += ["", f"Target: the prediction and tests per ping, median, at most {1e3 * TARGET:.1f} ms with 50 map "
-              "entries in view (the three steps; as the mapper runs them): " + "; ".join(verdicts) + "."]
+              "entries in view (the three steps; as the mapper runs them): " + "; ".join(verdicts) + ".  "
+              "The mapper's call is what runs at every ping; the three public functions each check their inputs "
+              "and `predict` prepares the map (its walls' frames and junctions) at every call, which the mapper "
+              f"does once per map (`KnownMap`, {1e6 * preparation:.0f} us; the mapper rebuilds it every "
+              f"{explain.EchoTests().refresh_pings} pings)."]
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
