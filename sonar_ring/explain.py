@@ -799,16 +799,19 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     # Only what the tests use goes into the map's frame (not transform_landmarks' every field), and the rows
     # they take, in one compiled call: the glue around the kernels was a quarter of this function's time.
     placement = place(layout, sensor_pose)
+    # Copies (np.array) in the types load_kernels compiled, whatever arrays the caller's landmarks hold (a
+    # read-only one is another type to numba).
     in_map, rows, group, position, normal, is_plane, is_edge, echo, covariance, bad = _rows_in_map(
-        np.asarray(landmarks.position, dtype=float), np.asarray(landmarks.normal, dtype=float),
-        np.asarray(landmarks.valid, dtype=bool), np.asarray(landmarks.group, dtype=np.int64),
-        np.asarray(landmarks.landmark_class, dtype=np.uint8), np.asarray(landmarks.echo, dtype=np.int64),
-        np.asarray(landmarks.covariance, dtype=float), placement.rotation, placement.pose, layout.n_groups)
+        np.array(landmarks.position, dtype=float), np.array(landmarks.normal, dtype=float),
+        np.array(landmarks.valid, dtype=bool), np.array(landmarks.group, dtype=np.int64),
+        np.array(landmarks.landmark_class, dtype=np.uint8), np.array(landmarks.echo, dtype=np.int64),
+        np.array(landmarks.covariance, dtype=float), placement.rotation, placement.pose, layout.n_groups)
     if bad >= 0:
         raise ValueError(f"explain_landmarks: group must be in 0..{layout.n_groups - 1}, got {landmarks.group[bad]}")
-    out = Explained(np.zeros(count, bool), np.zeros(count, bool), in_map, np.zeros(len(known), bool))
     if rows.size == 0:
-        return out
+        return Explained(np.zeros(count, bool), np.zeros(count, bool), np.full((count, 2), np.nan),
+                         np.zeros(len(known), bool))
+    out = Explained(np.zeros(count, bool), np.zeros(count, bool), in_map, np.zeros(len(known), bool))
     slot = np.zeros(rows.size, np.int64)
     tolerance = Tolerance(tests.sigma_path, sensor_covariance, tests.sigma_speed, tests.sigma_map, tests.gate_sigmas)
     paths = solvers.grouped_path_rows(placement.tx, placement.rx, layout.plan.height_offset, group, position, is_edge)
@@ -1025,11 +1028,13 @@ def _rows_in_map(position, normal, valid, group, landmark_class, echo, covarianc
     ``position`` (L, 2) turned by ``rotation`` (2, 2) and moved to the pose's position (NaN stays NaN); the rows:
     valid landmarks of finite position, with their group, map-frame position and normal (N, 2), whether each is
     a plane or an edge, its echo and its covariance (N, 2, 2, as given: the margins' eigenvalue does not turn).
-    The last value is the first landmark whose group is not in ``0..n_groups - 1`` (-1: none).
+    The last value is the first of those rows whose group is not in ``0..n_groups - 1`` (-1: none).  The arrays
+    have L rows each (:func:`sonar_ring.landmarks.check_landmarks`).
     """
     count = position.shape[0]
     turned = np.ascontiguousarray(rotation.T)
-    in_map = np.ascontiguousarray(position) @ turned  # numpy's product: the same numbers as numpy gives
+    # The product in BLAS, as numpy's ``@`` (of two or more rows the same numbers; one row may differ in the last bit).
+    in_map = np.ascontiguousarray(position) @ turned
     normal_in_map = np.ascontiguousarray(normal) @ turned
     used = np.zeros(count, dtype=np.bool_)
     bad = -1

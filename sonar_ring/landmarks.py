@@ -164,7 +164,7 @@ def check_landmarks(landmarks, caller: str) -> None:
         if actual != shape:
             raise ValueError(f"{caller}: Landmarks.{name} must have shape {shape} for {count} landmarks, "
                              f"got {actual}")
-    for name in ("confidence", "observations", "group", "valid"):
+    for name in ("landmark_class", "confidence", "observations", "group", "echo", "valid", "reason"):
         actual = np.shape(getattr(landmarks, name))
         if actual != (count,):
             raise ValueError(f"{caller}: Landmarks.{name} must have shape ({count},), got {actual}")

@@ -591,13 +591,29 @@ def test_error_handling():
     torn = dataclasses.replace(torn, position=np.ones((2, 2)))
     with pytest.raises(ValueError, match=r"explain_landmarks: Landmarks.position must have shape \(1, 2\)"):
         explain.explain_landmarks(torn, RING, [2.0, 2.0, 0.0], np.zeros((3, 3)), known, explain.EchoTests())
-    stray = make_landmarks([CORNER, EDGE], [[6.0, 0.0], [5.0, 1.0]], group=[3, RING.n_groups])
-    with pytest.raises(ValueError, match=f"explain_landmarks: group must be in 0..{RING.n_groups - 1}, got 48"):
+    short_echo = dataclasses.replace(make_landmarks([CORNER], [[6.0, 0.0]]),
+                                     echo=np.zeros(0, dtype=np.uint32))
+    with pytest.raises(ValueError, match=r"explain_landmarks: Landmarks.echo must have shape \(1,\)"):
+        explain.explain_landmarks(short_echo, RING, [2.0, 2.0, 0.0], np.zeros((3, 3)), known, explain.EchoTests())
+    with pytest.raises(ValueError, match=r"landmark_paths: Landmarks.echo must have shape \(1,\)"):
+        explain.landmark_paths(short_echo, placement, RING)
+    outside = RING.n_groups
+    stray = make_landmarks([CORNER, EDGE], [[6.0, 0.0], [5.0, 1.0]], group=[3, outside])
+    with pytest.raises(ValueError, match=f"explain_landmarks: group must be in 0..{outside - 1}, got {outside}"):
         explain.explain_landmarks(stray, RING, [2.0, 2.0, 0.0], np.zeros((3, 3)), known, explain.EchoTests())
-    with pytest.raises(ValueError, match=f"landmark_paths: group must be in 0..{RING.n_groups - 1}, got 48"):
+    with pytest.raises(ValueError, match=f"landmark_paths: group must be in 0..{outside - 1}, got {outside}"):
         explain.landmark_paths(stray, placement, RING)
     with pytest.raises(ValueError, match="landmark_paths: the placement is of another layout"):
         explain.landmark_paths(stray.select([0]), place(load_layout("kreczmer_triad"), [0.0, 0.0, 0.0]), RING)
+    # A landmark the tests do not take (not valid) may name any group: it is not tested, nothing raises.
+    left_out = dataclasses.replace(stray, valid=np.array([True, False]))
+    explained = explain.explain_landmarks(left_out, RING, [2.0, 2.0, 0.0], np.zeros((3, 3)), known,
+                                          explain.EchoTests())
+    assert not explained.any[1] and np.isfinite(explained.position).all()
+    none_taken = dataclasses.replace(stray, valid=np.zeros(2, dtype=bool))
+    explained = explain.explain_landmarks(none_taken, RING, [2.0, 2.0, 0.0], np.zeros((3, 3)), known,
+                                          explain.EchoTests())
+    assert not explained.any.any() and np.isnan(explained.position).all()  # none tested: none placed
     with pytest.raises(ValueError, match="walls must have shape"):
         facing(walls[0], [2.0, 2.0])
     with pytest.raises(ValueError, match="point must have shape"):
