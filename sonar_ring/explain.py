@@ -662,12 +662,13 @@ def landmark_paths(landmarks: Landmarks, placement: Placement, layout: Layout) -
     """
     check_landmarks(landmarks, "landmark_paths")
     _check_placement(placement, layout, "landmark_paths")
-    group = np.asarray(landmarks.group, dtype=np.int64)
+    # Copies in the types load_kernels compiled, as explain_landmarks takes them.
+    group = np.array(landmarks.group, dtype=np.int64)
     outside = np.flatnonzero((group < 0) | (group >= layout.n_groups))
     if outside.size:
         raise ValueError(f"landmark_paths: group must be in 0..{layout.n_groups - 1}, got {group[outside[0]]}")
     return solvers.grouped_path_rows(placement.tx, placement.rx, layout.plan.height_offset, group,
-                                     np.ascontiguousarray(landmarks.position, dtype=float),
+                                     np.array(landmarks.position, dtype=float),
                                      np.asarray(landmarks.landmark_class) == EDGE)
 
 
