@@ -564,6 +564,12 @@ class Explained:
     position: np.ndarray
     heard: np.ndarray
 
+    @classmethod
+    def nothing(cls, position: np.ndarray, entries: int) -> Explained:
+        """Nothing explained of landmarks placed at ``position`` (L, 2), and none of a map's ``entries`` heard."""
+        count = len(position)
+        return cls(np.zeros(count, bool), np.zeros(count, bool), position, np.zeros(entries, bool))
+
     @property
     def any(self) -> np.ndarray:
         """Explained either way, (L,)."""
@@ -795,8 +801,7 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     check_landmarks(landmarks, "explain_landmarks")
     count = len(landmarks)
     if count == 0 or len(known) == 0 or layout.group_transmitters.shape[1] != 1:
-        return Explained(np.zeros(count, bool), np.zeros(count, bool), np.full((count, 2), np.nan),
-                         np.zeros(len(known), bool))
+        return Explained.nothing(np.full((count, 2), np.nan), len(known))
     # Only what the tests use goes into the map's frame (not transform_landmarks' every field), and the rows
     # they take, in one compiled call: the glue around the kernels was a quarter of this function's time.
     placement = place(layout, sensor_pose)
@@ -810,9 +815,8 @@ def explain_landmarks(landmarks: Landmarks, layout: Layout, sensor_pose, sensor_
     if bad >= 0:
         raise ValueError(f"explain_landmarks: group must be in 0..{layout.n_groups - 1}, got {landmarks.group[bad]}")
     if rows.size == 0:
-        return Explained(np.zeros(count, bool), np.zeros(count, bool), np.full((count, 2), np.nan),
-                         np.zeros(len(known), bool))
-    out = Explained(np.zeros(count, bool), np.zeros(count, bool), in_map, np.zeros(len(known), bool))
+        return Explained.nothing(np.full((count, 2), np.nan), len(known))
+    out = Explained.nothing(in_map, len(known))
     slot = np.zeros(rows.size, np.int64)
     tolerance = Tolerance(tests.sigma_path, sensor_covariance, tests.sigma_speed, tests.sigma_map, tests.gate_sigmas)
     paths = solvers.grouped_path_rows(placement.tx, placement.rx, layout.plan.height_offset, group, position, is_edge)
