@@ -1,5 +1,8 @@
 """Helpers of the tests that run nodes: spinning until a condition, the map's QoS, the executables."""
 
+import os
+import signal
+import subprocess
 import time
 from pathlib import Path
 
@@ -25,3 +28,36 @@ def executable(name):
     environment twice puts the venv, which holds no sonar_ring, first.
     """
     return str(Path(get_package_prefix("sonar_ring")) / "lib" / "sonar_ring" / name)
+
+
+EXIT_SECONDS = 20
+"""How long a node process is given to exit after Ctrl-C (SIGINT) before it counts as hung."""
+
+
+def start_node(name, namespace, *parameters):
+    """Run the node executable ``name`` in ``namespace`` with ``parameters`` (``"name:=value"``) as ``ros2 run`` does.
+
+    Python's fault handler is on in it, so :func:`stop_nodes` can have a hung node print where it hangs.
+    """
+    arguments = [argument for parameter in parameters for argument in ("-p", parameter)]
+    return subprocess.Popen([executable(name), "--ros-args", "-r", f"__ns:={namespace}", *arguments],
+                            env={**os.environ, "PYTHONFAULTHANDLER": "1"})
+
+
+def stop_nodes(processes):
+    """Ctrl-C to each process of :func:`start_node`; their exit codes, in order.
+
+    A process still running :data:`EXIT_SECONDS` later is aborted (SIGABRT): its fault handler prints
+    every thread's stack into the test's output, and its code is ``-SIGABRT``.
+    """
+    for process in processes:
+        process.send_signal(signal.SIGINT)
+    deadline = time.monotonic() + EXIT_SECONDS
+    codes = []
+    for process in processes:
+        try:
+            codes.append(process.wait(timeout=max(deadline - time.monotonic(), 0.1)))
+        except subprocess.TimeoutExpired:
+            process.send_signal(signal.SIGABRT)
+            codes.append(process.wait(timeout=EXIT_SECONDS))
+    return codes

@@ -4,10 +4,8 @@ Also the driver's hardware stamps: when the transmitter fired, from the device c
 """
 
 import os
-import signal
 import socket
 import struct
-import subprocess
 import time
 
 import pytest
@@ -16,7 +14,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
-from ros_harness import MAP_QOS, executable, spin_until
+from ros_harness import MAP_QOS, spin_until, start_node, stop_nodes
 from sonar_ring.msg import Echoes, LandmarkArray
 from test_device_clock import frames
 from test_transport import frame, free_port, ring_ping, send_frames
@@ -77,8 +75,7 @@ def test_restarted_localiser_rejoins_and_a_late_subscriber_gets_the_map(ros):
     namespace = f"/faults_{os.getpid()}"
 
     def start(name):
-        return subprocess.Popen([executable(name), "--ros-args", "-r", f"__ns:={namespace}", "-p",
-                                 "source:=simulator", "-p", "map_rate:=5.0"])
+        return start_node(name, namespace, "source:=simulator", "map_rate:=5.0")
 
     processes = {name: start(name) for name in ("driver", "localiser", "mapper")}
     observer = rclpy.create_node("fault_observer", namespace=namespace)
@@ -89,8 +86,7 @@ def test_restarted_localiser_rejoins_and_a_late_subscriber_gets_the_map(ros):
     executor.add_node(observer)
     try:
         assert spin_until(executor, lambda: len(landmarks) >= 10, timeout=40)
-        processes["localiser"].send_signal(signal.SIGINT)
-        assert processes["localiser"].wait(timeout=20) == 0
+        assert stop_nodes([processes["localiser"]]) == [0]
         spin_until(executor, lambda: False, timeout=0.5)
         landmarks.clear()
         spin_until(executor, lambda: False, timeout=1.0)
@@ -101,8 +97,7 @@ def test_restarted_localiser_rejoins_and_a_late_subscriber_gets_the_map(ros):
         assert spin_until(executor, lambda: published_maps and landmarks_from_msg(published_maps[-1]).position.size,
                           timeout=60)
 
-        processes["driver"].send_signal(signal.SIGINT)  # no more pings: the map stops changing,
-        assert processes["driver"].wait(timeout=20) == 0
+        assert stop_nodes([processes["driver"]]) == [0]  # no more pings: the map stops changing,
         spin_until(executor, lambda: False, timeout=1.0)  # and the mapper stops publishing it
         late = rclpy.create_node("late_map_subscriber", namespace=namespace)
         maps = []
@@ -111,9 +106,7 @@ def test_restarted_localiser_rejoins_and_a_late_subscriber_gets_the_map(ros):
         assert spin_until(executor, lambda: maps, timeout=10), "transient local: the latest map, at once"
         assert len(landmarks_from_msg(maps[0])) > 0
     finally:
-        for process in processes.values():
-            process.send_signal(signal.SIGINT)
-        codes = [process.wait(timeout=20) for process in processes.values()]
+        codes = stop_nodes(processes.values())
     assert codes == [0, 0, 0]
 
 

@@ -1,8 +1,6 @@
 """The nodes with real rclpy and Fast DDS on loopback: accuracy, markers, map, parameters, bad input."""
 
 import os
-import signal
-import subprocess
 
 import numpy as np
 import pytest
@@ -11,7 +9,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
 from rclpy.serialization import serialize_message
-from ros_harness import MAP_QOS, executable, spin_until
+from ros_harness import MAP_QOS, spin_until, start_node, stop_nodes
 from sonar_ring.msg import LandmarkArray
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -138,8 +136,7 @@ def test_composing_nodes_of_different_layouts_is_refused(ros):
 
 def test_graph_as_separate_processes_publishes_and_exits_cleanly(ros):
     namespace = f"/separate_{os.getpid()}"
-    processes = [subprocess.Popen([executable(name), "--ros-args", "-r", f"__ns:={namespace}",
-                                   "-p", "source:=simulator"]) for name in ("driver", "localiser", "mapper")]
+    processes = [start_node(name, namespace, "source:=simulator") for name in ("driver", "localiser", "mapper")]
     try:
         listener = Listener(namespace)
         executor = SingleThreadedExecutor()
@@ -151,9 +148,7 @@ def test_graph_as_separate_processes_publishes_and_exits_cleanly(ros):
         assert np.mean(d2 <= CHI2_2DOF_3SIGMA) >= 0.99
         listener.node.destroy_node()
     finally:
-        for process in processes:
-            process.send_signal(signal.SIGINT)
-        codes = [process.wait(timeout=20) for process in processes]
+        codes = stop_nodes(processes)
     assert codes == [0, 0, 0]
 
 

@@ -30,8 +30,6 @@ latency from a ping's stamp to its labelled landmarks (median, p99).
 
 import os
 import re
-import signal
-import subprocess
 import time
 from pathlib import Path
 
@@ -41,7 +39,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.qos import qos_profile_sensor_data
-from ros_harness import executable, spin_until
+from ros_harness import spin_until, start_node, stop_nodes
 from sonar_ring.msg import LandmarkArray
 
 from sonar_ring import map_builder
@@ -122,9 +120,8 @@ def test_ten_times_the_ping_rate_for_a_lap_of_the_room(ros):
     executor = SingleThreadedExecutor()
     for node in [*nodes, observer.node]:
         executor.add_node(node)
-    driver = subprocess.Popen([executable("driver"), "--ros-args", "-r", f"__ns:={namespace}",
-                               "-p", "source:=simulator", "-p", f"ping_rate:={RATE}", "-p", f"loops:={LAPS}",
-                               "-p", "publish_range:=false", "-p", "world:=ideal"])
+    driver = start_node("driver", namespace, "source:=simulator", f"ping_rate:={RATE}", f"loops:={LAPS}",
+                        "publish_range:=false", "world:=ideal")
     accounted = lambda: (localiser.health.received_count  # noqa: E731
                          + localiser.health.problems["dropped_input (echoes)"]
                          + sum(sequence - 1 for sequence in first.values()))
@@ -146,8 +143,7 @@ def test_ten_times_the_ping_rate_for_a_lap_of_the_room(ros):
             if accounted() != last:
                 last, quiet_since = accounted(), time.monotonic()
     finally:
-        driver.send_signal(signal.SIGINT)
-        driver_code = driver.wait(timeout=20)
+        driver_code, = stop_nodes([driver])
     assert driver_code == 0
 
     seconds, graph_mib, driver_mib = np.array(samples).T
