@@ -10,9 +10,10 @@ takes the labelled landmarks (sensor frame) and the robot's odometry pose
    :class:`~sonar_ring.mapping.LandmarkMap` (gates, walls as lines with seen
    extents, points, PLANE vs CORNER over motion), fed with the sightings'
    covariances widened by the pose's uncertainty, so its gates include it;
-3. **keeps** each associated sighting as a measurement of its entry, relative to
-   the latest keyframe (the odometry between the two, a few centimetres, is
-   folded in);
+3. **keeps** each associated sighting as the sensor gave it, relative to the
+   latest keyframe (the odometry between the two, a few centimetres, is
+   folded in); what it measures is decided at the keyframe, by what its entry
+   is then (:meth:`LandmarkSlam._measured`);
 4. at a **keyframe** (every ``keyframe_distance`` of travel, ``keyframe_turn``
    of turn or ``keyframe_pings`` pings), adds to the factor graph the
    odometry between the keyframes (``BetweenFactorPose2``), one fused
@@ -30,7 +31,17 @@ takes the labelled landmarks (sensor frame) and the robot's odometry pose
    into each keyframe's frame, in between: the marginal costs tens of milliseconds once the map is
    large, and holding it gave better maps (same runs, realistic world, 10 seeds of 3 laps: 18.3
    reflectors of 21 right instead of 15.6, trajectory RMS 2.8 cm instead of 4.0, ghosts 26.6 instead
-   of 28.4, the mapper's p99 per ping 260 ms instead of 521).
+   of 28.4, the mapper's p99 per ping 260 ms instead of 521).  To it is added the pose's error that the
+   graph does not model (``unmodelled_position_sigma``, ``unmodelled_yaw_sigma``).
+
+An entry's sightings from before it is confirmed are **held**, per keyframe, as long as the
+smoother keeps that keyframe; when the entry is confirmed they enter the graph at their own
+keyframes.  A wall is a wall only after the sensor has moved (an UNKNOWN point until then) and
+is confirmed a few pings later: without its first sightings, the graph placed every wall with
+the heading the odometry had when it was confirmed, and the odometry's heading noise of the
+first decimetres turned the whole map (recorded realistic runs, 3 laps, the four most turned:
+seeds 3, 12, 19, 1: -0.52/-0.42/-0.30/-0.27 deg; with them -0.21/+0.06/+0.14/-0.07; the
+most turned of the 20 now 0.24 deg).
 
 Only **confirmed** entries enter the graph: an entry must persist
 (:meth:`~sonar_ring.mapping.LandmarkMap.persistent`: seen in the front end's
@@ -75,7 +86,7 @@ sensor at ``sensor_offset`` in it.  Units m, rad.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, fields
 
 import gtsam
 import numpy as np
@@ -83,7 +94,7 @@ import numpy as np
 from sonar_ring.curvature import PointModels
 from sonar_ring.landmarks import CORNER, EDGE, Landmarks
 from sonar_ring.mapping import LandmarkMap, transform_landmarks
-from sonar_ring.poses import compose, inverse, relative_pose, turned_covariances
+from sonar_ring.poses import compose, inverse, relative_pose
 
 POSE, POINT, WALL = "x", "l", "w"
 """Symbol characters of the graph's keyframe poses, point landmarks and walls."""
@@ -131,6 +142,13 @@ class SlamSettings:
     covariance_every : int
         Keyframes between two marginal covariances from the smoother; the keyframes between hold the last
         one, turned into their own frame (:meth:`LandmarkSlam._add_keyframe`).
+    unmodelled_position_sigma, unmodelled_yaw_sigma : float
+        The pose's error that the graph does not model (m, rad), added to the marginal covariance wherever the
+        pose's uncertainty is used: the front end's gates, the echo tests, ``slam/pose``.  The graph fuses the
+        sightings as independent and knows nothing of the air's speed error (a scale of the map about its
+        origin) or of a residual turn; its marginal alone claimed 8 mm and 0.44 deg where the pose was off by
+        11-19 mm and 0.4 deg RMS (recorded realistic runs, 3 laps: NEES 4-10 against 3), and the tighter gates
+        left multipath fragments unexplained (ghosts in 3 of 20 runs).  With these, the NEES is 1.5-1.6.
     """
 
     keyframe_distance: float = 0.1
@@ -152,6 +170,8 @@ class SlamSettings:
     no_landmarks_after: float = 5.0
     smoother_lag: float = 5.0
     covariance_every: int = 10
+    unmodelled_position_sigma: float = 0.011
+    unmodelled_yaw_sigma: float = 0.0066
 
 
 @dataclass
@@ -188,31 +208,47 @@ class _Confirmed:
 
 
 @dataclass
-class _SinceKeyframe:
-    """The sightings since the latest keyframe, in its robot frame, a tuple of arrays per ping.
+class _Seen:
+    """Sightings as the sensor gave them, in the robot frame of one keyframe: what they measure is decided later.
 
-    The entry uid (n,), whether it is a wall (n,), the measurement (n, 2) -- a point's position, a wall's foot
-    point -- and its information matrix (n, 2, 2).
+    When they are measured (:meth:`LandmarkSlam._measured`), their entry's kind then says how: a wall's foot
+    point, a decided point's position under its model, an undecided one's range.  Per sighting: the entry uid
+    (n,), the sensor's position (n, 2), the landmark's position (n, 2) and covariance (n, 2, 2) as labelled, its
+    class (n,), and both point models (:class:`~sonar_ring.curvature.PointModels`; ``model_valid`` (n,) False
+    where the ping gave none).
     """
 
-    pings: list = field(default_factory=list)
+    uid: np.ndarray
+    sensor: np.ndarray
+    position: np.ndarray
+    covariance: np.ndarray
+    landmark_class: np.ndarray
+    model_valid: np.ndarray
+    edge: np.ndarray
+    edge_covariance: np.ndarray
+    corner: np.ndarray
+    corner_covariance: np.ndarray
 
-    def fused(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Per entry seen: uid (E,), is_wall (E,), the information-weighted mean (E, 2) and its covariance (E, 2, 2)."""
-        uid, wall, measurement, information = (np.concatenate(column) for column in zip(*self.pings, strict=True))
-        entries, index = np.unique(uid, return_inverse=True)
-        total = np.zeros((entries.size, 2, 2))
-        np.add.at(total, index, information)
-        pulled = np.zeros((entries.size, 2))
-        np.add.at(pulled, index, np.einsum("nij,nj->ni", information, measurement))
-        covariance = _inverse(total)
-        is_wall = np.zeros(entries.size, bool)
-        is_wall[index] = wall
-        return entries, is_wall, np.einsum("eij,ej->ei", covariance, pulled), covariance
+    @staticmethod
+    def joined(parts: list[_Seen]) -> _Seen:
+        """The sightings of ``parts``, in order."""
+        return _Seen(*(np.concatenate([getattr(part, name.name) for part in parts]) for name in fields(_Seen)))
+
+    def select(self, rows) -> _Seen:
+        """The sightings ``rows`` (an index array or a mask)."""
+        return _Seen(*(getattr(self, name.name)[rows] for name in fields(_Seen)))
 
     def rename(self, old: int, new: int) -> None:
-        for uid, *_ in self.pings:
-            uid[uid == old] = new
+        self.uid[self.uid == old] = new
+
+
+@dataclass
+class _Held:
+    """The sightings of entries not in the graph yet, at keyframe ``index`` (made at ``time``, s)."""
+
+    index: int
+    time: float
+    seen: _Seen
 
 
 # --------------------------------------------------------------------------- factors
@@ -259,7 +295,7 @@ def _foot_points(point: np.ndarray, sensor: np.ndarray) -> tuple[np.ndarray, np.
     """Feet from the origin onto the lines through ``point`` (n, 2) perpendicular to ``point - sensor``, Jacobians.
 
     Returns ``f = (n . point) n`` with ``n = (point - sensor) / |point - sensor|`` (n, 2) and
-    d f / d point (n, 2, 2) (``sensor`` (2,) held fixed).
+    d f / d point (n, 2, 2) (``sensor`` (n, 2) or (2,) held fixed).
     """
     offset = point - sensor
     distance = np.hypot(offset[:, 0], offset[:, 1])
@@ -269,6 +305,37 @@ def _foot_points(point: np.ndarray, sensor: np.ndarray) -> tuple[np.ndarray, np.
     turn = (np.eye(2) - outer) / distance[:, None, None]  # d n / d point, symmetric
     return along[:, None] * normal, normal[:, :, None] * (normal + np.einsum("nij,nj->ni", turn, point))[:, None, :] \
         + along[:, None, None] * turn
+
+
+def _seen(landmarks: Landmarks, models: PointModels | None, uids: np.ndarray, sensor: np.ndarray) -> _Seen:
+    """Sightings ``landmarks`` (sensor frame) of the entries ``uids`` with the sensor at ``sensor`` in the keyframe."""
+    in_keyframe = transform_landmarks(landmarks, sensor)
+    count = len(uids)
+    if models is None:
+        invalid = np.full((count, 2), np.nan)
+        models = PointModels(invalid, invalid, np.zeros((count, 2, 2)), np.zeros((count, 2, 2)), np.zeros(count),
+                             np.zeros(count, bool))
+    else:
+        models = models.transformed(sensor)
+    return _Seen(uids.copy(), np.tile(sensor[:2], (count, 1)), np.array(in_keyframe.position, dtype=float),
+                 np.array(in_keyframe.covariance, dtype=float), np.array(landmarks.landmark_class), models.valid,
+                 models.edge, models.edge_covariance, models.corner, models.corner_covariance)
+
+
+def _fused(uid: np.ndarray, measurement: np.ndarray, covariance: np.ndarray):
+    """Each entry's measurements fused: information-weighted mean and its covariance.
+
+    Of the measurements (n, 2) with covariances (n, 2, 2) of the entries ``uid`` (n,): the entries (a list,
+    ascending), their means (E, 2) and covariances (E, 2, 2).
+    """
+    entries, index = np.unique(uid, return_inverse=True)
+    information = _inverse(covariance)
+    total = np.zeros((entries.size, 2, 2))
+    np.add.at(total, index, information)
+    pulled = np.zeros((entries.size, 2))
+    np.add.at(pulled, index, np.einsum("nij,nj->ni", information, measurement))
+    fused_covariance = _inverse(total)
+    return entries.tolist(), np.einsum("eij,ej->ei", fused_covariance, pulled), fused_covariance
 
 
 def _inverse(matrix: np.ndarray) -> np.ndarray:
@@ -293,6 +360,8 @@ class LandmarkSlam:
 
     def __init__(self, settings: SlamSettings = SlamSettings(), front_end: dict | None = None):
         self.settings = settings
+        self._unmodelled = np.diag([settings.unmodelled_position_sigma ** 2, settings.unmodelled_position_sigma ** 2,
+                                    settings.unmodelled_yaw_sigma ** 2])
         self._front_end = dict(front_end or {})
         self.sessions = 0
         self._start_session()
@@ -304,7 +373,8 @@ class LandmarkSlam:
         self._smoother = gtsam.IncrementalFixedLagSmoother(self.settings.smoother_lag, parameters)
         self.front = LandmarkMap(**self._front_end)
         self._confirmed: dict[int, _Confirmed] = {}
-        self._since_keyframe = _SinceKeyframe()
+        self._since_keyframe: list[_Seen] = []  # one part per ping
+        self._held: list[_Held] = []  # the keyframes still in the smoother's window, oldest first
         self._keyframe = -1  # index of the latest keyframe
         self._keyframe_odometry = None  # its odometry pose
         self._keyframe_pose = None  # its estimate in map
@@ -372,7 +442,8 @@ class LandmarkSlam:
         report.tentative = int(uids.size - report.associated)
         if report.associated:
             self._last_seen_time = time
-        self._remember(landmarks.select(rows), None if models is None else models.select(rows), uids, step, offset)
+        self._since_keyframe.append(_seen(landmarks.select(rows), None if models is None else models.select(rows),
+                                          uids, compose(step, offset)))
         return report
 
     def _check_odometry(self, odometry: np.ndarray, time: float) -> str:
@@ -402,10 +473,14 @@ class LandmarkSlam:
         return jacobian @ covariance @ jacobian.transpose(0, 2, 1)
 
     def _keyframe_covariance_in_map(self) -> np.ndarray:
-        """The keyframe's marginal covariance (body-frame tangent) as ``(x, y, yaw)`` in ``map``, (3, 3)."""
+        """The keyframe's covariance as ``(x, y, yaw)`` in ``map``, (3, 3): its marginal and the unmodelled error.
+
+        The marginal (body-frame tangent) turned into ``map``, plus ``unmodelled_position_sigma`` and
+        ``unmodelled_yaw_sigma`` (:class:`SlamSettings`).
+        """
         c, s = math.cos(self._keyframe_pose[2]), math.sin(self._keyframe_pose[2])
         rotate = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        return rotate @ self._keyframe_covariance @ rotate.T
+        return rotate @ self._keyframe_covariance @ rotate.T + self._unmodelled
 
     def _odometry_covariance(self, step, yaw: float) -> np.ndarray:
         """Covariance of the odometry ``step`` (forward, sideways, turn) as ``(x, y, yaw)`` in ``map``, (3, 3)."""
@@ -423,43 +498,35 @@ class LandmarkSlam:
         covariance[2, 2] = heading
         return covariance
 
-    def _remember(self, landmarks: Landmarks, models: PointModels | None, uids, step, offset) -> None:
-        """Keep each sighting as a measurement of its entry in the keyframe's robot frame.
+    def _measured(self, seen: _Seen, is_wall: np.ndarray, entry_class: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What ``seen`` measures of entries that are walls where ``is_wall`` (n,), of class ``entry_class`` (n,).
 
-        A wall's measurement is the foot of the perpendicular from the keyframe's origin onto the wall's
-        line, from the sighting's foot point ``G`` (on the line, perpendicular to the line of sight from the
-        sensor ``S``): the line ``n . x = n . G`` with ``n = (G - S) / |G - S|``.  A point's is its position
-        under its entry's decided model (an EDGE's edge model, a CORNER's corner model), else the
-        sighting's own keeping only its range (module docstring).
+        Measurement (n, 2) and its covariance (n, 2, 2), in the keyframe's robot frame.  A wall's is the foot of
+        the perpendicular from the keyframe's origin onto the wall's line, from the sighting's foot point ``G``
+        (on the line, perpendicular to the line of sight from the sensor ``S``): the line ``n . x = n . G`` with
+        ``n = (G - S) / |G - S|``.  A point's is its position under its entry's decided model (an EDGE's edge
+        model, a CORNER's corner model), else the sighting's own keeping only its range (module docstring).
         """
-        wall, entry_class = self.front.classes_of(uids)
-        position = np.array(landmarks.position, dtype=float)
-        covariance = np.array(landmarks.covariance, dtype=float)
-        decided = np.zeros(len(uids), bool)
-        if models is not None:
-            for code, model, model_covariance in ((EDGE, models.edge, models.edge_covariance),
-                                                  (CORNER, models.corner, models.corner_covariance)):
-                chosen = ~wall & models.valid & (entry_class == code)
-                position[chosen] = model[chosen]
-                covariance[chosen] = model_covariance[chosen]
-                decided |= chosen
-        # sensor frame -> robot frame at the ping -> robot frame at the keyframe
-        frame = compose(step, offset)
-        c, s = math.cos(frame[2]), math.sin(frame[2])
-        rotation = np.array([[c, -s], [s, c]])
-        position = position @ rotation.T + frame[:2]
-        covariance = turned_covariances(covariance, rotation) + self.settings.sighting_sigma ** 2 * np.eye(2)
-        if wall.any():
-            foot, jacobian = _foot_points(position[wall], frame[:2])
-            position[wall] = foot
-            covariance[wall] = jacobian @ covariance[wall] @ jacobian.transpose(0, 2, 1)
+        position, covariance = seen.position.copy(), seen.covariance.copy()
+        decided = np.zeros(len(position), bool)
+        for code, model, model_covariance in ((EDGE, seen.edge, seen.edge_covariance),
+                                              (CORNER, seen.corner, seen.corner_covariance)):
+            chosen = ~is_wall & seen.model_valid & (entry_class == code)
+            position[chosen] = model[chosen]
+            covariance[chosen] = model_covariance[chosen]
+            decided |= chosen
+        covariance += self.settings.sighting_sigma ** 2 * np.eye(2)
+        if is_wall.any():
+            foot, jacobian = _foot_points(position[is_wall], seen.sensor[is_wall])
+            position[is_wall] = foot
+            covariance[is_wall] = jacobian @ covariance[is_wall] @ jacobian.transpose(0, 2, 1)
         # A point not yet decided may be an edge placed with the corner model, its bearing up to a degree off,
         # the same way from the same side: it keeps only its range (module docstring).
-        ranged = ~wall & ~decided & (landmarks.landmark_class != EDGE)
+        ranged = ~is_wall & ~decided & (seen.landmark_class != EDGE)
         if ranged.any():
-            covariance[ranged] = _without_bearing(position[ranged] - frame[:2], covariance[ranged],
+            covariance[ranged] = _without_bearing(position[ranged] - seen.sensor[ranged], covariance[ranged],
                                                   self.settings.undecided_bearing_sigma)
-        self._since_keyframe.pings.append((uids.copy(), wall, position, _inverse(covariance)))
+        return position, covariance
 
     def _follow_renames(self, renamed: dict) -> None:
         """Entries that live on under another uid keep their record (a wall absorbing a confirmed one inherits it).
@@ -474,7 +541,8 @@ class LandmarkSlam:
             record = self._confirmed.pop(old, None)
             if record is not None and new not in self._confirmed and (record.kind == WALL) == is_wall[new]:
                 self._confirmed[new] = record
-            self._since_keyframe.rename(old, new)
+            for seen in [*self._since_keyframe, *(held.seen for held in self._held)]:
+                seen.rename(old, new)
 
     # ------------------------------------------------------------------ keyframes
 
@@ -525,35 +593,67 @@ class LandmarkSlam:
             self._keyframe_covariance = adjoint @ self._keyframe_covariance @ adjoint.T
         self._keyframe_odometry, self._keyframe_time = odometry.copy(), time
         self._pings_since_keyframe = 0
-        self._since_keyframe.pings.clear()
+        self._since_keyframe.clear()
         self._write_back(estimate)
 
     def _add_measurements(self, pose_key: int, graph, values) -> None:
-        """One fused factor per entry seen since the keyframe ``pose_key``: confirmed and newly confirmed entries.
+        """Factors of the sightings since the keyframe ``pose_key`` and of those held for entries confirmed now.
 
-        Only a persistent, decided wall or point is confirmed (module docstring).
+        One fused factor per entry in the graph and keyframe: of the sightings since ``pose_key``, and, for an
+        entry confirmed now, of its sightings held at the keyframes before that are still in the smoother's
+        window -- a wall's sightings from before it was told a wall (an UNKNOWN point's then) among them, so
+        the graph has them from the first ping, when the odometry's heading was still right.  Only a
+        persistent, decided wall or point is confirmed (module docstring); the sightings of entries not
+        confirmed are held for later, as long as their keyframe stays in the window.
         """
-        if not self._since_keyframe.pings:
-            return
+        seen = _Seen.joined(self._since_keyframe) if self._since_keyframe else None
         entries = self.front.entries()
         by_uid = {uid: index for index, uid in enumerate(entries.uid.tolist())}
-        uids, is_wall, measurement, covariance = self._since_keyframe.fused()
+        # The keyframes the smoother has not marginalised: made within its lag of the last update (this
+        # keyframe's); a keyframe's timestamp there is the next one's, so never earlier than its own.
+        window_start = self._keyframe_time - self.settings.smoother_lag
+        self._held = [held for held in self._held if held.time > window_start]
+        if seen is None:
+            return
+        uids = np.unique(seen.uid)
         decided, persistent = self.front.decided(uids).tolist(), self.front.persistent(uids).tolist()
-        for uid, wall, position, spread, usable, lasting in zip(uids.tolist(), is_wall.tolist(), measurement,
-                                                                 covariance, decided, persistent, strict=True):
+        measured, confirmed_now = [], []
+        for uid, usable, lasting in zip(uids.tolist(), decided, persistent, strict=True):
             index = by_uid.get(uid)
-            if index is None or bool(entries.is_wall[index]) != wall or not usable:
+            if index is None or not usable:
                 continue
-            kind = WALL if wall else POINT
             if uid not in self._confirmed:
                 if not lasting:
                     continue
-                self._confirm(uid, kind, entries, index, values)
+                self._confirm(uid, WALL if entries.is_wall[index] else POINT, entries, index, values)
+                confirmed_now.append(uid)
+            measured.append(uid)
+        in_graph = np.isin(seen.uid, measured)
+        self._add_factors(pose_key, seen.select(in_graph), entries, by_uid, graph)
+        if confirmed_now:
+            for held in self._held:
+                self._add_factors(gtsam.symbol(POSE, held.index),
+                                  held.seen.select(np.isin(held.seen.uid, confirmed_now)), entries, by_uid, graph)
+        self._held.append(_Held(self._keyframe, self._keyframe_time, seen.select(~in_graph)))
+
+    def _add_factors(self, pose_key: int, seen: _Seen, entries, by_uid: dict, graph) -> None:
+        """One fused factor per entry of the graph among ``seen``, taken at the keyframe ``pose_key``."""
+        if not len(seen.uid):
+            return
+        index = np.array([by_uid.get(uid, -1) for uid in seen.uid.tolist()])
+        kinds = [self._confirmed[uid].kind for uid in seen.uid.tolist()]
+        is_wall = np.array([kind == WALL for kind in kinds])
+        # An entry whose kind changed under the same uid (not in the front end any more) is measured no more.
+        same = (index >= 0) & (is_wall == entries.is_wall[np.maximum(index, 0)])
+        if not same.all():
+            seen, index, is_wall = seen.select(same), index[same], is_wall[same]
+        position, covariance = self._measured(seen, is_wall, entries.landmark_class[index])
+        for uid, measurement, spread in zip(*_fused(seen.uid, position, covariance), strict=True):
             record = self._confirmed[uid]
-            if kind == POINT:
-                graph.add(_bearing_range_factor(pose_key, record.key, position, spread))
+            if record.kind == POINT:
+                graph.add(_bearing_range_factor(pose_key, record.key, measurement, spread))
             else:
-                graph.add(wall_factor(pose_key, record.key, position, gtsam.noiseModel.Gaussian.Covariance(spread)))
+                graph.add(wall_factor(pose_key, record.key, measurement, gtsam.noiseModel.Gaussian.Covariance(spread)))
 
     def _confirm(self, uid: int, kind: str, entries, index: int, values) -> None:
         """Add entry ``uid`` to the graph, its initial value the front end's estimate."""
