@@ -2076,9 +2076,11 @@ class LandmarkMap:
         A wall ends at a corner or an edge.  A point within ``tolerance`` (m) of
         a wall's line and within ``reach`` (m) of an end of its seen extent, the
         nearest to that end, becomes that end: the extent grows or shrinks to it
-        (what the wall's sightings near its ends, bearing-limited, blur).  For
-        output: this map is unchanged, so what it maps next does not depend on
-        when it was published.
+        (what the wall's sightings near its ends, bearing-limited, blur).  A wall
+        whose two ends both become the same point is that point's echoes seen
+        along a line (a doorway jamb's, placed a degree off while the sensor
+        passes), not a wall: the copy leaves it out.  For output: this map is
+        unchanged, so what it maps next does not depend on when it was published.
         """
         ended = copy.copy(self)
         ended._walls = copy.deepcopy(self._walls)
@@ -2090,13 +2092,16 @@ class LandmarkMap:
         w = ended._walls
         along, across = w.coordinates(slots, points)
         on_line = np.abs(across) <= tolerance
+        end_point = np.full((slots.size, 2), -1)
         for end in (0, 1):
             gap = np.where(on_line, np.abs(along - w.extent[slots, end][:, None]), np.inf)
             nearest = np.argmin(gap, axis=1)
             close = gap[np.arange(slots.size), nearest] <= reach
             w.extent[slots[close], end] = along[close, nearest[close]]
+            end_point[close, end] = nearest[close]
         w.extent[slots] = np.sort(w.extent[slots], axis=1)
         w.recentre(slots)
+        w.active[slots[(end_point[:, 0] >= 0) & (end_point[:, 0] == end_point[:, 1])]] = False
         return ended
 
     # ------------------------------------------------------------------ output

@@ -693,7 +693,7 @@ class LandmarkSlam:
 
     def snapshot_uids(self, min_observations: int = 1) -> np.ndarray:
         """The uids of :meth:`snapshot`'s entries, in its order."""
-        return self.front.snapshot_uids(min_observations, only=self.confirmed, decided=True)
+        return self.published().snapshot_uids(min_observations, only=self.confirmed, decided=True)
 
     def forget(self, uids) -> None:
         """Take the entries ``uids`` out of the map and the graph's confirmed set.

@@ -500,6 +500,30 @@ def test_a_published_wall_ends_at_the_edge_its_seen_extent_ran_past():
     assert np.sort(by_class(far.snapshot(), PLANE).segment[0, :, 0])[1] > 1.2
 
 
+def test_a_wall_whose_two_ends_end_at_one_point_is_not_published():
+    # A jamb's echoes placed a degree off while the sensor passes can line up into a short wall piece; ended at
+    # the jamb at both ends it is the jamb seen along a line, not a wall.  The map itself keeps it.
+    from sonar_ring.slam import SlamSettings
+
+    settings = SlamSettings()
+    rng = np.random.default_rng(11)
+    landmark_map = LandmarkMap()
+    for x in np.arange(0.0, 0.2, STEP):
+        landmark_map.update(sightings(rng, np.array([x, 0.0]), [[x, WALL_Y]], [PLANE]), [x, 0, 0])
+    entries = landmark_map.entries()
+    uid = entries.uid[entries.is_wall]
+    extent = np.sort(by_class(landmark_map.snapshot(), PLANE).segment[0, :, 0])
+    assert len(uid) == 1 and extent[1] - extent[0] < settings.wall_end_reach
+    jamb = np.array([[extent.mean(), WALL_Y]])
+    ended = landmark_map.walls_ended_at(uid, jamb, settings.wall_end_reach, settings.wall_end_tolerance)
+    assert len(by_class(ended.snapshot(), PLANE)) == 0 and len(ended.snapshot_uids()) == len(ended.snapshot()) == 0
+    assert len(by_class(landmark_map.snapshot(), PLANE)) == 1
+    # ended at two points, one each end, it is a wall between them
+    ends = np.array([[extent[0] - 0.05, WALL_Y], [extent[1] + 0.05, WALL_Y]])
+    between = landmark_map.walls_ended_at(uid, ends, settings.wall_end_reach, settings.wall_end_tolerance)
+    assert_allclose(np.sort(by_class(between.snapshot(), PLANE).segment[0, :, 0]), ends[:, 0], atol=1e-3)
+
+
 # --------------------------------------------------------------------------- memory
 
 def test_eviction_keeps_the_most_recently_seen_entries_within_the_bound():
