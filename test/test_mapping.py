@@ -478,18 +478,23 @@ def test_a_wall_does_not_grow_past_an_edge_on_its_line():
     assert ends[0, 1] < 1.5 < ends[1, 0], ends  # one wall each side of the jamb
 
 
+def _wall_seen_up_to(stop):
+    """A map of the wall at y = WALL_Y seen from x = 0 to ``stop`` (m) along y = 0, and its walls' uids."""
+    rng = np.random.default_rng(11)
+    landmark_map = LandmarkMap()
+    for x in np.arange(0.0, stop, STEP):
+        landmark_map.update(sightings(rng, np.array([x, 0.0]), [[x, WALL_Y]], [PLANE]), [x, 0, 0])
+    entries = landmark_map.entries()
+    return landmark_map, entries.uid[entries.is_wall]
+
+
 def test_a_published_wall_ends_at_the_edge_its_seen_extent_ran_past():
     # a seen extent runs up to about 0.25 m past a wall's end where an echo on its line continues it (the
     # realistic room's pillar faces); SLAM publishes the wall ended at the edge there, not past it
     from sonar_ring.slam import SlamSettings
 
     settings = SlamSettings()
-    rng = np.random.default_rng(11)
-    landmark_map = LandmarkMap()
-    for x in np.arange(0.0, 1.25, STEP):
-        landmark_map.update(sightings(rng, np.array([x, 0.0]), [[x, WALL_Y]], [PLANE]), [x, 0, 0])
-    wall = landmark_map.entries()
-    uid = wall.uid[wall.is_wall]
+    landmark_map, uid = _wall_seen_up_to(1.25)
     assert np.sort(by_class(landmark_map.snapshot(), PLANE).segment[0, :, 0])[1] > 1.2
     edge = np.array([[0.97, WALL_Y]])
     ended = landmark_map.walls_ended_at(uid, edge, settings.wall_end_reach, settings.wall_end_tolerance)
@@ -506,12 +511,7 @@ def test_a_wall_whose_two_ends_end_at_one_point_is_not_published():
     from sonar_ring.slam import SlamSettings
 
     settings = SlamSettings()
-    rng = np.random.default_rng(11)
-    landmark_map = LandmarkMap()
-    for x in np.arange(0.0, 0.2, STEP):
-        landmark_map.update(sightings(rng, np.array([x, 0.0]), [[x, WALL_Y]], [PLANE]), [x, 0, 0])
-    entries = landmark_map.entries()
-    uid = entries.uid[entries.is_wall]
+    landmark_map, uid = _wall_seen_up_to(0.2)
     extent = np.sort(by_class(landmark_map.snapshot(), PLANE).segment[0, :, 0])
     assert len(uid) == 1 and extent[1] - extent[0] < settings.wall_end_reach
     jamb = np.array([[extent.mean(), WALL_Y]])
