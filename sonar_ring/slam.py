@@ -94,7 +94,7 @@ import numpy as np
 from sonar_ring.curvature import PointModels
 from sonar_ring.landmarks import CORNER, EDGE, Landmarks
 from sonar_ring.mapping import LandmarkMap, transform_landmarks
-from sonar_ring.poses import compose, inverse, relative_pose
+from sonar_ring.poses import compose, inverse, relative_pose, turned_covariances
 
 POSE, POINT, WALL = "x", "l", "w"
 """Symbol characters of the graph's keyframe poses, point landmarks and walls."""
@@ -308,17 +308,21 @@ def _foot_points(point: np.ndarray, sensor: np.ndarray) -> tuple[np.ndarray, np.
 
 
 def _seen(landmarks: Landmarks, models: PointModels | None, uids: np.ndarray, sensor: np.ndarray) -> _Seen:
-    """Sightings ``landmarks`` (sensor frame) of the entries ``uids`` with the sensor at ``sensor`` in the keyframe."""
-    in_keyframe = transform_landmarks(landmarks, sensor)
+    """Sightings ``landmarks`` (sensor frame) of the entries ``uids`` with the sensor at ``sensor`` in the keyframe.
+
+    Only the positions and covariances turn (not :func:`~sonar_ring.mapping.transform_landmarks`' every field and
+    check: this runs at every ping, on landmarks the front end has just checked).
+    """
     count = len(uids)
+    rotation = np.array([[np.cos(sensor[2]), -np.sin(sensor[2])], [np.sin(sensor[2]), np.cos(sensor[2])]])
     if models is None:
-        invalid = np.full((count, 2), np.nan)
-        models = PointModels(invalid, invalid, np.zeros((count, 2, 2)), np.zeros((count, 2, 2)), np.zeros(count),
-                             np.zeros(count, bool))
+        models = PointModels(np.full((count, 2), np.nan), np.full((count, 2), np.nan), np.zeros((count, 2, 2)),
+                             np.zeros((count, 2, 2)), np.zeros(count), np.zeros(count, bool))
     else:
         models = models.transformed(sensor)
-    return _Seen(uids.copy(), np.tile(sensor[:2], (count, 1)), np.array(in_keyframe.position, dtype=float),
-                 np.array(in_keyframe.covariance, dtype=float), np.array(landmarks.landmark_class), models.valid,
+    return _Seen(uids.copy(), np.tile(sensor[:2], (count, 1)),
+                 np.asarray(landmarks.position, dtype=float) @ rotation.T + sensor[:2],
+                 turned_covariances(landmarks.covariance, rotation), np.array(landmarks.landmark_class), models.valid,
                  models.edge, models.edge_covariance, models.corner, models.corner_covariance)
 
 
