@@ -244,7 +244,8 @@ class MapBuilder:
         else:
             robot, covariance = self.slam.pose_at(odometry)
         if self._known is None or self._known_age >= tests.refresh_pings:
-            self._known, self._known_uids, self._known_age = known_map(self.snapshot(), tests), self.snapshot_uids(), 0
+            snapshot, self._known_uids = self.snapshot_and_uids()
+            self._known, self._known_age = known_map(snapshot, tests), 0
             # Counters of entries the map no longer holds (merged, removed) go with them.
             held = set(self._known_uids.tolist())
             self._hearing = {uid: counts for uid, counts in self._hearing.items() if uid in held}
@@ -318,12 +319,12 @@ class MapBuilder:
         return self.landmark_map.snapshot(self.settings.min_observations, persistent=self._tested,
                                           decided=self._tested)
 
-    def snapshot_uids(self) -> np.ndarray:
-        """The uids of :meth:`snapshot`'s entries, in its order."""
+    def snapshot_and_uids(self) -> tuple[Landmarks, np.ndarray]:
+        """:meth:`snapshot` and the uids of its entries, in its order."""
         if self.slam is not None:
-            return self.slam.snapshot_uids(self.settings.min_observations)
-        return self.landmark_map.snapshot_uids(self.settings.min_observations, persistent=self._tested,
-                                               decided=self._tested)
+            return self.slam.snapshot_and_uids(self.settings.min_observations)
+        return self.snapshot(), self.landmark_map.snapshot_uids(self.settings.min_observations,
+                                                                persistent=self._tested, decided=self._tested)
 
     def points(self) -> np.ndarray:
         """Costmap points of :meth:`snapshot`, (P, 2), in :attr:`frame`."""

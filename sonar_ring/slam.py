@@ -695,9 +695,11 @@ class LandmarkSlam:
         """
         return self.published().snapshot(min_observations=min_observations, only=self.confirmed, decided=True)
 
-    def snapshot_uids(self, min_observations: int = 1) -> np.ndarray:
-        """The uids of :meth:`snapshot`'s entries, in its order."""
-        return self.published().snapshot_uids(min_observations, only=self.confirmed, decided=True)
+    def snapshot_and_uids(self, min_observations: int = 1) -> tuple[Landmarks, np.ndarray]:
+        """:meth:`snapshot` and the uids of its entries, in its order, from one :meth:`published` copy."""
+        published, confirmed = self.published(), self.confirmed
+        return (published.snapshot(min_observations=min_observations, only=confirmed, decided=True),
+                published.snapshot_uids(min_observations, only=confirmed, decided=True))
 
     def forget(self, uids) -> None:
         """Take the entries ``uids`` out of the map and the graph's confirmed set.
