@@ -129,7 +129,7 @@ class MapBuilder:
         self._pending: deque = deque()
         front = dict(max_points=settings.max_points, max_walls=settings.max_walls, gate_chi2=settings.gate_chi2,
                      min_support_pings=settings.min_support_pings, min_support_travel=settings.min_support_travel)
-        self.slam = LandmarkSlam(settings.slam_settings, front) if settings.slam else None
+        self.slam = LandmarkSlam(settings.slam_settings, front, settings.layout) if settings.slam else None
         self._odom_map = None if settings.slam else LandmarkMap(**front)
         self._counts = MapCounts()
         self._no_landmarks = False

@@ -85,18 +85,23 @@ sensor at ``sensor_offset`` in it.  Units m, rad.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, fields
 
 import gtsam
 import numpy as np
 
+from sonar_ring.air import AirSpeed, path_jacobian
 from sonar_ring.curvature import PointModels
 from sonar_ring.landmarks import CORNER, EDGE, Landmarks
 from sonar_ring.mapping import LandmarkMap, transform_landmarks
 from sonar_ring.poses import compose, inverse, relative_pose, turned_covariances
 
 POSE, POINT, WALL = "x", "l", "w"
+AIR_GATE_CHI2 = 10.83
+"""A sighting's squared bearing error in its variance above which the air's fit leaves it out (chi-square, 1
+degree of freedom, 99.9 %)."""
 """Symbol characters of the graph's keyframe poses, point landmarks and walls."""
 
 
@@ -149,6 +154,10 @@ class SlamSettings:
         origin) or of a residual turn; its marginal alone claimed 8 mm and 0.44 deg where the pose was off by
         11-19 mm and 0.4 deg RMS (recorded realistic runs, 3 laps: NEES 4-10 against 3), and the tighter gates
         left multipath fragments unexplained (ghosts in 3 of 20 runs).  With these, the NEES is 1.5-1.6.
+    sigma_path, sigma_speed : float
+        One receiver's path noise ``c * sigma_tof`` (m) and the relative error of the speed of sound the nodes
+        assume: the air's fit (:mod:`sonar_ring.air`) weighs the sightings by the one and starts from the
+        other (0: the assumed speed is taken as right and the map is published as the graph holds it).
     """
 
     keyframe_distance: float = 0.1
@@ -172,6 +181,8 @@ class SlamSettings:
     covariance_every: int = 10
     unmodelled_position_sigma: float = 0.011
     unmodelled_yaw_sigma: float = 0.0066
+    sigma_path: float = 343e-6
+    sigma_speed: float = 0.0035
 
 
 @dataclass
@@ -213,13 +224,15 @@ class _Seen:
 
     When they are measured (:meth:`LandmarkSlam._measured`), their entry's kind then says how: a wall's foot
     point, a decided point's position under its model, an undecided one's range.  Per sighting: the entry uid
-    (n,), the sensor's position (n, 2), the landmark's position (n, 2) and covariance (n, 2, 2) as labelled, its
-    class (n,), and both point models (:class:`~sonar_ring.curvature.PointModels`; ``model_valid`` (n,) False
-    where the ping gave none).
+    (n,), the sensor's position (n, 2) and heading (n,), the landmark's position (n, 2) and covariance (n, 2, 2)
+    as labelled, its class (n,) and receiver group (n,), and both point models
+    (:class:`~sonar_ring.curvature.PointModels`; ``model_valid`` (n,) False where the ping gave none).
     """
 
     uid: np.ndarray
     sensor: np.ndarray
+    heading: np.ndarray
+    group: np.ndarray
     position: np.ndarray
     covariance: np.ndarray
     landmark_class: np.ndarray
@@ -240,6 +253,20 @@ class _Seen:
 
     def rename(self, old: int, new: int) -> None:
         self.uid[self.uid == old] = new
+
+
+@dataclass
+class _AirRows:
+    """Sightings for the air's fit (:meth:`LandmarkSlam._fit_air`), measured at the keyframe ``pose_key``.
+
+    ``is_wall`` (n,) whether each one's entry is a wall (else a corner); ``position`` (n, 2) the sighting by the
+    virtual-image model, the keyframe's frame.
+    """
+
+    pose_key: int
+    seen: _Seen
+    is_wall: np.ndarray
+    position: np.ndarray
 
 
 @dataclass
@@ -320,7 +347,8 @@ def _seen(landmarks: Landmarks, models: PointModels | None, uids: np.ndarray, se
                              np.zeros((count, 2, 2)), np.zeros(count), np.zeros(count, bool))
     else:
         models = models.transformed(sensor)
-    return _Seen(uids.copy(), np.tile(sensor[:2], (count, 1)),
+    return _Seen(uids.copy(), np.tile(sensor[:2], (count, 1)), np.full(count, sensor[2]),
+                 np.asarray(landmarks.group, dtype=np.int64),
                  np.asarray(landmarks.position, dtype=float) @ rotation.T + sensor[:2],
                  turned_covariances(landmarks.covariance, rotation), np.array(landmarks.landmark_class), models.valid,
                  models.edge, models.edge_covariance, models.corner, models.corner_covariance)
@@ -362,8 +390,11 @@ class LandmarkSlam:
         Keyword arguments of the front end's :class:`~sonar_ring.mapping.LandmarkMap`.
     """
 
-    def __init__(self, settings: SlamSettings = SlamSettings(), front_end: dict | None = None):
+    def __init__(self, settings: SlamSettings = SlamSettings(), front_end: dict | None = None, layout=None):
         self.settings = settings
+        self._plan = layout.plan if layout is not None and layout.kind == "ring" else None
+        self.air = AirSpeed(settings.sigma_speed)
+        self.air_estimate = self.air.fit()
         self._unmodelled = np.diag([settings.unmodelled_position_sigma ** 2, settings.unmodelled_position_sigma ** 2,
                                     settings.unmodelled_yaw_sigma ** 2])
         self._front_end = dict(front_end or {})
@@ -383,9 +414,11 @@ class LandmarkSlam:
         self._keyframe_odometry = None  # its odometry pose
         self._keyframe_pose = None  # its estimate in map
         self._keyframe_covariance = np.zeros((3, 3))
+        self._origin = np.zeros(2)  # the first keyframe's position in map: the published map's scale is about it
         self._keyframe_time = 0.0
         self._pings_since_keyframe = 0
         self._next_landmark = 0
+        self._air_rows = []  # the sightings measured since the last update: (pose key, uids, is_wall, z, C, stretch)
         self._last_odometry = None
         self._last_time = None
         self._last_seen_time = None
@@ -423,7 +456,7 @@ class LandmarkSlam:
         self._last_odometry, self._last_time = odometry, time
         step = relative_pose(self._keyframe_odometry, odometry)
         pose = compose(self._keyframe_pose, step)
-        report = SlamReport(pose=pose, keyframe=keyframe, fault=fault)
+        report = SlamReport(pose=self._scaled_pose(pose), keyframe=keyframe, fault=fault)
         if not len(landmarks):
             return report
         sensor = compose(pose, offset)
@@ -439,6 +472,7 @@ class LandmarkSlam:
         self._follow_renames(placed.renamed)
         for uid in placed.removed.tolist():
             self._confirmed.pop(uid, None)
+        self.air.forget(placed.removed)
         stored = placed.uid >= 0
         rows, uids = placed.rows[stored], placed.uid[stored]
         confirmed = np.array([uid in self._confirmed for uid in uids.tolist()], dtype=bool)
@@ -532,6 +566,84 @@ class LandmarkSlam:
                                                   self.settings.undecided_bearing_sigma)
         return position, covariance
 
+    def _pair_geometry(self, seen: _Seen, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Stretch (n, 2) and covariance (n, 2, 2) of sightings at ``position`` (keyframe frame), that frame.
+
+        (:func:`~sonar_ring.air.path_jacobian`: ``J d`` and ``sigma_path^2 J J^T`` plus ``sighting_sigma``.)
+        """
+        c, s = np.cos(seen.heading), np.sin(seen.heading)
+        turn = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)  # sensor frame -> keyframe frame
+        in_sensor = np.einsum("nji,nj->ni", turn, position - seen.sensor)
+        receivers = self._plan.receivers[seen.group]
+        jacobian, paths = path_jacobian(self._plan.transmitters[seen.group, 0], receivers[:, 0], receivers[:, 1],
+                                        in_sensor)
+        jacobian = turn @ jacobian
+        covariance = self.settings.sigma_path ** 2 * jacobian @ jacobian.transpose(0, 2, 1) \
+            + self.settings.sighting_sigma ** 2 * np.eye(2)
+        return np.einsum("nij,nj->ni", jacobian, paths), covariance
+
+    def _keep_for_air(self, pose_key: int, seen: _Seen, is_wall: np.ndarray, entry_class: np.ndarray) -> None:
+        """Keep the sightings of walls and corners placed by the virtual-image model for :meth:`_fit_air`."""
+        corner = ~is_wall & (entry_class == CORNER)
+        position = np.where((corner & seen.model_valid)[:, None], seen.corner, seen.position)
+        imaged = (is_wall | corner) & ((seen.landmark_class != EDGE) | (corner & seen.model_valid))
+        if imaged.any():
+            self._air_rows.append(_AirRows(pose_key, seen.select(imaged), is_wall[imaged], position[imaged]))
+
+    def _fit_air(self, estimate: gtsam.Values) -> None:
+        """The sightings kept since the last update into :attr:`air` (:mod:`sonar_ring.air`), against ``estimate``.
+
+        A wall's sighting measures the wall's angle (its bearing from the sensor), a corner's the corner across
+        the line of sight (map frame); each where the estimate says it should have been, for its stretch and
+        its variance: those of the sighting itself follow its noise (its bearing), and weights that do bias the
+        fit (by a third of the air's 0.35 % on walls, recorded ideal runs).
+        """
+        rows, self._air_rows = self._air_rows, []
+        for part in rows:
+            if not estimate.exists(part.pose_key):
+                continue
+            pose = estimate.atPose2(part.pose_key)
+            seen = part.seen
+            # Each entry's estimate: a wall's line (theta, d), a corner's position, both in map; NaN if gone.
+            value = {}
+            for uid, wall in zip(seen.uid.tolist(), part.is_wall.tolist(), strict=True):
+                record = self._confirmed.get(uid)
+                if uid not in value:
+                    value[uid] = (np.full(2, np.nan) if record is None or not estimate.exists(record.key) else
+                                  estimate.atVector(record.key) if wall else estimate.atPoint2(record.key))
+            values = np.array([value[uid] for uid in seen.uid.tolist()]).reshape(-1, 2)
+            x, y, yaw = pose.x(), pose.y(), pose.theta()
+            turn = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+            # where each sighting should have been (keyframe frame): a corner's position; on a wall, the foot of
+            # the perpendicular from the sensor, on the line n . x = d - n . t (n turned into the keyframe)
+            expected = (values - (x, y)) @ turn
+            wall = part.is_wall
+            angle = values[:, 0]  # a wall's: its sightings' bearing is near it plus pi
+            normal = np.stack([np.cos(angle - yaw), np.sin(angle - yaw)], axis=-1)
+            reach = values[:, 1] - (np.cos(angle) * x + np.sin(angle) * y) - np.einsum("ni,ni->n", normal, seen.sensor)
+            expected[wall] = (seen.sensor + reach[:, None] * normal)[wall]
+            stretch, covariance = self._pair_geometry(seen, expected)
+            sight = expected - seen.sensor
+            distance = np.hypot(sight[:, 0], sight[:, 1])
+            across = np.stack([-sight[:, 1], sight[:, 0]], axis=-1) / distance[:, None]
+            across_stretch = np.einsum("ni,ni->n", across, stretch)
+            variance = np.einsum("ni,nij,nj->n", across, covariance, across)
+            observes = across @ turn.T
+            measured = np.einsum("ni,ni->n", observes, part.position @ turn.T + (x, y))
+            error = np.einsum("ni,ni->n", across, part.position - expected)
+            if wall.any():  # the bearing from the sensor in map, taken near the wall's angle plus pi
+                offset = part.position[wall] - seen.sensor[wall]
+                facing = angle[wall] + np.pi
+                measured[wall] = facing + np.angle(np.exp(1j * (np.arctan2(offset[:, 1], offset[:, 0]) + yaw - facing)))
+                observes[wall] = (1.0, 0.0)
+                across_stretch[wall] /= distance[wall]
+                variance[wall] /= distance[wall] ** 2
+                error[wall] /= distance[wall]
+            # An echo that is not the entry's (a double bounce the echo tests did not explain, a phantom) is
+            # as likely off one way as the other, but not by as much as the noise: left out.
+            kept = error ** 2 <= AIR_GATE_CHI2 * variance
+            self.air.add(seen.uid[kept], observes[kept], measured[kept], across_stretch[kept], variance[kept])
+
     def _follow_renames(self, renamed: dict) -> None:
         """Entries that live on under another uid keep their record (a wall absorbing a confirmed one inherits it).
 
@@ -567,6 +679,7 @@ class LandmarkSlam:
         self._smoother.update(graph, values, {key: time})
         self._keyframe, self._keyframe_odometry, self._keyframe_time = 0, odometry.copy(), time
         self._keyframe_pose = odometry.copy()
+        self._origin = odometry[:2].copy()
         self._keyframe_covariance = np.diag([1e-8, 1e-8, 1e-10])
         self._pings_since_keyframe = 0
 
@@ -585,6 +698,8 @@ class LandmarkSlam:
         self._smoother.update(graph, values, timestamps)
         self._keyframe += 1
         estimate = self._smoother.calculateEstimate()
+        self._fit_air(estimate)
+        self.air_estimate = self.air.fit()
         pose = estimate.atPose2(key)
         self._keyframe_pose = np.array([pose.x(), pose.y(), pose.theta()])
         if self._keyframe % self.settings.covariance_every == 0:
@@ -652,6 +767,8 @@ class LandmarkSlam:
         if not same.all():
             seen, index, is_wall = seen.select(same), index[same], is_wall[same]
         position, covariance = self._measured(seen, is_wall, entries.landmark_class[index])
+        if self._plan is not None:
+            self._keep_for_air(pose_key, seen, is_wall, entries.landmark_class[index])
         for uid, measurement, spread in zip(*_fused(seen.uid, position, covariance), strict=True):
             record = self._confirmed[uid]
             if record.kind == POINT:
@@ -691,12 +808,31 @@ class LandmarkSlam:
     def snapshot(self, min_observations: int = 1) -> Landmarks:
         """The map in ``map``: confirmed, decided entries (walls first, then points), as :meth:`LandmarkMap.snapshot`.
 
-        Walls end at the confirmed corners and edges on their lines near their ends (:meth:`published`).
+        Walls end at the confirmed corners and edges on their lines near their ends (:meth:`published`); the
+        map is scaled by the air's speed (:meth:`scaled`).
         """
-        return self.published().snapshot(min_observations=min_observations, only=self.confirmed, decided=True)
+        landmarks = self.published().snapshot(min_observations=min_observations, only=self.confirmed, decided=True)
+        return dataclasses.replace(landmarks, position=self.scaled(landmarks.position),
+                                   segment=self.scaled(landmarks.segment),
+                                   covariance=landmarks.covariance * self._scale() ** 2)
+
+    def scaled(self, points) -> np.ndarray:
+        """Points (..., 2) of the graph's ``map`` as published: scaled by ``1 + e`` about the session's start.
+
+        The graph, its gates and the echo tests keep the sightings as the assumed air made them; what is
+        published has the air's estimated speed (``e``: :attr:`air_estimate`, :mod:`sonar_ring.air`).
+        """
+        return self._origin + self._scale() * (np.asarray(points, dtype=float) - self._origin)
+
+    def _scale(self) -> float:
+        return 1.0 + self.air_estimate[0]
 
     def snapshot_and_uids(self, min_observations: int = 1) -> tuple[Landmarks, np.ndarray]:
-        """:meth:`snapshot` and the uids of its entries, in its order, from one :meth:`published` copy."""
+        """:meth:`snapshot` as the graph holds it, and the uids of its entries, in its order.
+
+        Not :meth:`scaled`: the echo tests compare it with sightings the assumed air made.  From one
+        :meth:`published` copy.
+        """
         published, confirmed = self.published(), self.confirmed
         return (published.snapshot(min_observations=min_observations, only=confirmed, decided=True),
                 published.snapshot_uids(min_observations, only=confirmed, decided=True))
@@ -709,12 +845,14 @@ class LandmarkSlam:
         past the default 5 s lag).
         """
         self.front.remove(uids)
+        self.air.forget(uids)
         for uid in np.asarray(uids, dtype=np.int64).tolist():
             self._confirmed.pop(uid, None)
 
     def points(self, min_observations: int = 1) -> np.ndarray:
         """Costmap points of the confirmed entries in ``map``, (P, 2), m (walls ended as in :meth:`snapshot`)."""
-        return self.published().points(min_observations=min_observations, only=self.confirmed, decided=True)
+        return self.scaled(self.published().points(min_observations=min_observations, only=self.confirmed,
+                                                    decided=True))
 
     def published(self) -> LandmarkMap:
         """The front end with the confirmed walls ended at the confirmed points on their lines near their ends.
@@ -729,15 +867,23 @@ class LandmarkSlam:
                                          self.settings.wall_end_tolerance)
 
     def pose(self) -> tuple[np.ndarray, np.ndarray]:
-        """The robot's latest pose in ``map`` ``(x, y, yaw)`` and its covariance (3, 3), in ``map``."""
+        """The robot's latest pose in ``map`` ``(x, y, yaw)`` and its covariance (3, 3), in ``map`` as published.
+
+        (:meth:`pose_at`, :meth:`scaled`.)
+        """
         if self._last_odometry is None:
             return np.zeros(3), np.zeros((3, 3))
-        return self.pose_at(self._last_odometry)
+        pose, covariance = self.pose_at(self._last_odometry)
+        return self._scaled_pose(pose), covariance * np.outer(*2 * [(self._scale(), self._scale(), 1.0)])
+
+    def _scaled_pose(self, pose: np.ndarray) -> np.ndarray:
+        return np.concatenate([self.scaled(pose[:2]), pose[2:]])
 
     def pose_at(self, odometry) -> tuple[np.ndarray, np.ndarray]:
-        """The robot's pose in ``map`` and its covariance (3, 3) at the odometry pose ``odometry`` (``odom``).
+        """The robot's pose in the graph's ``map`` and its covariance (3, 3) at the odometry pose ``odometry``.
 
-        Predicted from the latest keyframe's estimate and the odometry since; before the first ping,
+        ``odometry`` in ``odom``; not :meth:`scaled` (the echo tests' pose).  Predicted from the latest
+        keyframe's estimate and the odometry since; before the first ping,
         ``odometry`` itself (``map`` starts equal to ``odom``) with no uncertainty.
         """
         odometry = np.asarray(odometry, dtype=float)

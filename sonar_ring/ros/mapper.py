@@ -90,10 +90,6 @@ ECHO_TESTS_PREFIX = "echo_tests."
 """The echo tests' parameters: ``echo_tests.<field>`` of :class:`~sonar_ring.explain.EchoTests` (read-only)."""
 
 ECHO_TESTS_PARAMS = [
-    Param(ECHO_TESTS_PREFIX + "sigma_path", EchoTests.sigma_path, "one receiver's path noise c * sigma_tof, m",
-          low=1e-6, high=0.1, read_only=True),
-    Param(ECHO_TESTS_PREFIX + "sigma_speed", EchoTests.sigma_speed,
-          "relative error of the speed of sound the nodes assume", low=0.0, high=0.1, read_only=True),
     Param(ECHO_TESTS_PREFIX + "sigma_map", EchoTests.sigma_map, "position error of a map entry, m", low=0.0,
           high=1.0, read_only=True),
     Param(ECHO_TESTS_PREFIX + "gate_sigmas", EchoTests.gate_sigmas,
@@ -130,6 +126,11 @@ PARAMS = [
     Param("min_support_travel", MapperSettings.min_support_travel,
           "how far the sensor must have moved from where it first saw a landmark for it to persist, m", low=0.0,
           high=10.0, read_only=True),
+    Param("sigma_path", EchoTests.sigma_path, "one receiver's path noise c * sigma_tof, m (the echo tests' "
+          "tolerance; with SLAM, the weight of a sighting in the air's fit)", low=1e-6, high=0.1, read_only=True),
+    Param("sigma_speed", EchoTests.sigma_speed, "relative error of the speed of sound the nodes assume (the echo "
+          "tests' tolerance; with SLAM, where the air's fit starts; 0: the map keeps the assumed speed)", low=0.0,
+          high=0.1, read_only=True),
     EXPECTED_FRAME,
     FUTURE_TOLERANCE,
     *SLAM_PARAMS,
@@ -139,8 +140,9 @@ PARAMS = [
 
 def mapper_settings(values: dict) -> MapperSettings:
     """The core's settings from the mapper's parameter values (:data:`PARAMS`)."""
-    slam = SlamSettings(**{p.name.removeprefix(SLAM_PREFIX): values[p.name] for p in SLAM_PARAMS})
-    tests = EchoTests(**{p.name.removeprefix(ECHO_TESTS_PREFIX): values[p.name] for p in ECHO_TESTS_PARAMS})
+    noise = {"sigma_path": values["sigma_path"], "sigma_speed": values["sigma_speed"]}
+    slam = SlamSettings(**noise, **{p.name.removeprefix(SLAM_PREFIX): values[p.name] for p in SLAM_PARAMS})
+    tests = EchoTests(**noise, **{p.name.removeprefix(ECHO_TESTS_PREFIX): values[p.name] for p in ECHO_TESTS_PARAMS})
     return MapperSettings(slam=values["slam"], use_odometry=values["use_odometry"],
                           layout=load_layout(values["layout"]),
                           fixed_pose=tuple(values["fixed_pose"]), sensor_offset=tuple(values["sensor_offset"]),
@@ -210,7 +212,7 @@ class Mapper(SonarNode):
         self.params = declare(self, PARAMS)
         self.health = NodeHealth(self, hardware_id="map")
         self.builder = MapBuilder(mapper_settings(self.params), self.health)
-        self.health.extra_values = lambda: {"not persistent (entries held back)": str(self.builder.not_persistent())}
+        self.health.extra_values = self._diagnostic_values
         load_kernels()  # now, or the first ping would wait for them
         if self.params["echo_tests"]:
             explain.load_kernels()
@@ -242,6 +244,13 @@ class Mapper(SonarNode):
         self._tf = self.create_publisher(TFMessage, "/tf", 100)
 
     @property
+    def _diagnostic_values(self) -> dict[str, str]:
+        values = {"not persistent (entries held back)": str(self.builder.not_persistent())}
+        if self.builder.slam is not None and self.builder.slam.settings.sigma_speed > 0.0:
+            error, sigma = self.builder.slam.air_estimate
+            values["speed of sound over the assumed (%)"] = f"{100.0 * error:+.3f} +- {100.0 * sigma:.3f}"
+        return values
+
     def pending_pings(self) -> int:
         """Pings received and waiting for odometry at or after their stamp."""
         return self.builder.pending
