@@ -126,6 +126,13 @@ class AirSpeed:
         np.add.at(self._along, slot, weight * s * y)
         self.sightings += int(slot.size)
 
+    def start_session(self) -> None:
+        """Entries from now on are new ones, whatever their ids (a new map session numbers its own from 0).
+
+        What the entries before gave stays in the fit.
+        """
+        self._slots.clear()
+
     def forget(self, entries) -> None:
         """Drop what the entries ``entries`` gave (a ghost's sightings are not of a fixed reflector)."""
         for entry in np.asarray(entries, dtype=np.int64).tolist():

@@ -99,10 +99,11 @@ from sonar_ring.mapping import LandmarkMap, transform_landmarks
 from sonar_ring.poses import compose, inverse, relative_pose, turned_covariances
 
 POSE, POINT, WALL = "x", "l", "w"
+"""Symbol characters of the graph's keyframe poses, point landmarks and walls."""
+
 AIR_GATE_CHI2 = 10.83
 """A sighting's squared bearing error in its variance above which the air's fit leaves it out (chi-square, 1
 degree of freedom, 99.9 %)."""
-"""Symbol characters of the graph's keyframe poses, point landmarks and walls."""
 
 
 @dataclass(frozen=True)
@@ -418,7 +419,8 @@ class LandmarkSlam:
         self._keyframe_time = 0.0
         self._pings_since_keyframe = 0
         self._next_landmark = 0
-        self._air_rows = []  # the sightings measured since the last update: (pose key, uids, is_wall, z, C, stretch)
+        self._air_rows: list[_AirRows] = []  # the air's sightings measured since the last update
+        self.air.start_session()
         self._last_odometry = None
         self._last_time = None
         self._last_seen_time = None

@@ -117,3 +117,15 @@ def test_error_handling():
     assert air.fit()[1] < 0.0035  # entry 0's two sightings disagree: they tell something
     jacobian, paths = path_jacobian([[0.0, 0.0]], [[0.0, 0.02]], [[0.0, -0.02]], [[0.0, 1.0]])  # on the line
     assert np.isnan(jacobian).all() and np.isfinite(paths).all()
+
+
+def test_a_new_session_keeps_what_the_old_one_gave_and_numbers_its_own_entries():
+    rng = np.random.default_rng(6)
+    first, second = _entries(rng, 10, 100, 0.003, 0.01), _entries(rng, 10, 100, 0.003, 0.01)
+    together, sessions = AirSpeed(0.01), AirSpeed(0.01)
+    together.add(*first)
+    together.add(second[0] + 10, *second[1:])  # the second session's entries are other reflectors
+    sessions.add(*first)
+    sessions.start_session()
+    sessions.add(*second)  # numbered from 0 again
+    assert np.allclose(sessions.fit(), together.fit(), rtol=1e-9, atol=1e-12)

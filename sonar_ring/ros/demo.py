@@ -47,7 +47,7 @@ from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import CLASS_NAMES, CORNER_OR_EDGE, UNKNOWN
 from sonar_ring.msg import LandmarkArray
 from sonar_ring.progress import progress_bar
-from sonar_ring.realism import PROFILES
+from sonar_ring.realism import PROFILES, air_speed
 from sonar_ring.ros.bag import TOPIC, BagWriter, absolute, graph_topics, static_transforms, tf_message
 from sonar_ring.ros.convert import echoes_from_cdr, landmarks_from_msg
 from sonar_ring.ros.driver import BASE_FRAME, REALISM_PREFIX
@@ -295,13 +295,16 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
             paths["SLAM"] = np.array([estimate[k] for k in estimated])
             errors["SLAM"] = trajectory_error(paths["SLAM"], np.array([true_pose[k] for k in estimated]))
         heard = heard_reflectors(driver.scene, *_truth_in_world(truth, true_pose))
+        slam = mapper.builder.slam
+        air = None if slam is None or slam.settings.sigma_speed == 0.0 else \
+            (*slam.air_estimate, air_speed(driver.scene, driver.realism, 0.0) / driver.scene.speed_of_sound - 1.0)
         return {
             **figures, "pings": total, "seconds": elapsed, "latency_ms": latency, "world": world,
             "effects": driver.realism.effects(),
             "map": {name: int(np.count_nonzero(snapshot.landmark_class == c)) for c, name in enumerate(CLASS_NAMES)},
             # odom starts at the true first pose, and map at odom's first pose: the map frame is the scene's
             "map_score": score_map(snapshot, driver.scene, heard), "map_frame": mapper.builder.frame,
-            "pose_errors": errors,
+            "pose_errors": errors, "air": air,
             "snapshot": snapshot, "scene": driver.scene, "paths": paths, "bag": bag_path,
         }
     finally:
@@ -377,6 +380,10 @@ def summary_text(figures: dict) -> str:
                       f"up to {1e2 * score.wall_overshoot.max():.1f} cm past their ends")
     if errors:
         lines.append("  map error (mapped entries): " + ", ".join(errors))
+    if figures.get("air") is not None:
+        error, sigma, true_error = figures["air"]
+        lines.append(f"  speed of sound (SLAM's fit): {100 * error:+.2f} +- {100 * sigma:.2f} % over the assumed "
+                     f"(the air's at the start: {100 * true_error:+.2f} %)")
     if figures["pose_errors"]:
         lines.append("  pose error: " + "; ".join(f"{name} RMS {1e2 * rms:.1f} cm, final {1e2 * final:.1f} cm"
                                                  for name, (rms, final) in figures["pose_errors"].items()))
