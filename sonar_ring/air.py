@@ -77,9 +77,11 @@ def path_jacobian(transmitter, first, second, position) -> tuple[np.ndarray, np.
         paths[:, k] = np.hypot(towards[:, 0], towards[:, 1])
         rows[:, k] = towards / paths[:, k, None]
     determinant = rows[:, 0, 0] * rows[:, 1, 1] - rows[:, 0, 1] * rows[:, 1, 0]
+    jacobian = np.empty_like(rows)  # half the inverse: the adjugate over twice the determinant
+    jacobian[:, 0, 0], jacobian[:, 1, 1] = rows[:, 1, 1], rows[:, 0, 0]
+    jacobian[:, 0, 1], jacobian[:, 1, 0] = -rows[:, 0, 1], -rows[:, 1, 0]
     with np.errstate(divide="ignore", invalid="ignore"):
-        jacobian = np.stack([np.stack([rows[:, 1, 1], -rows[:, 0, 1]], -1),
-                             np.stack([-rows[:, 1, 0], rows[:, 0, 0]], -1)], -2) / (2.0 * determinant[:, None, None])
+        jacobian /= 2.0 * determinant[:, None, None]
     jacobian[determinant == 0.0] = np.nan
     return jacobian, paths
 

@@ -573,15 +573,18 @@ class LandmarkSlam:
 
         (:func:`~sonar_ring.air.path_jacobian`: ``J d`` and ``sigma_path^2 J J^T`` plus ``sighting_sigma``.)
         """
-        c, s = np.cos(seen.heading), np.sin(seen.heading)
-        turn = np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)  # sensor frame -> keyframe frame
+        turn = np.empty((len(position), 2, 2))  # sensor frame -> keyframe frame
+        turn[:, 0, 0] = turn[:, 1, 1] = np.cos(seen.heading)
+        turn[:, 1, 0] = np.sin(seen.heading)
+        turn[:, 0, 1] = -turn[:, 1, 0]
         in_sensor = np.einsum("nji,nj->ni", turn, position - seen.sensor)
         receivers = self._plan.receivers[seen.group]
         jacobian, paths = path_jacobian(self._plan.transmitters[seen.group, 0], receivers[:, 0], receivers[:, 1],
                                         in_sensor)
         jacobian = turn @ jacobian
-        covariance = self.settings.sigma_path ** 2 * jacobian @ jacobian.transpose(0, 2, 1) \
-            + self.settings.sighting_sigma ** 2 * np.eye(2)
+        covariance = self.settings.sigma_path ** 2 * jacobian @ jacobian.transpose(0, 2, 1)
+        covariance[:, 0, 0] += self.settings.sighting_sigma ** 2
+        covariance[:, 1, 1] += self.settings.sighting_sigma ** 2
         return np.einsum("nij,nj->ni", jacobian, paths), covariance
 
     def _keep_for_air(self, pose_key: int, seen: _Seen, is_wall: np.ndarray, entry_class: np.ndarray) -> None:
@@ -607,13 +610,13 @@ class LandmarkSlam:
             pose = estimate.atPose2(part.pose_key)
             seen = part.seen
             # Each entry's estimate: a wall's line (theta, d), a corner's position, both in map; NaN if gone.
-            value = {}
-            for uid, wall in zip(seen.uid.tolist(), part.is_wall.tolist(), strict=True):
+            entries, first, index = np.unique(seen.uid, return_index=True, return_inverse=True)
+            value = np.full((entries.size, 2), np.nan)
+            for row, (uid, wall) in enumerate(zip(entries.tolist(), part.is_wall[first].tolist(), strict=True)):
                 record = self._confirmed.get(uid)
-                if uid not in value:
-                    value[uid] = (np.full(2, np.nan) if record is None or not estimate.exists(record.key) else
-                                  estimate.atVector(record.key) if wall else estimate.atPoint2(record.key))
-            values = np.array([value[uid] for uid in seen.uid.tolist()]).reshape(-1, 2)
+                if record is not None and estimate.exists(record.key):
+                    value[row] = estimate.atVector(record.key) if wall else estimate.atPoint2(record.key)
+            values = value[index]
             x, y, yaw = pose.x(), pose.y(), pose.theta()
             turn = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
             # where each sighting should have been (keyframe frame): a corner's position; on a wall, the foot of
@@ -700,11 +703,10 @@ class LandmarkSlam:
         self._smoother.update(graph, values, timestamps)
         self._keyframe += 1
         estimate = self._smoother.calculateEstimate()
-        self._fit_air(estimate)
-        self.air_estimate = self.air.fit()
         pose = estimate.atPose2(key)
         self._keyframe_pose = np.array([pose.x(), pose.y(), pose.theta()])
         if self._keyframe % self.settings.covariance_every == 0:
+            # the slowest keyframes: the air's fit waits for the next (its sightings' keyframes stay in the window)
             self._keyframe_covariance = self._smoother.marginalCovariance(key)
         else:
             # The smoother's marginal costs tens of ms once the map is large (its root clique holds the
@@ -712,6 +714,8 @@ class LandmarkSlam:
             # one, turned into this keyframe's body frame.
             adjoint = gtsam.Pose2(*step).inverse().AdjointMap()
             self._keyframe_covariance = adjoint @ self._keyframe_covariance @ adjoint.T
+            self._fit_air(estimate)
+            self.air_estimate = self.air.fit()
         self._keyframe_odometry, self._keyframe_time = odometry.copy(), time
         self._pings_since_keyframe = 0
         self._since_keyframe.clear()
