@@ -93,5 +93,7 @@ def test_every_nodes_counts_on_diagnostics_are_what_was_received(ros):
     for name, topic in INPUTS.items():
         assert reported[name]["inputs"] == str(received[topic]), name
     assert received["echoes"] == 19 and received["map/landmarks"] > 0
+    # the air's fit (SLAM): nothing to fit from a robot that stands still, the prior (sigma_speed) as it is
+    assert reported["mapper"]["speed of sound over the assumed (%)"] == "+0.000 +- 0.350"
     for node in [*nodes.values(), listener]:
         node.destroy_node()

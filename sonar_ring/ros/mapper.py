@@ -243,7 +243,6 @@ class Mapper(SonarNode):
         self._tf_message = TFMessage
         self._tf = self.create_publisher(TFMessage, "/tf", 100)
 
-    @property
     def _diagnostic_values(self) -> dict[str, str]:
         values = {"not persistent (entries held back)": str(self.builder.not_persistent())}
         if self.builder.slam is not None and self.builder.slam.settings.sigma_speed > 0.0:
@@ -251,6 +250,7 @@ class Mapper(SonarNode):
             values["speed of sound over the assumed (%)"] = f"{100.0 * error:+.3f} +- {100.0 * sigma:.3f}"
         return values
 
+    @property
     def pending_pings(self) -> int:
         """Pings received and waiting for odometry at or after their stamp."""
         return self.builder.pending
