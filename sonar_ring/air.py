@@ -151,7 +151,7 @@ class AirSpeed:
         normal = np.sum(self._normal - np.einsum("ni,nij,nj->n", self._moved, inverse, self._moved))
         along = np.sum(self._along - np.einsum("ni,nij,nj->n", self._moved, inverse, self._pulled))
         information = float(normal) + 1.0 / self.prior_sigma ** 2
-        return -float(along) / information, 1.0 / math.sqrt(information)
+        return 0.0 - float(along) / information, 1.0 / math.sqrt(information)  # 0.0 -: never a negative zero
 
     def _slots_of(self, entry: np.ndarray) -> np.ndarray:
         """Each entry's row in the sums, new rows for new entries."""

@@ -95,7 +95,7 @@ def test_a_forgotten_entry_leaves_no_trace():
 
 def test_the_prior_holds_the_estimate_until_sightings_outweigh_it():
     air = AirSpeed(0.0035)
-    assert air.fit() == (0.0, 0.0035)
+    assert air.fit() == (0.0, 0.0035) and math.copysign(1.0, air.fit()[0]) == 1.0  # "+0.000 %", not "-0.000 %"
     rng = np.random.default_rng(5)
     air.add(*_entries(rng, 2, 3, 0.05, 0.03))  # a few noisy sightings: pulled little towards 5 %
     assert abs(air.fit()[0]) < 0.0035
