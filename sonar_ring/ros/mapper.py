@@ -128,9 +128,9 @@ PARAMS = [
           high=10.0, read_only=True),
     Param("sigma_path", EchoTests.sigma_path, "one receiver's path noise c * sigma_tof, m (the echo tests' "
           "tolerance; with SLAM, the weight of a sighting in the air's fit)", low=1e-6, high=0.1, read_only=True),
-    Param("sigma_speed", EchoTests.sigma_speed, "relative error of the speed of sound the nodes assume (the echo "
-          "tests' tolerance; with SLAM, where the air's fit starts; 0: the map keeps the assumed speed)", low=0.0,
-          high=0.1, read_only=True),
+    Param("relative_sigma_speed", EchoTests.sigma_speed, "relative error of the speed of sound the nodes assume, a "
+          "fraction (the localiser's sigma_speed over the speed; the echo tests' tolerance; with SLAM, where the "
+          "air's fit starts; 0: the map keeps the assumed speed)", low=0.0, high=0.1, read_only=True),
     EXPECTED_FRAME,
     FUTURE_TOLERANCE,
     *SLAM_PARAMS,
@@ -140,7 +140,7 @@ PARAMS = [
 
 def mapper_settings(values: dict) -> MapperSettings:
     """The core's settings from the mapper's parameter values (:data:`PARAMS`)."""
-    noise = {"sigma_path": values["sigma_path"], "sigma_speed": values["sigma_speed"]}
+    noise = {"sigma_path": values["sigma_path"], "sigma_speed": values["relative_sigma_speed"]}
     slam = SlamSettings(**noise, **{p.name.removeprefix(SLAM_PREFIX): values[p.name] for p in SLAM_PARAMS})
     tests = EchoTests(**noise, **{p.name.removeprefix(ECHO_TESTS_PREFIX): values[p.name] for p in ECHO_TESTS_PARAMS})
     return MapperSettings(slam=values["slam"], use_odometry=values["use_odometry"],
