@@ -8,7 +8,7 @@ e)`` about where it started and nothing could tell.  It is not: a ring's pair
 solves its landmark from two paths and the receivers' and emitter's true
 positions, so the landmark moves with the paths' scale as
 
-    ``q(e) = q + e a``,  ``a = J d`` (:func:`path_jacobian`: ``J = dq/dd``, ``d`` the paths),
+    ``q(e) = q + e a``,  ``a = J d`` (``J = dq/dd``: :func:`sonar_ring.uncertainty.position_jacobian`; ``d`` the paths),
 
 which is mostly the scaling ``e q`` (what the map takes up: the map is scaled)
 and, across the line of sight, about ``e tan(theta)`` of bearing, ``theta`` the
@@ -45,45 +45,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-
-def path_jacobian(transmitter, first, second, position) -> tuple[np.ndarray, np.ndarray]:
-    """A pair's virtual-image landmarks' derivative by their two paths, ``J = d q / d (d_1, d_2)``, and the paths.
-
-    A virtual-image landmark (plane foot point, corner, undecided point) ``G``
-    puts the emitter's image at ``T' = 2G - T``, with paths ``d_k = |T' - R_k|``:
-    ``J`` is half the inverse of the matrix whose rows are ``(T' - R_k) / d_k``.
-    Paths ``1 + e`` times longer move the landmark by ``e J d``; paths with
-    independent noise ``sigma`` give it the covariance ``sigma^2 J J^T``.
-
-    Parameters
-    ----------
-    transmitter, first, second : array_like, shape (n, 2)
-        The pair's emitter and its two receivers, the landmark's frame, m.
-    position : array_like, shape (n, 2)
-        The landmarks ``G``, m.
-
-    Returns
-    -------
-    jacobian : ndarray, shape (n, 2, 2)
-        ``J[:, i, k] = d q_i / d d_k``; NaN where the two rows are parallel (an echo on the receivers' line).
-    paths : ndarray, shape (n, 2)
-        ``d``, m.
-    """
-    image = 2.0 * np.asarray(position, dtype=float) - np.asarray(transmitter, dtype=float)
-    rows, paths = np.empty(image.shape[:1] + (2, 2)), np.empty(image.shape)
-    for k, receiver in enumerate((first, second)):
-        towards = image - np.asarray(receiver, dtype=float)
-        paths[:, k] = np.hypot(towards[:, 0], towards[:, 1])
-        rows[:, k] = towards / paths[:, k, None]
-    determinant = rows[:, 0, 0] * rows[:, 1, 1] - rows[:, 0, 1] * rows[:, 1, 0]
-    jacobian = np.empty_like(rows)  # half the inverse: the adjugate over twice the determinant
-    jacobian[:, 0, 0], jacobian[:, 1, 1] = rows[:, 1, 1], rows[:, 0, 0]
-    jacobian[:, 0, 1], jacobian[:, 1, 0] = -rows[:, 0, 1], -rows[:, 1, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        jacobian /= 2.0 * determinant[:, None, None]
-    jacobian[determinant == 0.0] = np.nan
-    return jacobian, paths
 
 
 class AirSpeed:

@@ -320,7 +320,11 @@ class MapBuilder:
                                           decided=self._tested)
 
     def snapshot_and_uids(self) -> tuple[Landmarks, np.ndarray]:
-        """:meth:`snapshot` and the uids of its entries, in its order."""
+        """The map the echo tests compare a ping's sightings with, and the uids of its entries, in its order.
+
+        :meth:`snapshot`, but with SLAM as the graph holds it, not scaled by the air's fit
+        (:meth:`~sonar_ring.slam.LandmarkSlam.snapshot_and_uids`): the sightings were made with the assumed air.
+        """
         if self.slam is not None:
             return self.slam.snapshot_and_uids(self.settings.min_observations)
         return self.snapshot(), self.landmark_map.snapshot_uids(self.settings.min_observations,

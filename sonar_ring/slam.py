@@ -92,11 +92,13 @@ from dataclasses import dataclass, fields
 import gtsam
 import numpy as np
 
-from sonar_ring.air import AirSpeed, path_jacobian
+from sonar_ring.air import AirSpeed
 from sonar_ring.curvature import PointModels
 from sonar_ring.landmarks import CORNER, EDGE, Landmarks
+from sonar_ring.localise import OK, PointEstimate, reflector_paths
 from sonar_ring.mapping import LandmarkMap, transform_landmarks
 from sonar_ring.poses import compose, inverse, relative_pose, turned_covariances
+from sonar_ring.uncertainty import position_jacobian
 
 POSE, POINT, WALL = "x", "l", "w"
 """Symbol characters of the graph's keyframe poses, point landmarks and walls."""
@@ -393,7 +395,8 @@ class LandmarkSlam:
 
     def __init__(self, settings: SlamSettings = SlamSettings(), front_end: dict | None = None, layout=None):
         self.settings = settings
-        self._plan = layout.plan if layout is not None and layout.kind == "ring" else None
+        # the ring whose pairs the air's fit uses; none where it is off (not a ring, or sigma_speed 0)
+        self._plan = layout.plan if layout is not None and layout.kind == "ring" and settings.sigma_speed > 0 else None
         self.air = AirSpeed(settings.sigma_speed)
         self.air_estimate = self.air.fit()
         self._unmodelled = np.diag([settings.unmodelled_position_sigma ** 2, settings.unmodelled_position_sigma ** 2,
@@ -571,17 +574,20 @@ class LandmarkSlam:
     def _pair_geometry(self, seen: _Seen, position: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Stretch (n, 2) and covariance (n, 2, 2) of sightings at ``position`` (keyframe frame), that frame.
 
-        (:func:`~sonar_ring.air.path_jacobian`: ``J d`` and ``sigma_path^2 J J^T`` plus ``sighting_sigma``.)
+        (``J d`` and ``sigma_path^2 J J^T`` plus ``sighting_sigma``: ``J`` the corner model's derivative by the
+        pair's two paths ``d``, :func:`~sonar_ring.uncertainty.position_jacobian`, the model the sightings of walls
+        and corners were placed by.)
         """
         turn = np.empty((len(position), 2, 2))  # sensor frame -> keyframe frame
         turn[:, 0, 0] = turn[:, 1, 1] = np.cos(seen.heading)
         turn[:, 1, 0] = np.sin(seen.heading)
         turn[:, 0, 1] = -turn[:, 1, 0]
         in_sensor = np.einsum("nji,nj->ni", turn, position - seen.sensor)
-        receivers = self._plan.receivers[seen.group]
-        jacobian, paths = path_jacobian(self._plan.transmitters[seen.group, 0], receivers[:, 0], receivers[:, 1],
-                                        in_sensor)
-        jacobian = turn @ jacobian
+        transmitter, receivers = self._plan.transmitters[seen.group, 0], self._plan.receivers[seen.group]
+        count = len(position)
+        corner = PointEstimate(in_sensor, np.ones(count, bool), np.full(count, OK, np.int8), "corner")
+        jacobian = turn @ position_jacobian(corner, transmitter, receivers[:, 0], receivers[:, 1])
+        paths = reflector_paths(transmitter, receivers, in_sensor, np.zeros(count, bool))
         covariance = self.settings.sigma_path ** 2 * jacobian @ jacobian.transpose(0, 2, 1)
         covariance[:, 0, 0] += self.settings.sighting_sigma ** 2
         covariance[:, 1, 1] += self.settings.sighting_sigma ** 2
