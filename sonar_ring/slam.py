@@ -97,6 +97,7 @@ from sonar_ring.curvature import PointModels
 from sonar_ring.landmarks import CORNER, EDGE, Landmarks
 from sonar_ring.localise import OK, PointEstimate, reflector_paths
 from sonar_ring.mapping import LandmarkMap, transform_landmarks
+from sonar_ring.mapping import load_kernels as load_map_kernels
 from sonar_ring.poses import compose, inverse, relative_pose, turned_covariances
 from sonar_ring.uncertainty import position_jacobian
 
@@ -381,6 +382,19 @@ def _inverse(matrix: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- the SLAM
+
+
+def load_kernels() -> None:
+    """Load the map's compiled kernels (:func:`sonar_ring.mapping.load_kernels`) and the air's fit's now.
+
+    The air's fit (:meth:`LandmarkSlam._pair_geometry`) takes a sighting's Jacobian by its paths and the
+    paths from compiled loops: one sighting 1 m in front of a pair, with the production argument types.
+    """
+    load_map_kernels()
+    transmitter, receivers, position = np.zeros((1, 2)), np.array([[[0.3, 0.02], [0.3, -0.02]]]), np.array([[1.0, 0.0]])
+    position_jacobian(PointEstimate(position, np.ones(1, bool), np.full(1, OK, np.int8), "corner"), transmitter,
+                      receivers[:, 0], receivers[:, 1])
+    reflector_paths(transmitter, receivers, position, np.zeros(1, bool))
 
 
 class LandmarkSlam:

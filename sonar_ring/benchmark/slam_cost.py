@@ -51,7 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sonar_ring import explain, map_builder, mapping, pipeline
+from sonar_ring import explain, map_builder, pipeline, slam
 from sonar_ring.benchmark import sections, worlds
 from sonar_ring.benchmark.environment import machine, revision, today
 from sonar_ring.geometry import load_layout
@@ -119,7 +119,7 @@ def new_builder() -> MapBuilder:
 
     Its compiled kernels are loaded first, as the node loads them at its start.
     """
-    mapping.load_kernels()
+    slam.load_kernels()
     explain.load_kernels()
     return MapBuilder(MapperSettings(layout=load_layout(worlds.LAYOUT)), Counts())
 

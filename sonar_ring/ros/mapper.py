@@ -40,7 +40,6 @@ from sonar_ring.explain import EchoTests
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import Landmarks
 from sonar_ring.map_builder import MapBuilder, MapperSettings
-from sonar_ring.mapping import load_kernels
 from sonar_ring.msg import LandmarkArray
 from sonar_ring.poses import yaw_of
 from sonar_ring.ros.convert import AnyHeader, MessageError, landmarks_from_msg, serialize_landmarks
@@ -50,7 +49,7 @@ from sonar_ring.ros.markers import covariance_ellipses, explained_markers, landm
 from sonar_ring.ros.node import LATCHED, SonarNode
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.run import spin
-from sonar_ring.slam import SlamSettings
+from sonar_ring.slam import SlamSettings, load_kernels
 
 
 def _three_numbers(value) -> str | None:

@@ -47,7 +47,7 @@ from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import Header
 
-from sonar_ring import mapping
+from sonar_ring import slam
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import Layout, LayoutError, config_path, load_layout
 from sonar_ring.landmarks import CLASS_NAMES, Landmarks
@@ -554,7 +554,7 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
 
             # The map's kernels load while the workers localise the first batches.
             for (graph, time_ns, header), output in ordered_map(work, admitted(), workers, jobs,
-                                                                meanwhile=mapping.load_kernels):
+                                                                meanwhile=slam.load_kernels):
                 graph.take(time_ns, header, output)
             bar.close()
             for name, graph in graphs.items():
