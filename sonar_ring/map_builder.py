@@ -344,7 +344,3 @@ class MapBuilder:
         """Entries of the map held back from :meth:`snapshot` because they do not (yet) persist."""
         entries = self.landmark_map.entries()
         return int(np.count_nonzero(~self.landmark_map.persistent(entries.uid)))
-
-    def map_to_odom(self) -> np.ndarray:
-        """``map -> odom`` ``(x, y, yaw)`` (SLAM's estimate; identity without SLAM)."""
-        return self.slam.map_to_odom() if self.slam is not None else np.zeros(3)

@@ -919,11 +919,13 @@ class LandmarkSlam:
         pose = compose(self._keyframe_pose, step)
         return pose, self._keyframe_covariance_in_map() + self._odometry_covariance(step, pose[2])
 
-    def map_to_odom(self) -> np.ndarray:
-        """The transform ``map -> odom`` ``(x, y, yaw)``: where ``odom`` lies in ``map`` now."""
+    def map_to_odom(self, pose: np.ndarray) -> np.ndarray:
+        """The transform ``map -> odom`` ``(x, y, yaw)``: where ``odom`` lies in ``map`` with the robot at ``pose``.
+
+        ``pose`` is :meth:`pose`'s (``map``, as published), the robot at the latest ping's odometry.
+        """
         if self._last_odometry is None:
             return np.zeros(3)
-        pose, _ = self.pose()
         return compose(pose, inverse(self._last_odometry))
 
     def no_landmarks(self, time: float) -> bool:

@@ -182,17 +182,22 @@ def point_cloud(points: np.ndarray, header: Header) -> PointCloud2:
                        point_step=12, row_step=12 * points.shape[0], data=xyz.tobytes(), is_dense=True)
 
 
-def pose_message(builder: MapBuilder, header: Header) -> PoseWithCovarianceStamped:
-    """The robot's estimated pose in the map and its covariance (``x, y, yaw`` into the 6x6), stamped ``header``."""
-    pose, covariance = builder.slam.pose()
+def pose_message(pose: np.ndarray, covariance: np.ndarray, header: Header) -> PoseWithCovarianceStamped:
+    """``slam/pose``: the robot's pose ``(x, y, yaw)`` and its covariance (3, 3) into the 6x6, stamped ``header``.
+
+    (:meth:`~sonar_ring.slam.LandmarkSlam.pose`.)
+    """
     message = PoseWithCovarianceStamped(header=header)
     message.pose.pose.position.x, message.pose.pose.position.y = float(pose[0]), float(pose[1])
     message.pose.pose.orientation.z, message.pose.pose.orientation.w = math.sin(pose[2] / 2), math.cos(pose[2] / 2)
-    full = np.zeros((6, 6))
-    index = [0, 1, 5]  # x, y, yaw among x, y, z, roll, pitch, yaw
-    full[np.ix_(index, index)] = covariance
-    message.pose.covariance = full.reshape(-1).tolist()
+    full = np.zeros(36)
+    full[_POSE_COVARIANCE_CELLS] = np.asarray(covariance, dtype=float).reshape(-1)
+    message.pose.covariance = full
     return message
+
+
+_POSE_COVARIANCE_CELLS = [6 * row + column for row in (0, 1, 5) for column in (0, 1, 5)]
+"""Cells of a pose's 6x6 covariance (x, y, z, roll, pitch, yaw) that hold ``x, y, yaw``'s 3x3, row by row."""
 
 
 def transform_message(pose, header: Header, child_frame: str) -> TransformStamped:
@@ -295,10 +300,11 @@ class Mapper(SonarNode):
         """Pings went into the map: the pose (SLAM) at the latest, and their compute time."""
         if self.params["slam"]:
             header = self._header(self.builder.latest_stamp, self.params["map_frame"])
-            self._pose_publisher.publish(pose_message(self.builder, header))
+            pose, covariance = self.builder.slam.pose()
+            self._pose_publisher.publish(pose_message(pose, covariance, header))
             self.health.sent(1)
             if self._tf is not None:
-                transform = transform_message(self.builder.map_to_odom(), header, self.params["odom_frame"])
+                transform = transform_message(self.builder.slam.map_to_odom(pose), header, self.params["odom_frame"])
                 self._tf.publish(self._tf_message(transforms=[transform]))
                 self.health.sent(1)
         seconds = (time.perf_counter() - started) / pings

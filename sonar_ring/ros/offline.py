@@ -360,9 +360,10 @@ class OfflineGraph:
         """``slam/pose`` and ``map -> odom`` on ``/tf`` at the latest ping mapped, as the live mapper publishes them."""
         header = Header(frame_id=self._mapper["map_frame"])
         header.stamp.sec, header.stamp.nanosec = divmod(self.builder.latest_stamp, 10**9)
+        pose, covariance = self.builder.slam.pose()
         self._writer.write(self._connections["slam/pose"], time_ns,
-                           serialize_message(mapper.pose_message(self.builder, header)))
-        x, y, yaw = self.builder.map_to_odom()
+                           serialize_message(mapper.pose_message(pose, covariance, header)))
+        x, y, yaw = self.builder.slam.map_to_odom(pose)
         self._writer.write(self._connections["/tf"], time_ns, tf_message([
             (self.builder.latest_stamp, self._mapper["map_frame"], self._mapper["odom_frame"], (x, y, 0.0, yaw))]))
 
