@@ -225,6 +225,7 @@ class MapBuilder:
             self.robot_pose = report.pose
             if report.fault:
                 self.health.problem(report.fault.replace(" ", "_"), f"{report.fault}: a new map session starts")
+            self.health.note("sightings inconsistent with the map", report.inconsistent)
             no_landmarks = self.slam.no_landmarks(stamp * 1e-9)
             if no_landmarks and not self._no_landmarks:
                 self.health.problem("no_landmarks",

@@ -17,7 +17,8 @@ takes the labelled landmarks (sensor frame) and the robot's odometry pose
 4. at a **keyframe** (every ``keyframe_distance`` of travel, ``keyframe_turn``
    of turn or ``keyframe_pings`` pings), adds to the factor graph the
    odometry between the keyframes (``BetweenFactorPose2``), one fused
-   measurement per entry seen since the last keyframe -- a corner, an edge:
+   measurement per entry seen since the last keyframe, of the sightings that
+   agree with the graph (:func:`consistent_sightings`) -- a corner, an edge:
    ``BearingRangeFactor2D``; a wall: a foot-point factor (:func:`wall_factor`)
    on the line ``n(theta) . x = d`` -- and updates the estimate incrementally
    (``IncrementalFixedLagSmoother``: iSAM2 that marginalises keyframes older
@@ -158,6 +159,15 @@ class SlamSettings:
         origin) or of a residual turn; its marginal alone claimed 8 mm and 0.44 deg where the pose was off by
         11-19 mm and 0.4 deg RMS (recorded realistic runs, 3 laps: NEES 4-10 against 3), and the tighter gates
         left multipath fragments unexplained (ghosts in 3 of 20 runs).  With these, the NEES is 1.5-1.6.
+    sighting_gate_chi2 : float
+        A sighting since the latest keyframe enters the graph only if it lies within this squared Mahalanobis
+        distance (its own covariance) of where the graph's estimate puts its entry, seen from the keyframe's
+        estimate corrected by the sightings that agree (:func:`consistent_sightings`).  Fused into one factor
+        per entry, a double bounce that the front end associated with a real entry, or that makes a ghost entry
+        of its own with a few real echoes, pulls the pose; in the first metres, before the map holds the walls
+        that explain it, such a ghost turned the whole map (MAPPING.md).  The air's fit takes every sighting
+        (its own gate is on the bearing alone, :data:`AIR_GATE_CHI2`): with this gate, the sightings the air's
+        error turns most failed it more often and the fit came out low.
     sigma_path, sigma_speed : float
         One receiver's path noise ``c * sigma_tof`` (m) and the relative error of the speed of sound the nodes
         assume: the air's fit (:mod:`sonar_ring.air`) weighs the sightings by the one and starts from the
@@ -185,6 +195,7 @@ class SlamSettings:
     covariance_every: int = 10
     unmodelled_position_sigma: float = 0.011
     unmodelled_yaw_sigma: float = 0.0066
+    sighting_gate_chi2: float = 4.0
     sigma_path: float = 343e-6
     sigma_speed: float = 0.0035
 
@@ -203,6 +214,9 @@ class SlamReport:
         Sightings that went into an entry not yet in the graph.
     keyframe : bool
         Whether the ping made a keyframe (and the graph was updated).
+    inconsistent : int
+        Sightings that keyframe left out of the graph, too far from the graph's estimate
+        (``sighting_gate_chi2``).
     fault : str
         Empty, or why a new session started (``odometry jump``).
     """
@@ -211,6 +225,7 @@ class SlamReport:
     associated: int = 0
     tentative: int = 0
     keyframe: bool = False
+    inconsistent: int = 0
     fault: str = ""
 
 
@@ -336,6 +351,72 @@ def _foot_points(point: np.ndarray, sensor: np.ndarray) -> tuple[np.ndarray, np.
     turn = (np.eye(2) - outer) / distance[:, None, None]  # d n / d point, symmetric
     return along[:, None] * normal, normal[:, :, None] * (normal + np.einsum("nij,nj->ni", turn, point))[:, None, :] \
         + along[:, None, None] * turn
+
+
+def consistent_sightings(pose: np.ndarray, prior: np.ndarray, position: np.ndarray, covariance: np.ndarray,
+                         is_wall: np.ndarray, anchor: np.ndarray, normal: np.ndarray, chi2: float,
+                         rounds: int = 3) -> np.ndarray:
+    """Which sightings agree with their entries' estimates, seen from a pose that may be off: (n,) bool.
+
+    Parameters
+    ----------
+    pose : ndarray, shape (3,)
+        The robot's estimated pose in map (x, y, yaw; m, rad).
+    prior : ndarray, shape (3, 3)
+        Covariance of that estimate's error in its body-frame tangent (GTSAM's ``Pose2.retract``).
+    position, covariance : ndarray, shapes (n, 2), (n, 2, 2)
+        What each sighting measures, in the robot's frame at ``pose`` (m): a point's position, a wall's foot
+        point from the robot's origin; and its covariance (m^2).
+    is_wall : ndarray of bool, shape (n,)
+        Whether each sighting's entry is a wall.
+    anchor, normal : ndarray, shape (n, 2)
+        Each entry's estimate in map: a point ``anchor``, or the line through it with unit ``normal``.
+    chi2 : float
+        Largest squared Mahalanobis distance, in the sighting's own covariance, of a sighting that agrees.
+    rounds : int
+        Fits of the pose's correction.
+
+    The pose's correction ``delta`` (body frame) is fitted first: the weighted least squares of the
+    sightings that agree, linearised about ``pose``, with ``prior`` (a slip of the odometry moves every
+    sighting alike, a double bounce one); the first round takes every sighting.  A sighting agrees when, after
+    ``delta``, its squared Mahalanobis distance is at most ``chi2``.
+    """
+    expected, jacobian = _expected_measurements(pose, is_wall, anchor, normal)
+    information = _inverse(covariance)
+    error = position - expected
+    weighted = np.einsum("nji,njk->nik", jacobian, information)  # J^T W, (n, 3, 2)
+    normal_matrix, pulled = np.einsum("nij,njk->nik", weighted, jacobian), np.einsum("nij,nj->ni", weighted, error)
+    prior_information = np.linalg.inv(prior)
+    agrees = np.ones(len(position), bool)
+    for _ in range(rounds):
+        delta = np.linalg.solve(prior_information + normal_matrix[agrees].sum(axis=0), pulled[agrees].sum(axis=0))
+        left = error - jacobian @ delta
+        agrees = np.einsum("ni,nij,nj->n", left, information, left) <= chi2
+    return agrees
+
+
+def _expected_measurements(pose: np.ndarray, is_wall: np.ndarray, anchor: np.ndarray,
+                           normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """What entries measure from the robot at ``pose`` (3,), map: in its frame (n, 2), and d/d(pose) (n, 2, 3).
+
+    A point at ``anchor`` (n, 2) its position; where ``is_wall`` (n,), the line through ``anchor`` with unit
+    ``normal`` (n, 2) its foot point from the robot's origin (:func:`wall_error`'s).  The derivative is by the
+    pose's body-frame tangent (GTSAM's ``Pose2.retract``): ``e = R^T (a - t)`` moves by ``-d - dtheta e^perp``, a
+    foot point ``s m`` (``m = R^T n``, ``s = n . (a - t)``) by ``-(m . d) m - dtheta s m^perp``.
+    """
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    turn = np.array([[c, -s], [s, c]])  # robot frame -> map
+    expected = (anchor - pose[:2]) @ turn
+    jacobian = np.zeros((len(anchor), 2, 3))
+    jacobian[:, 0, 0] = jacobian[:, 1, 1] = -1.0
+    jacobian[:, 0, 2], jacobian[:, 1, 2] = expected[:, 1], -expected[:, 0]
+    if is_wall.any():
+        facing = normal[is_wall] @ turn  # m
+        reach = np.einsum("ni,ni->n", normal[is_wall], anchor[is_wall] - pose[:2])
+        expected[is_wall] = reach[:, None] * facing
+        jacobian[is_wall, :, :2] = -facing[:, :, None] * facing[:, None, :]
+        jacobian[is_wall, 0, 2], jacobian[is_wall, 1, 2] = reach * facing[:, 1], -reach * facing[:, 0]
+    return expected, jacobian
 
 
 def _seen(landmarks: Landmarks, models: PointModels | None, uids: np.ndarray, sensor: np.ndarray) -> _Seen:
@@ -465,17 +546,18 @@ class LandmarkSlam:
         fault = self._check_odometry(odometry, time)
         if fault:
             self._start_session()
+        inconsistent = 0
         if self._keyframe < 0:
             self._first_keyframe(odometry, time)
         elif self._is_keyframe(odometry):
-            self._add_keyframe(odometry, time)
+            inconsistent = self._add_keyframe(odometry, time)
         keyframe = self._pings_since_keyframe == 0
         self._pings_since_keyframe += 1
         self._ping += 1
         self._last_odometry, self._last_time = odometry, time
         step = relative_pose(self._keyframe_odometry, odometry)
         pose = compose(self._keyframe_pose, step)
-        report = SlamReport(pose=self._scaled_pose(pose), keyframe=keyframe, fault=fault)
+        report = SlamReport(pose=self._scaled_pose(pose), keyframe=keyframe, inconsistent=inconsistent, fault=fault)
         if not len(landmarks):
             return report
         sensor = compose(pose, offset)
@@ -708,8 +790,11 @@ class LandmarkSlam:
         self._keyframe_covariance = np.diag([1e-8, 1e-8, 1e-10])
         self._pings_since_keyframe = 0
 
-    def _add_keyframe(self, odometry: np.ndarray, time: float) -> None:
-        """Odometry to a new keyframe at this ping, the sightings since the last, promotions; update the estimate."""
+    def _add_keyframe(self, odometry: np.ndarray, time: float) -> int:
+        """Odometry to a new keyframe at this ping, the sightings since the last, promotions; update the estimate.
+
+        Returns how many sightings were left out as inconsistent (:meth:`_consistent`).
+        """
         previous, key = gtsam.symbol(POSE, self._keyframe), gtsam.symbol(POSE, self._keyframe + 1)
         step = relative_pose(self._keyframe_odometry, odometry)
         graph, values, timestamps = gtsam.NonlinearFactorGraph(), gtsam.Values(), {key: time, previous: time}
@@ -717,7 +802,7 @@ class LandmarkSlam:
         graph.add(gtsam.BetweenFactorPose2(previous, key, gtsam.Pose2(*step),
                                            gtsam.noiseModel.Gaussian.Covariance(odometry_noise)))
         values.insert(key, gtsam.Pose2(*compose(self._keyframe_pose, step)))
-        self._add_measurements(previous, graph, values)
+        inconsistent = self._add_measurements(previous, step, graph, values)
         # Landmarks stay: only keyframes older than the lag are marginalised (the map's size bounds the rest).
         timestamps.update({record.key: time for record in self._confirmed.values()})
         self._smoother.update(graph, values, timestamps)
@@ -740,8 +825,9 @@ class LandmarkSlam:
         self._pings_since_keyframe = 0
         self._since_keyframe.clear()
         self._write_back(estimate)
+        return inconsistent
 
-    def _add_measurements(self, pose_key: int, graph, values) -> None:
+    def _add_measurements(self, pose_key: int, step: np.ndarray, graph, values) -> int:
         """Factors of the sightings since the keyframe ``pose_key`` and of those held for entries confirmed now.
 
         One fused factor per entry in the graph and keyframe: of the sightings since ``pose_key``, and, for an
@@ -749,7 +835,10 @@ class LandmarkSlam:
         window -- a wall's sightings from before it was told a wall (an UNKNOWN point's then) among them, so
         the graph has them from the first ping, when the odometry's heading was still right.  Only a
         persistent, decided wall or point is confirmed (module docstring); the sightings of entries not
-        confirmed are held for later, as long as their keyframe stays in the window.
+        confirmed are held for later, as long as their keyframe stays in the window.  The sightings since
+        ``pose_key`` (the odometry ``step`` from it to the new keyframe) are checked against the graph's estimate
+        (:meth:`_consistent`); the held ones, of entries the graph has no estimate of yet, are not.  Returns how
+        many it left out.
         """
         seen = _Seen.joined(self._since_keyframe) if self._since_keyframe else None
         entries = self.front.entries()
@@ -759,7 +848,7 @@ class LandmarkSlam:
         window_start = self._keyframe_time - self.settings.smoother_lag
         self._held = [held for held in self._held if held.time > window_start]
         if seen is None:
-            return
+            return 0
         uids = np.unique(seen.uid)
         decided, persistent = self.front.decided(uids).tolist(), self.front.persistent(uids).tolist()
         measured, confirmed_now = [], []
@@ -774,17 +863,24 @@ class LandmarkSlam:
                 confirmed_now.append(uid)
             measured.append(uid)
         in_graph = np.isin(seen.uid, measured)
-        self._add_factors(pose_key, seen.select(in_graph), entries, by_uid, graph)
+        inconsistent = self._add_factors(pose_key, seen.select(in_graph), entries, by_uid, graph,
+                                         (self._keyframe_pose, step))
         if confirmed_now:
             for held in self._held:
                 self._add_factors(gtsam.symbol(POSE, held.index),
                                   held.seen.select(np.isin(held.seen.uid, confirmed_now)), entries, by_uid, graph)
         self._held.append(_Held(self._keyframe, self._keyframe_time, seen.select(~in_graph)))
+        return inconsistent
 
-    def _add_factors(self, pose_key: int, seen: _Seen, entries, by_uid: dict, graph) -> None:
-        """One fused factor per entry of the graph among ``seen``, taken at the keyframe ``pose_key``."""
+    def _add_factors(self, pose_key: int, seen: _Seen, entries, by_uid: dict, graph, gate=None) -> int:
+        """One fused factor per entry of the graph among ``seen``, taken at the keyframe ``pose_key``.
+
+        With ``gate``, the keyframe's estimate in map (3,) and the odometry from it to the next keyframe (3,),
+        only the sightings that agree with it and with their entries' estimates count in the graph
+        (:meth:`_consistent`); the air's fit takes them all.  Returns how many did not agree.
+        """
         if not len(seen.uid):
-            return
+            return 0
         index = np.array([by_uid.get(uid, -1) for uid in seen.uid.tolist()])
         kinds = [self._confirmed[uid].kind for uid in seen.uid.tolist()]
         is_wall = np.array([kind == WALL for kind in kinds])
@@ -795,12 +891,31 @@ class LandmarkSlam:
         position, covariance = self._measured(seen, is_wall, entries.landmark_class[index])
         if self._plan is not None:
             self._keep_for_air(pose_key, seen, is_wall, entries.landmark_class[index])
+        left_out = 0
+        if gate is not None:
+            consistent = self._consistent(*gate, position, covariance, is_wall, entries.position[index],
+                                          entries.normal[index])
+            left_out = len(consistent) - int(np.count_nonzero(consistent))
+            seen, position, covariance = seen.select(consistent), position[consistent], covariance[consistent]
         for uid, measurement, spread in zip(*_fused(seen.uid, position, covariance), strict=True):
             record = self._confirmed[uid]
             if record.kind == POINT:
                 graph.add(_bearing_range_factor(pose_key, record.key, measurement, spread))
             else:
                 graph.add(wall_factor(pose_key, record.key, measurement, gtsam.noiseModel.Gaussian.Covariance(spread)))
+        return left_out
+
+    def _consistent(self, pose: np.ndarray, step: np.ndarray, position: np.ndarray, covariance: np.ndarray,
+                    is_wall: np.ndarray, anchor: np.ndarray, normal: np.ndarray) -> np.ndarray:
+        """:func:`consistent_sightings` seen from the keyframe's estimate ``pose`` (3,), map, (n,) bool.
+
+        The keyframe's estimate is off by the odometry since the keyframe before it (a slip moves every
+        sighting alike): the prior of its correction is the keyframe's covariance, the unmodelled error and the
+        odometry's over ``step`` (3,), the odometry from it to the next keyframe.
+        """
+        prior = self._keyframe_covariance + self._unmodelled + self._odometry_covariance(step, 0.0)
+        return consistent_sightings(pose, prior, position, covariance, is_wall, anchor, normal,
+                                    self.settings.sighting_gate_chi2)
 
     def _confirm(self, uid: int, kind: str, entries, index: int, values) -> None:
         """Add entry ``uid`` to the graph, its initial value the front end's estimate."""

@@ -21,7 +21,7 @@ from sonar_ring.poses import compose, relative_pose
 from sonar_ring.realism import IDEAL, World, air_speed
 from sonar_ring.score import score_map, trajectory_error
 from sonar_ring.simulate import DIRECT, Noise, load_scene
-from sonar_ring.slam import LandmarkSlam, SlamSettings, wall_error
+from sonar_ring.slam import LandmarkSlam, SlamSettings, _expected_measurements, consistent_sightings, wall_error
 
 RING = load_layout("browne_ring")
 SETTINGS = pipeline.Settings(sigma_speed=pipeline.ROBOT_SIGMA_SPEED)
@@ -61,6 +61,51 @@ def test_wall_error_jacobians_match_finite_differences():
     foot = (2.5 - normal @ [0.3, -0.2]) * normal
     c, s = math.cos(0.4), math.sin(0.4)
     assert_allclose(base + measured, np.array([[c, s], [-s, c]]) @ foot, atol=1e-12)
+
+
+def test_expected_measurements_and_their_jacobian_match_finite_differences():
+    pose = np.array([0.3, -0.2, 0.4])
+    is_wall = np.array([False, True, False, True])
+    anchor = np.array([[2.0, 1.0], [1.1, 2.5], [-1.0, 0.5], [-0.7, -2.0]])
+    angles = np.array([0.0, 1.2, 0.0, -2.0])
+    normal = np.stack([np.cos(angles), np.sin(angles)], axis=-1)
+    expected, jacobian = _expected_measurements(pose, is_wall, anchor, normal)
+    # a wall's foot point is wall_error's (line (theta, d)), a point's its position in the robot frame
+    for row in np.flatnonzero(is_wall):
+        line = np.array([angles[row], normal[row] @ anchor[row]])
+        assert_allclose(expected[row], wall_error(gtsam.Pose2(*pose), line, np.zeros(2)), atol=1e-12)
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    assert_allclose(expected[~is_wall], (anchor[~is_wall] - pose[:2]) @ np.array([[c, -s], [s, c]]), atol=1e-12)
+    step = 1e-7
+    for k in range(3):
+        moved = gtsam.Pose2(*pose).retract(step * np.eye(3)[k])
+        numeric = (_expected_measurements(np.array([moved.x(), moved.y(), moved.theta()]), is_wall, anchor,
+                                          normal)[0] - expected) / step
+        assert_allclose(jacobian[:, :, k], numeric, atol=1e-6)
+
+
+def test_a_sighting_that_disagrees_with_the_map_is_left_out_but_a_slip_moves_none():
+    # Twelve entries around the robot, measured from the true pose with 2 mm of noise; the estimate of the pose
+    # is off by a slip (3 cm, 1 deg) and two sightings (a double bounce fused into a point, one into a wall) by
+    # 3 cm: the slip is fitted out, the two are left out (and the noise's tail, a few of the others).
+    rng = np.random.default_rng(5)
+    truth = np.array([1.0, 2.0, 0.3])
+    estimate = compose(truth, (0.03, -0.02, math.radians(1.0)))
+    is_wall = np.arange(12) % 3 == 0
+    bearing = np.linspace(-np.pi, np.pi, 12, endpoint=False)
+    anchor = truth[:2] + rng.uniform(1.0, 3.0, 12)[:, None] * np.stack([np.cos(bearing), np.sin(bearing)], -1)
+    normal = -np.stack([np.cos(bearing + 0.2), np.sin(bearing + 0.2)], -1)  # facing the robot
+    measured, _ = _expected_measurements(truth, is_wall, anchor, normal)
+    covariance = np.tile(0.002 ** 2 * np.eye(2), (12, 1, 1))
+    measured += rng.normal(0.0, 0.002, measured.shape)
+    measured[[1, 3]] += 0.03 * np.array([[0.6, 0.8], [-0.8, 0.6]])
+    prior = np.diag([0.02 ** 2, 0.02 ** 2, math.radians(1.0) ** 2])
+    agrees = consistent_sightings(estimate, prior, measured, covariance, is_wall, anchor, normal, 4.0)
+    outliers = np.isin(np.arange(12), [1, 3])
+    assert not agrees[outliers].any() and np.count_nonzero(agrees[~outliers]) >= 8  # chi2 4 keeps 86 % of 2 dof
+    # With a prior that does not allow the slip, almost every sighting seems off.
+    tight = consistent_sightings(estimate, 1e-12 * np.eye(3), measured, covariance, is_wall, anchor, normal, 4.0)
+    assert np.count_nonzero(tight) <= 2
 
 
 def test_a_pose_offset_is_recovered_from_two_walls_and_a_corner():

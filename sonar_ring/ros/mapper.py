@@ -80,6 +80,9 @@ SLAM_PARAMS = [
           low=0.1, high=100.0, read_only=True),
     Param(SLAM_PREFIX + "no_landmarks_after", SlamSettings.no_landmarks_after,
           "seconds without a known landmark before a warning (no_landmarks)", low=0.1, high=3600.0, read_only=True),
+    Param(SLAM_PREFIX + "sighting_gate_chi2", SlamSettings.sighting_gate_chi2,
+          "a sighting further from the graph's estimate of its landmark than this squared Mahalanobis distance "
+          "(its own covariance) is left out of the graph", low=1.0, high=1e6, read_only=True),
     Param(SLAM_PREFIX + "smoother_lag", SlamSettings.smoother_lag,
           "seconds of keyframes the smoother keeps (older ones are marginalised: memory stays flat)", low=1.0,
           high=3600.0, read_only=True),
