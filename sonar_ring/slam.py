@@ -380,7 +380,20 @@ def consistent_sightings(pose: np.ndarray, prior: np.ndarray, position: np.ndarr
     sightings that agree, linearised about ``pose``, with ``prior`` (a slip of the odometry moves every
     sighting alike, a double bounce one); the first round takes every sighting.  A sighting agrees when, after
     ``delta``, its squared Mahalanobis distance is at most ``chi2``.
+
+    Raises ValueError for arrays of other shapes, a ``chi2`` that is not a positive number or ``rounds`` below 1.
     """
+    count = len(position)
+    shapes = {"pose": (np.shape(pose), (3,)), "prior": (np.shape(prior), (3, 3)),
+              "position": (np.shape(position), (count, 2)), "covariance": (np.shape(covariance), (count, 2, 2)),
+              "is_wall": (np.shape(is_wall), (count,)), "anchor": (np.shape(anchor), (count, 2)),
+              "normal": (np.shape(normal), (count, 2))}
+    for name, (shape, wanted) in shapes.items():
+        if shape != wanted:
+            raise ValueError(f"consistent_sightings: {name} must have shape {wanted}, got {shape}")
+    if not (math.isfinite(chi2) and chi2 > 0.0) or rounds < 1:
+        raise ValueError(f"consistent_sightings: chi2 must be a positive number and rounds at least 1, got {chi2!r}"
+                         f" and {rounds!r}")
     expected, jacobian = _expected_measurements(pose, is_wall, anchor, normal)
     information = _inverse(covariance)
     error = position - expected

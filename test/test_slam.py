@@ -332,6 +332,13 @@ def test_error_handling():
     builder.add_odometry(10, (math.nan, 0.0, 0.0))
     builder.add_ping(10, Landmarks.empty())
     assert health.problems["not_finite_pose"] == 1
+    sightings = (np.zeros(3), np.eye(3), np.ones((2, 2)), np.tile(np.eye(2), (2, 1, 1)), np.zeros(2, bool),
+                 np.ones((2, 2)), np.ones((2, 2)))
+    assert consistent_sightings(*sightings, 4.0).all()
+    with pytest.raises(ValueError, match="covariance must have shape"):
+        consistent_sightings(*sightings[:3], np.eye(2), *sightings[4:], 4.0)
+    with pytest.raises(ValueError, match="chi2 must be a positive number"):
+        consistent_sightings(*sightings, float("nan"))
 
 
 def test_a_landmark_unseen_for_longer_than_the_lag_is_still_there_when_seen_again():
