@@ -876,8 +876,7 @@ class LandmarkSlam:
                 confirmed_now.append(uid)
             measured.append(uid)
         in_graph = np.isin(seen.uid, measured)
-        inconsistent = self._add_factors(pose_key, seen.select(in_graph), entries, by_uid, graph,
-                                         (self._keyframe_pose, step))
+        inconsistent = self._add_factors(pose_key, seen.select(in_graph), entries, by_uid, graph, step)
         if confirmed_now:
             for held in self._held:
                 self._add_factors(gtsam.symbol(POSE, held.index),
@@ -885,11 +884,11 @@ class LandmarkSlam:
         self._held.append(_Held(self._keyframe, self._keyframe_time, seen.select(~in_graph)))
         return inconsistent
 
-    def _add_factors(self, pose_key: int, seen: _Seen, entries, by_uid: dict, graph, gate=None) -> int:
+    def _add_factors(self, pose_key: int, seen: _Seen, entries, by_uid: dict, graph, step=None) -> int:
         """One fused factor per entry of the graph among ``seen``, taken at the keyframe ``pose_key``.
 
-        With ``gate``, the keyframe's estimate in map (3,) and the odometry from it to the next keyframe (3,),
-        only the sightings that agree with it and with their entries' estimates count in the graph
+        With ``step``, the odometry from the latest keyframe to the next (3,), ``seen`` are that keyframe's
+        sightings, and only those that agree with its estimate and with their entries' count in the graph
         (:meth:`_consistent`); the air's fit takes them all.  Returns how many did not agree.
         """
         if not len(seen.uid):
@@ -905,8 +904,8 @@ class LandmarkSlam:
         if self._plan is not None:
             self._keep_for_air(pose_key, seen, is_wall, entries.landmark_class[index])
         left_out = 0
-        if gate is not None:
-            consistent = self._consistent(*gate, position, covariance, is_wall, entries.position[index],
+        if step is not None:
+            consistent = self._consistent(step, position, covariance, is_wall, entries.position[index],
                                           entries.normal[index])
             left_out = len(consistent) - int(np.count_nonzero(consistent))
             seen, position, covariance = seen.select(consistent), position[consistent], covariance[consistent]
@@ -918,16 +917,16 @@ class LandmarkSlam:
                 graph.add(wall_factor(pose_key, record.key, measurement, gtsam.noiseModel.Gaussian.Covariance(spread)))
         return left_out
 
-    def _consistent(self, pose: np.ndarray, step: np.ndarray, position: np.ndarray, covariance: np.ndarray,
-                    is_wall: np.ndarray, anchor: np.ndarray, normal: np.ndarray) -> np.ndarray:
-        """:func:`consistent_sightings` seen from the keyframe's estimate ``pose`` (3,), map, (n,) bool.
+    def _consistent(self, step: np.ndarray, position: np.ndarray, covariance: np.ndarray, is_wall: np.ndarray,
+                    anchor: np.ndarray, normal: np.ndarray) -> np.ndarray:
+        """:func:`consistent_sightings` seen from the latest keyframe's estimate in map, (n,) bool.
 
         The keyframe's estimate is off by the odometry since the keyframe before it (a slip moves every
         sighting alike): the prior of its correction is the keyframe's covariance, the unmodelled error and the
         odometry's over ``step`` (3,), the odometry from it to the next keyframe.
         """
         prior = self._keyframe_covariance + self._unmodelled + self._odometry_covariance(step, 0.0)
-        return consistent_sightings(pose, prior, position, covariance, is_wall, anchor, normal,
+        return consistent_sightings(self._keyframe_pose, prior, position, covariance, is_wall, anchor, normal,
                                     self.settings.sighting_gate_chi2)
 
     def _confirm(self, uid: int, kind: str, entries, index: int, values) -> None:
