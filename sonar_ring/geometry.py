@@ -170,6 +170,14 @@ class Layout:
         """Mid-point of each group's receivers, shape (G, 3), m."""
         return self.group_receivers().mean(axis=1)
 
+    def group_viewpoint(self) -> np.ndarray:
+        """Where each group's echoes are seen from: the mean of its transmitters' horizontal positions, (G, 2), m.
+
+        A single emitter's own position (the centre of Browne's ring, a triad module's emitter); the middle of a
+        Barshan & Kuc pair.  A wall's echo returns from the foot of the perpendicular from there.
+        """
+        return self.transmitters[self.group_transmitters, :2].mean(axis=1)
+
     def group_yaw(self) -> np.ndarray:
         """Facing of each group (mean receiver yaw, wrapped), shape (G,), rad."""
         yaw = self.receiver_yaw[self.groups]

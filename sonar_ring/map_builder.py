@@ -83,7 +83,9 @@ class MapperSettings:
     pose_history : int or None
         Odometry poses kept (None: all, for a whole bag).
     layout : Layout or None
-        The sensor: on a single-emitter ring each point sighting's two models
+        The sensor: where each receiver group sees its echoes from (its transmitter:
+        :meth:`~sonar_ring.geometry.Layout.group_viewpoint`; None: the sensor's origin); on a
+        single-emitter ring each point sighting's two models
         (:func:`sonar_ring.curvature.point_models`) tell edges from corners over motion;
         the echo tests need it.
     echo_tests : EchoTests or None
@@ -128,7 +130,8 @@ class MapBuilder:
         self.history = PoseHistory(settings.pose_history)
         self._pending: deque = deque()
         front = dict(max_points=settings.max_points, max_walls=settings.max_walls, gate_chi2=settings.gate_chi2,
-                     min_support_pings=settings.min_support_pings, min_support_travel=settings.min_support_travel)
+                     min_support_pings=settings.min_support_pings, min_support_travel=settings.min_support_travel,
+                     viewpoints=None if settings.layout is None else settings.layout.group_viewpoint())
         self.slam = LandmarkSlam(settings.slam_settings, front, settings.layout) if settings.slam else None
         self._odom_map = None if settings.slam else LandmarkMap(**front)
         self._counts = MapCounts()

@@ -24,11 +24,11 @@ Sightings as line observations
 ------------------------------
 A plane's landmark is the foot point ``G`` of the perpendicular from the transmitter,
 and the corner model puts an UNKNOWN reflector at the same point ``G`` (Browne s7),
-so every sighting with its sensor position ``S`` defines a line: the one through
-``G`` with normal ``n`` along ``S - G`` (a plane sighting's own normal, oriented
-towards the sensor; the transmitter is taken to be at the sensor origin, as on
-Browne's ring).  In line coordinates about an anchor ``a``,
-``z = (theta, n . (G - a))`` with covariance ``J C J^T``, where
+so every sighting with its viewpoint ``S`` -- its receiver group's transmitter (Browne's
+ring: the sensor's origin; a triad module: its emitter; the ``viewpoints`` of
+:class:`LandmarkMap`) -- defines a line: the one through ``G`` with normal ``n``
+along ``S - G`` (a plane sighting's own normal, oriented towards the sensor).  In
+line coordinates about an anchor ``a``, ``z = (theta, n . (G - a))`` with covariance ``J C J^T``, where
 ``J = [-t^T / r ; n^T - (t . (G - a)) t^T / r]``, ``t`` the unit tangent and
 ``r = |S - G|``.  A wall is a constant ``z``; a corner is a constant ``G``: both are
 two-parameter linear-Gaussian estimates from the same sightings, fused the same way,
@@ -87,7 +87,7 @@ log ratio of the maximised likelihoods) the point becomes
 provided that
 
 1. the motion separates the hypotheses: ``lambda = sum w_i (s_i - s_mean)^2 >=
-   min_separation``, with ``s_i`` the sensor position across the first line of
+   min_separation``, with ``s_i`` the viewpoint across the first line of
    sight, ``w_i`` the inverse variance of sighting i in that direction and
    ``s_mean`` their ``w``-weighted mean -- the value ``|Delta|`` has on average when
    either hypothesis is true.  A robot driving straight at a reflector or turning on
@@ -587,14 +587,14 @@ def _explain_away(target, explained, max_points, min_support_pings, point_explai
 
 
 @kernel
-def _add_motion(baseline, motion, slots, sensor_along, weight):
-    """Widen each point's ``baseline`` (M, 2) to the sensor's places ``sensor_along`` (K,) and add the weighted sums.
+def _add_motion(baseline, motion, slots, viewpoint_along, weight):
+    """Widen each point's ``baseline`` (M, 2) to its sightings' viewpoints ``viewpoint_along`` (K,); add the sums.
 
     ``motion`` (M, 3) gathers ``sum w``, ``sum w s`` and ``sum w s^2`` of the sightings' places ``s`` and
     weights ``w`` (K,) per point ``slots`` (K,), in the sightings' order; NaN stays NaN, as in numpy.
     """
     for k in range(slots.size):
-        slot, along = slots[k], sensor_along[k]
+        slot, along = slots[k], viewpoint_along[k]
         baseline[slot, 0] = _smaller(baseline[slot, 0], along)
         baseline[slot, 1] = -_smaller(-baseline[slot, 1], -along)
         motion[slot, 0] += weight[k]
@@ -828,15 +828,18 @@ class Sightings:
     covariance, information : ndarray, shape (N, 2, 2)
         Covariance of ``G`` with the ``sighting_sigma`` floor (m^2) and its inverse.
     normal : ndarray, shape (N, 2)
-        Unit normal of the sighting's line, towards the sensor.
+        Unit normal of the sighting's line, towards its viewpoint.
     distance : ndarray, shape (N,)
-        ``r = |S - G|``, m.
+        ``r = |S - G|``, m, ``S`` the viewpoint.
     segment : ndarray, shape (N, 2, 2)
         Observed end points, m.
     confidence : ndarray, shape (N,)
     group : ndarray of uint16, shape (N,)
     sensor : ndarray, shape (2,)
-        Sensor position ``S``, m.
+        The sensor's position, m.
+    viewpoint : ndarray, shape (N, 2)
+        Where each sighting was seen from, ``S``: its group's transmitter (:class:`LandmarkMap`'s
+        ``viewpoints``), m.
     models : PointModels or None
         Both point models' positions of each sighting (:mod:`sonar_ring.curvature`), same frame.
     explained : ndarray of bool, shape (N,)
@@ -854,6 +857,7 @@ class Sightings:
     confidence: np.ndarray
     group: np.ndarray
     sensor: np.ndarray
+    viewpoint: np.ndarray
     models: PointModels | None
     explained: np.ndarray
     offered: int
@@ -949,16 +953,16 @@ def _line_of_sight_of(normal_x, normal_y, x, y, anchor_x, anchor_y, distance):
 
 
 @kernel
-def _usable_rows(landmark_class, valid, position, covariance, segment, normal, sensor_x, sensor_y, sighting_variance):
-    """:meth:`LandmarkMap._usable_sightings` of L landmarks in ``odom`` seen from ``(sensor_x, sensor_y)``.
+def _usable_rows(landmark_class, valid, position, covariance, segment, normal, viewpoint, sighting_variance):
+    """:meth:`LandmarkMap._usable_sightings` of L landmarks in ``odom``, each seen from its ``viewpoint`` (L, 2).
 
     A landmark is usable when valid, finite and within :data:`MAX_COORDINATE`
     (position, segment, covariance, a plane's normal; the covariance's entries
     within its square), and sound: a known class, a positive definite
-    covariance, away from the sensor and, for a plane, a normal of about unit
+    covariance, away from its viewpoint and, for a plane, a normal of about unit
     length.  Returns the usable rows (K,), their symmetrised covariances plus
     ``sighting_variance I`` and inverses (K, 2, 2), their line normals towards
-    the sensor (a plane's own, else the line of sight) (K, 2) and distances
+    the viewpoint (a plane's own, else the line of sight) (K, 2) and distances
     (K,), and the counts of invalid, not finite and degenerate landmarks (3,).
     """
     count = landmark_class.shape[0]
@@ -982,7 +986,7 @@ def _usable_rows(landmark_class, valid, position, covariance, segment, normal, s
         if not finite:
             counts[1] += 1
             continue
-        distance = np.hypot(sensor_x - position[k, 0], sensor_y - position[k, 1])
+        distance = np.hypot(viewpoint[k, 0] - position[k, 0], viewpoint[k, 1] - position[k, 1])
         if not (landmark_class[k] <= EDGE and xx > 0 and xx * yy - xy * xy > 0 and distance > _MIN_RANGE
                 and (np.hypot(normal[k, 0], normal[k, 1]) > 0.5 or not plane)):
             counts[2] += 1
@@ -1001,8 +1005,8 @@ def _usable_rows(landmark_class, valid, position, covariance, segment, normal, s
         det = xx * yy - xy * xy
         information[row, 0, 0], information[row, 1, 1] = yy / det, xx / det
         information[row, 0, 1] = information[row, 1, 0] = -xy / det
-        distance = np.hypot(sensor_x - position[k, 0], sensor_y - position[k, 1])
-        sight_x, sight_y = (sensor_x - position[k, 0]) / distance, (sensor_y - position[k, 1]) / distance
+        distance = np.hypot(viewpoint[k, 0] - position[k, 0], viewpoint[k, 1] - position[k, 1])
+        sight_x, sight_y = (viewpoint[k, 0] - position[k, 0]) / distance, (viewpoint[k, 1] - position[k, 1]) / distance
         if landmark_class[k] == PLANE:
             length = np.hypot(normal[k, 0], normal[k, 1])
             given_x, given_y = normal[k, 0] / length, normal[k, 1] / length
@@ -1068,11 +1072,11 @@ class _Points:
         self.line_information = np.zeros((capacity, 2, 2))
         self.line_chi2 = np.zeros(capacity)
         # Along the tangent of the first line of sight, from the anchor: the extent of the
-        # sightings and of the sensor positions (the motion baseline), m.
+        # sightings and of their viewpoints (the motion baseline), m.
         self.across = np.zeros((capacity, 2))
         self.extent = np.zeros((capacity, 2))
         self.baseline = np.zeros((capacity, 2))
-        # Sums over sightings of w, w s and w s^2, with s the sensor position along that
+        # Sums over sightings of w, w s and w s^2, with s the viewpoint along that
         # tangent and w the inverse variance of the sighting along it: the separation.
         self.motion = np.zeros((capacity, 3))
         self.latest = np.zeros((capacity, 2))  # latest sighting, for the candidate search
@@ -1326,11 +1330,11 @@ class LandmarkMap:
     min_separation : float
         How far apart the two hypotheses' predictions must be before motion may
         decide: ``lambda = sum w_i (s_i - s_mean)^2`` (weighted by ``w_i``) over the
-        sightings, with ``s_i`` the sensor position across the first line of sight
+        sightings, with ``s_i`` the viewpoint across the first line of sight
         and ``w_i`` the sighting's inverse variance along it -- the value ``Delta``
         takes on average when either hypothesis is true.  25 is a 5-sigma difference.
     min_baseline : float
-        Spread of the sensor positions across the first line of sight needed before
+        Spread of the viewpoints across the first line of sight needed before
         motion may decide, m.
     search_radius : float
         Only entries this close are association candidates (a point's latest
@@ -1346,12 +1350,21 @@ class LandmarkMap:
         How far the sensor must have moved between its first sighting and a later
         one, m: an echo that repeats only while the robot stands still (a person
         standing by it, noise locked to the ping) is not enough.
+    viewpoints : array_like, shape (G, 2), optional
+        Where each receiver group sees its echoes from, in the sensor frame, m: its transmitter
+        (:meth:`~sonar_ring.geometry.Layout.group_viewpoint`).  A wall's echo returns from the foot of the
+        perpendicular from there, and an undecided point's plane hypothesis is the line through it
+        perpendicular to the line of sight from there: a transmitter off the sensor's origin (a triad module
+        at the robot's side) turns both by up to its offset over the range.  Default: every group at the
+        origin (Browne's ring, whose emitter is there); a landmark of a group beyond ``G`` is seen from the
+        origin too.
 
     Raises
     ------
     ValueError
         If a capacity is not an integer >= 1, a sigma is negative or not finite,
-        another parameter is not positive and finite, or ``new_entry_gate_chi2 < gate_chi2``.
+        another parameter is not positive and finite, ``new_entry_gate_chi2 < gate_chi2``, or ``viewpoints``
+        is not a finite (G, 2) array.
     """
 
     def __init__(self, *, max_points: int = 1000, max_walls: int = 200, sighting_sigma: float = 0.002,
@@ -1360,7 +1373,7 @@ class LandmarkMap:
                  decision_threshold: float = CHI2_2DOF_99, min_separation: float = 25.0, min_baseline: float = 0.1,
                  search_radius: float = 0.5, wall_point_spacing: float = 0.05,
                  curvature_threshold: float = CURVATURE_THRESHOLD, min_support_pings: int = 5,
-                 min_support_travel: float = 0.05):
+                 min_support_travel: float = 0.05, viewpoints=None):
         for name, value in (("max_points", max_points), ("max_walls", max_walls),
                             ("min_support_pings", min_support_pings)):
             if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
@@ -1379,6 +1392,9 @@ class LandmarkMap:
         if new_entry_gate_chi2 < gate_chi2:
             raise ValueError(f"LandmarkMap: new_entry_gate_chi2 ({new_entry_gate_chi2}) must be at least "
                              f"gate_chi2 ({gate_chi2})")
+        viewpoints = np.zeros((0, 2)) if viewpoints is None else np.array(viewpoints, dtype=float)
+        if viewpoints.ndim != 2 or viewpoints.shape[1] != 2 or not np.all(np.isfinite(viewpoints)):
+            raise ValueError(f"LandmarkMap: viewpoints must be a finite (G, 2) array, got {viewpoints!r}")
         self.max_points = int(max_points)
         self.max_walls = int(max_walls)
         self.sighting_sigma = float(sighting_sigma)
@@ -1393,6 +1409,8 @@ class LandmarkMap:
         self.curvature_threshold = float(curvature_threshold)
         self.min_support_pings = int(min_support_pings)
         self.min_support_travel = float(min_support_travel)
+        self.viewpoints = viewpoints
+        """Each receiver group's viewpoint in the sensor frame (G, 2), m (empty: all at the origin)."""
         self._points = _Points(self.max_points)
         self._walls = _Walls(self.max_walls)
         self._counts = MapCounts()
@@ -1461,7 +1479,7 @@ class LandmarkMap:
         if explained.shape != (len(landmarks),):
             raise ValueError(f"LandmarkMap.usable_sightings: explained must have shape ({len(landmarks)},), "
                              f"got {explained.shape}")
-        return self._usable_sightings(landmarks, pose[:2], models, explained)
+        return self._usable_sightings(landmarks, pose, models, explained)
 
     def add(self, sightings: Sightings | None) -> Placed:
         """Associate and fuse one ping's sightings (:meth:`usable_sightings`); None counts a rejected ping.
@@ -1541,17 +1559,18 @@ class LandmarkMap:
         self._next_uid += count
         return uids
 
-    def _usable_sightings(self, landmarks: Landmarks, sensor: np.ndarray, models: PointModels | None,
+    def _usable_sightings(self, landmarks: Landmarks, pose: np.ndarray, models: PointModels | None,
                           explained: np.ndarray) -> Sightings:
-        """The usable landmarks, with the unusable ones counted by kind (and their point models, if given)."""
+        """The usable landmarks, the sensor at ``pose``; the unusable ones counted by kind (point models, if given)."""
         # Copies (np.array) in the types load_kernels compiled, whatever arrays the caller's landmarks hold
         # (a read-only one is another type to numba); the kernel only reads them.
         position = np.array(landmarks.position, dtype=float)
         segment = np.array(landmarks.segment, dtype=float)
+        viewpoint = self.viewpoints_at(landmarks.group, pose)
         keep, covariance, information, normal, distance, counts = _usable_rows(
             np.array(landmarks.landmark_class, dtype=np.uint8), np.array(landmarks.valid, dtype=bool), position,
             np.array(landmarks.covariance, dtype=float), segment, np.array(landmarks.normal, dtype=float),
-            sensor[0], sensor[1], self.sighting_sigma ** 2)
+            viewpoint, self.sighting_sigma ** 2)
         return Sightings(
             rows=keep,
             landmark_class=landmarks.landmark_class[keep].astype(np.uint8),
@@ -1563,7 +1582,8 @@ class LandmarkMap:
             segment=segment[keep],
             confidence=np.asarray(landmarks.confidence, float)[keep],
             group=np.asarray(landmarks.group)[keep].astype(np.uint16),
-            sensor=sensor,
+            sensor=pose[:2],
+            viewpoint=viewpoint[keep],
             models=None if models is None else models.select(keep),
             explained=explained[keep],
             offered=len(landmarks),
@@ -1571,6 +1591,18 @@ class LandmarkMap:
             not_finite=int(counts[1]),
             degenerate=int(counts[2]),
         )
+
+    def viewpoints_at(self, group, pose) -> np.ndarray:
+        """Where landmarks of receiver groups ``group`` (L,) are seen from, the sensor at ``pose`` ``(x, y, yaw)``.
+
+        (L, 2), m, in the frame ``pose`` is given in (:attr:`viewpoints`, as :func:`transform_landmarks` moves
+        positions).
+        """
+        group = np.asarray(group, dtype=np.int64)
+        offset = np.zeros((group.size, 2))
+        known = group < len(self.viewpoints)
+        offset[known] = self.viewpoints[group[known]]
+        return offset @ _rotation(pose[2]).T + pose[:2]
 
     # ------------------------------------------------------------------ association
 
@@ -1714,10 +1746,10 @@ class LandmarkMap:
         p.across[slots] = tangent
         along = _dot(s.segment[rows] - position[:, None, :], tangent[:, None, :])
         p.extent[slots, 0], p.extent[slots, 1] = along.min(axis=1), along.max(axis=1)
-        sensor_along = _dot(s.sensor - position, tangent)
-        p.baseline[slots] = sensor_along[:, None]
+        viewpoint_along = _dot(s.viewpoint[rows] - position, tangent)
+        p.baseline[slots] = viewpoint_along[:, None]
         weight = 1.0 / _quadratic(tangent, s.covariance[rows])
-        p.motion[slots] = np.stack([weight, weight * sensor_along, weight * sensor_along ** 2], axis=-1)
+        p.motion[slots] = np.stack([weight, weight * viewpoint_along, weight * viewpoint_along ** 2], axis=-1)
         p.latest[slots] = position
         p.observations[slots] = 1
         p.last_seen[slots] = self._ping
@@ -1827,8 +1859,8 @@ class LandmarkMap:
         _fuse_lines(p.line, p.line_information, p.line_chi2, True, p.anchor, p.across, p.extent, slots, rows,
                     s.normal, s.position, s.distance, s.covariance, s.segment)
         across = p.across[slots]
-        sensor_along = _dot(s.sensor - p.anchor[slots], across)
-        _add_motion(p.baseline, p.motion, slots, sensor_along, 1.0 / _quadratic(across, s.covariance[rows]))
+        viewpoint_along = _dot(s.viewpoint[rows] - p.anchor[slots], across)
+        _add_motion(p.baseline, p.motion, slots, viewpoint_along, 1.0 / _quadratic(across, s.covariance[rows]))
 
     def _fuse_walls(self, s: Sightings, rows, target):
         """Merge sightings ``rows`` into their walls; the walls whose segment grew."""

@@ -243,14 +243,16 @@ class _Seen:
 
     When they are measured (:meth:`LandmarkSlam._measured`), their entry's kind then says how: a wall's foot
     point, a decided point's position under its model, an undecided one's range.  Per sighting: the entry uid
-    (n,), the sensor's position (n, 2) and heading (n,), the landmark's position (n, 2) and covariance (n, 2, 2)
-    as labelled, its class (n,) and receiver group (n,), and both point models
+    (n,), the sensor's position (n, 2) and heading (n,), where it was seen from (its group's transmitter,
+    :meth:`~sonar_ring.mapping.LandmarkMap.viewpoints_at`) (n, 2), the landmark's position (n, 2) and covariance
+    (n, 2, 2) as labelled, its class (n,) and receiver group (n,), and both point models
     (:class:`~sonar_ring.curvature.PointModels`; ``model_valid`` (n,) False where the ping gave none).
     """
 
     uid: np.ndarray
     sensor: np.ndarray
     heading: np.ndarray
+    viewpoint: np.ndarray
     group: np.ndarray
     position: np.ndarray
     covariance: np.ndarray
@@ -432,8 +434,11 @@ def _expected_measurements(pose: np.ndarray, is_wall: np.ndarray, anchor: np.nda
     return expected, jacobian
 
 
-def _seen(landmarks: Landmarks, models: PointModels | None, uids: np.ndarray, sensor: np.ndarray) -> _Seen:
-    """Sightings ``landmarks`` (sensor frame) of the entries ``uids`` with the sensor at ``sensor`` in the keyframe.
+def _seen(landmarks: Landmarks, models: PointModels | None, uids: np.ndarray, sensor: np.ndarray,
+          viewpoint: np.ndarray) -> _Seen:
+    """Sightings ``landmarks`` (sensor frame) of the entries ``uids``, the sensor at ``sensor`` in the keyframe.
+
+    ``viewpoint`` (n, 2): where each was seen from, in the keyframe.
 
     Only the positions and covariances turn (not :func:`~sonar_ring.mapping.transform_landmarks`' every field and
     check: this runs at every ping, on landmarks the front end has just checked).
@@ -445,7 +450,7 @@ def _seen(landmarks: Landmarks, models: PointModels | None, uids: np.ndarray, se
                              np.zeros((count, 2, 2)), np.zeros(count), np.zeros(count, bool))
     else:
         models = models.transformed(sensor)
-    return _Seen(uids.copy(), np.tile(sensor[:2], (count, 1)), np.full(count, sensor[2]),
+    return _Seen(uids.copy(), np.tile(sensor[:2], (count, 1)), np.full(count, sensor[2]), viewpoint,
                  np.asarray(landmarks.group, dtype=np.int64),
                  np.asarray(landmarks.position, dtype=float) @ rotation.T + sensor[:2],
                  turned_covariances(landmarks.covariance, rotation), np.array(landmarks.landmark_class), models.valid,
@@ -594,8 +599,9 @@ class LandmarkSlam:
         report.tentative = int(uids.size - report.associated)
         if report.associated:
             self._last_seen_time = time
+        seen_at = compose(step, offset)
         self._since_keyframe.append(_seen(landmarks.select(rows), None if models is None else models.select(rows),
-                                          uids, compose(step, offset)))
+                                          uids, seen_at, self.front.viewpoints_at(landmarks.group[rows], seen_at)))
         return report
 
     def _check_odometry(self, odometry: np.ndarray, time: float) -> str:
@@ -655,9 +661,10 @@ class LandmarkSlam:
 
         Measurement (n, 2) and its covariance (n, 2, 2), in the keyframe's robot frame.  A wall's is the foot of
         the perpendicular from the keyframe's origin onto the wall's line, from the sighting's foot point ``G``
-        (on the line, perpendicular to the line of sight from the sensor ``S``): the line ``n . x = n . G`` with
-        ``n = (G - S) / |G - S|``.  A point's is its position under its entry's decided model (an EDGE's edge
-        model, a CORNER's corner model), else the sighting's own keeping only its range (module docstring).
+        (on the line, perpendicular to the line of sight from its viewpoint ``S``, the transmitter): the line
+        ``n . x = n . G`` with ``n = (G - S) / |G - S|``.  A point's is its position under its entry's decided
+        model (an EDGE's edge model, a CORNER's corner model), else the sighting's own keeping only its range
+        (module docstring).
         """
         position, covariance = seen.position.copy(), seen.covariance.copy()
         decided = np.zeros(len(position), bool)
@@ -669,14 +676,14 @@ class LandmarkSlam:
             decided |= chosen
         covariance += self.settings.sighting_sigma ** 2 * np.eye(2)
         if is_wall.any():
-            foot, jacobian = _foot_points(position[is_wall], seen.sensor[is_wall])
+            foot, jacobian = _foot_points(position[is_wall], seen.viewpoint[is_wall])
             position[is_wall] = foot
             covariance[is_wall] = jacobian @ covariance[is_wall] @ jacobian.transpose(0, 2, 1)
         # A point not yet decided may be an edge placed with the corner model, its bearing up to a degree off,
         # the same way from the same side: it keeps only its range (module docstring).
         ranged = ~is_wall & ~decided & (seen.landmark_class != EDGE)
         if ranged.any():
-            covariance[ranged] = _without_bearing(position[ranged] - seen.sensor[ranged], covariance[ranged],
+            covariance[ranged] = _without_bearing(position[ranged] - seen.viewpoint[ranged], covariance[ranged],
                                                   self.settings.undecided_bearing_sigma)
         return position, covariance
 
@@ -735,15 +742,16 @@ class LandmarkSlam:
             x, y, yaw = pose.x(), pose.y(), pose.theta()
             turn = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
             # where each sighting should have been (keyframe frame): a corner's position; on a wall, the foot of
-            # the perpendicular from the sensor, on the line n . x = d - n . t (n turned into the keyframe)
+            # the perpendicular from its viewpoint, on the line n . x = d - n . t (n turned into the keyframe)
             expected = (values - (x, y)) @ turn
             wall = part.is_wall
             angle = values[:, 0]  # a wall's: its sightings' bearing is near it plus pi
             normal = np.stack([np.cos(angle - yaw), np.sin(angle - yaw)], axis=-1)
-            reach = values[:, 1] - (np.cos(angle) * x + np.sin(angle) * y) - np.einsum("ni,ni->n", normal, seen.sensor)
-            expected[wall] = (seen.sensor + reach[:, None] * normal)[wall]
+            reach = (values[:, 1] - (np.cos(angle) * x + np.sin(angle) * y)
+                     - np.einsum("ni,ni->n", normal, seen.viewpoint))
+            expected[wall] = (seen.viewpoint + reach[:, None] * normal)[wall]
             stretch, covariance = self._pair_geometry(seen, expected)
-            sight = expected - seen.sensor
+            sight = expected - seen.viewpoint
             distance = np.hypot(sight[:, 0], sight[:, 1])
             across = np.stack([-sight[:, 1], sight[:, 0]], axis=-1) / distance[:, None]
             across_stretch = np.einsum("ni,ni->n", across, stretch)
@@ -751,8 +759,8 @@ class LandmarkSlam:
             observes = across @ turn.T
             measured = np.einsum("ni,ni->n", observes, part.position @ turn.T + (x, y))
             error = np.einsum("ni,ni->n", across, part.position - expected)
-            if wall.any():  # the bearing from the sensor in map, taken near the wall's angle plus pi
-                offset = part.position[wall] - seen.sensor[wall]
+            if wall.any():  # the bearing from the viewpoint in map, taken near the wall's angle plus pi
+                offset = part.position[wall] - seen.viewpoint[wall]
                 facing = angle[wall] + np.pi
                 measured[wall] = facing + np.angle(np.exp(1j * (np.arctan2(offset[:, 1], offset[:, 0]) + yaw - facing)))
                 observes[wall] = (1.0, 0.0)

@@ -256,6 +256,36 @@ def test_unknown_sightings_resolve_into_a_wall_and_a_corner_over_motion():
     assert landmark_map.decided(uids).all() and not landmark_map.decided([uids.max() + 1]).any()
 
 
+@pytest.mark.parametrize("viewpoint, yaw", [([0.4, 0.0], 0.0), ([0.0, -0.4], np.pi / 2)])
+def test_a_wall_is_seen_from_the_transmitter_that_heard_it(viewpoint, yaw):
+    """A transmitter 0.4 m ahead of the sensor's origin (a module at the robot's side): the foot points of the
+    wall's UNKNOWN sightings lie 0.4 m ahead of the sensor, whatever way the sensor frame is turned."""
+    xs = np.arange(0.0, 3.0, STEP)
+    maps = {}
+    for name, viewpoints in (("transmitter", [viewpoint]), ("origin", None)):
+        rng = np.random.default_rng(5)
+        maps[name] = LandmarkMap(viewpoints=viewpoints)
+        for x in xs:
+            transmitter = np.array([x + 0.4, 0.0])
+            maps[name].update(sightings(rng, transmitter, [[transmitter[0], WALL_Y]], [UNKNOWN]), [x, 0.0, yaw])
+    wall = maps["transmitter"].snapshot()
+    assert wall.landmark_class.tolist() == [PLANE]
+    assert_allclose(wall.normal[0], [0.0, -1.0], atol=np.sin(np.radians(0.5)))
+    error, sigma = wall_offset_error(wall)
+    assert abs(error) <= 3.0 * sigma
+    assert_allclose(np.sort(wall.segment[0, :, 0]), [xs[0] + 0.4, xs[-1] + 0.4], atol=0.05)
+    # Taken from the sensor's origin, every line of sight is turned 22 degrees: the wall falls apart in points.
+    assert maps["origin"].counts.resolved_plane == 0
+    assert PLANE not in maps["origin"].snapshot().landmark_class
+
+
+def test_viewpoints_turn_and_move_with_the_sensor_and_an_unknown_group_is_seen_from_the_origin():
+    landmark_map = LandmarkMap(viewpoints=[[0.1, 0.2], [0.0, -0.3]])
+    assert_allclose(landmark_map.viewpoints_at([0, 1, 7], [1.0, 2.0, np.pi / 2]),
+                    [[0.8, 2.1], [1.3, 2.0], [1.0, 2.0]], atol=1e-15)
+    assert_array_equal(LandmarkMap().viewpoints_at([0, 3], [1.0, 2.0, 0.5]), [[1.0, 2.0], [1.0, 2.0]])
+
+
 def test_a_wall_whose_first_sightings_stray_along_it_is_made_once_its_line_wins():
     # The first 40 pings (8 cm of travel, less than min_baseline) see the wall's foot point 4 cm to either side
     # along the wall (its echoes by way of reflectors not yet mapped), then the sensor drives on and sees it
@@ -656,6 +686,9 @@ def test_error_handling():
         LandmarkMap(gate_chi2=20.0, new_entry_gate_chi2=10.0)
     with pytest.raises(ValueError, match="sighting_sigma"):
         LandmarkMap(sighting_sigma=float("nan"))
+    for viewpoints in ([0.0, 0.1], [[0.0, 0.1, 0.0]], [[np.nan, 0.0]]):
+        with pytest.raises(ValueError, match="viewpoints"):
+            LandmarkMap(viewpoints=viewpoints)
     assert landmark_map.counts == MapCounts()
 
     # Empty input: counted as a ping, nothing stored.
