@@ -10,7 +10,7 @@ from numpy.testing import assert_allclose, assert_array_equal
 from sonar_ring import geometry
 from sonar_ring.geometry import LayoutError, load_layout
 
-SHIPPED = ("browne_ring", "barshan_kuc_pair", "barshan_kuc_array", "kreczmer_triad")
+SHIPPED = ("browne_ring", "barshan_kuc_pair", "barshan_kuc_array", "kreczmer_triad", "kreczmer_two_triads")
 
 
 def raw(name):
@@ -82,6 +82,28 @@ def test_kreczmer_triad_baselines():
     rx = triad.group_receivers()[0, :, 1]
     assert_allclose(-np.diff(rx), [0.011, 0.004], atol=1e-12)
     assert_allclose(triad.wavelength(348.0), 8.7e-3, rtol=1e-12)
+
+
+def test_two_triads_are_the_triad_module_turned_to_either_side():
+    """Each module of kreczmer_two_triads is kreczmer_triad's, turned +-60 deg and moved to (0, +-0.1) m."""
+    module, two = load_layout("kreczmer_triad"), load_layout("kreczmer_two_triads")
+    assert two.n_groups == 2 and two.kind == "triad"
+    assert_allclose(np.degrees(two.group_yaw()), [60.0, -60.0], atol=1e-12)
+    for group, (turn, centre) in enumerate(((np.radians(60.0), [0.0, 0.1]), (np.radians(-60.0), [0.0, -0.1]))):
+        rotation = np.array([[np.cos(turn), -np.sin(turn)], [np.sin(turn), np.cos(turn)]])
+        assert_allclose(two.group_receivers()[group, :, :2], module.group_receivers()[0, :, :2] @ rotation.T + centre,
+                        atol=1e-6)  # the YAML's micrometres
+        assert_allclose(two.group_viewpoint()[group], module.group_viewpoint()[0] @ rotation.T + centre, atol=1e-6)
+        assert_allclose(two.height_offset()[group], module.height_offset()[0], atol=1e-12)
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_a_group_is_seen_from_its_transmitters(name):
+    """The viewpoint of each group is its emitter (the middle of a pair's two): Browne's ring's centre."""
+    layout = load_layout(name)
+    assert_allclose(layout.group_viewpoint(), layout.transmitters[layout.group_transmitters, :2].mean(axis=1))
+    if layout.kind == "ring":
+        assert_array_equal(layout.group_viewpoint(), 0.0)
 
 
 # --------------------------------------------------------------------------- rejection at load

@@ -5,7 +5,8 @@ paths differ by micrometres, and a plane and a corner at its foot point give the
 landmarks are UNKNOWN and the map decides what motion decides: a wall the triad passes while facing it
 becomes a wall, a fixed point stays CORNER_OR_EDGE (no curvature evidence), and a wall it only drives
 straight at stays UNKNOWN -- as on the demo's room lap, where the forward-facing triad hears its four
-walls head-on only.
+walls head-on only.  Two modules turned to the sides (``kreczmer_two_triads``) pass the walls beside the
+path, each seen from its own emitter, 0.1 m from the sensor's origin.
 """
 
 import numpy as np
@@ -20,6 +21,7 @@ from sonar_ring.ping_stage import PingStage
 from sonar_ring.simulate import Noise, Simulator, load_scene
 
 TRIAD = load_layout("kreczmer_triad")
+TWO_TRIADS = load_layout("kreczmer_two_triads")
 SETTINGS = pipeline.Settings(sigma_tof=1e-6, sigma_speed=pipeline.ROBOT_SIGMA_SPEED)
 STAGE = PingStage(TRIAD, SETTINGS)
 NOISE = Noise(tof=1e-6, amplitude=0.02)
@@ -34,16 +36,17 @@ class _Health:
         pass
 
 
-def drive(scene_name, poses, seed=3):
-    """Map ``poses`` (sensor poses, world = odom) of a scene with the triad; the builder and every ping's labels."""
-    simulator = Simulator(load_scene(scene_name), TRIAD)
+def drive(scene_name, poses, seed=3, layout=TRIAD):
+    """Map ``poses`` (sensor poses, world = odom) of a scene with a triad layout; the builder, every ping's labels."""
+    simulator = Simulator(load_scene(scene_name), layout)
+    stage = STAGE if layout is TRIAD else PingStage(layout, SETTINGS)
     rng = np.random.default_rng(seed)
-    builder = MapBuilder(MapperSettings(slam=False, pose_history=None, layout=TRIAD, echo_tests=None), _Health())
+    builder = MapBuilder(MapperSettings(slam=False, pose_history=None, layout=layout, echo_tests=None), _Health())
     labels = []
     for k, pose in enumerate(poses):
         stamp = 10**9 + k * 10**9 // 20
         builder.add_odometry(stamp, pose)
-        labelled = STAGE.label(simulator.ping(pose, noise=NOISE, rng=rng).echoes)[1]
+        labelled = stage.label(simulator.ping(pose, noise=NOISE, rng=rng).echoes)[1]
         labels.append(labelled.landmark_class)
         assert builder.add_ping(stamp, labelled)
     return builder, np.concatenate(labels)
@@ -106,3 +109,25 @@ def test_the_room_lap_forward_triad_decides_only_what_motion_decides():
     reflectors = np.vstack([scene.corner_point, scene.edges])
     assert len(fixed) >= 3  # the room's south-east corner, the pillar's edges
     assert np.all(np.min(np.hypot(*(fixed.position[:, None] - reflectors[None]).transpose(2, 0, 1)), axis=1) < 0.05)
+
+
+def test_two_triads_map_the_walls_beside_the_path_each_seen_from_its_emitter():
+    """The demo's first leg and turn with a module either side: the south wall (right module), the pillar's south
+    face (left module) and the east wall (heard while turning) are walls where they are; the points are fixed."""
+    scene = load_scene("room")
+    builder, labels = drive("room", scene.trajectory.poses(TWO_TRIADS.ping_rate)[1][:300], layout=TWO_TRIADS)
+    assert np.all(labels == UNKNOWN)
+    snapshot = builder.snapshot()
+    walls = snapshot.select(snapshot.landmark_class == PLANE)
+    true_walls = {"south": ([0.0, 1.0], [3.0, 0.0]), "pillar_s": ([0.0, -1.0], [3.6, 2.0]),
+                  "east": ([-1.0, 0.0], [6.0, 1.0])}  # normal towards the path, a point of the wall
+    assert len(walls) == len(true_walls)
+    for name, (normal, point) in true_walls.items():
+        match = np.flatnonzero(walls.normal @ normal > np.cos(np.radians(10.0)))
+        assert match.size == 1, name
+        # within half a degree and a centimetre (seen from the sensor's origin, 0.1 m beside the emitter, the
+        # east wall heard while turning was 1.8 degrees off)
+        assert walls.normal[match[0]] @ normal >= np.cos(np.radians(0.5)), name
+        assert abs((walls.position[match[0]] - point) @ normal) < 0.01, name
+    assert not np.isin(snapshot.landmark_class, (CORNER, EDGE)).any()
+    assert np.count_nonzero(snapshot.landmark_class == CORNER_OR_EDGE) >= 4  # the pillar's, the room's corners
