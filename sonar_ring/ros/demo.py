@@ -1,7 +1,9 @@
 """demo: the whole graph on a simulated scene for one lap, recorded, drawn and scored.
 
 Runs driver (simulator source) -> localiser -> mapper in one
-process, in real time (the driver pings at the layout's rate), in the
+process, in real time (the driver pings at the layout's rate), with the
+layout's shipped node parameters (``config/params/<layout>.yaml``, as the
+launch file gives them), in the
 ``realistic`` world by default (drifting wheel odometry, missed, spurious,
 multipath and late echoes, the air's true speed of sound: :mod:`sonar_ring.realism`;
 ``--world ideal`` for the forward model alone), follows the ping stream with a
@@ -43,7 +45,7 @@ from rclpy.serialization import deserialize_message
 
 from sonar_ring import poses
 from sonar_ring.cli import realism_field
-from sonar_ring.geometry import load_layout
+from sonar_ring.geometry import config_path, load_layout
 from sonar_ring.landmarks import CLASS_NAMES, CORNER_OR_EDGE, UNKNOWN
 from sonar_ring.msg import LandmarkArray
 from sonar_ring.progress import progress_bar
@@ -241,8 +243,9 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
                  Parameter("layout", value=layout), Parameter("loops", value=laps), Parameter("seed", value=seed),
                  Parameter("world", value=world),
                  *(Parameter(REALISM_PREFIX + name, value=float(value)) for name, value in (realism or {}).items())]
+    shipped = config_path("params", load_layout(layout).name)
     recorder = _start_recorder(bag_path, layout)
-    rclpy.init()
+    rclpy.init(args=["--ros-args", "--params-file", str(shipped)] if shipped.is_file() else None)
     try:
         nodes = [cls(parameter_overrides=overrides) for cls in NODES]
         compose(nodes)
