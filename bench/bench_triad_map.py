@@ -149,7 +149,7 @@ def main() -> None:
         "",
         f"The ideal world with seed 0, the realistic world with seeds 0-{args.seeds - 1}; TOF noise and the "
         "localiser's `sigma_tof` from the layout's shipped parameters.  *Walls*: mapped right (within 5 cm and "
-        "2 deg, :mod:`sonar_ring.score`), of the 10 and of those heard; *fixed points*: CORNER_OR_EDGE entries (a "
+        "2 deg, `sonar_ring.score`), of the 10 and of those heard; *fixed points*: CORNER_OR_EDGE entries (a "
         "triad's corners and edges: its pings carry no curvature), *claimed*: entries named CORNER or EDGE; "
         "*ghosts*: entries near no reflector.  Median over the runs, [min, max].",
         "",
