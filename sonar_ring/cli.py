@@ -302,10 +302,12 @@ def _add_record_sim(subparsers) -> None:
                    help="passes over the scene's trajectory; one ping each without a trajectory (default: 1)")
     p.add_argument("--pings", type=_positive_int, help="stop after this many pings (default: all of the laps)")
     p.add_argument("--seed", type=int, default=0, help="seed of the noise generator (default: 0)")
-    p.add_argument("--sigma-t", type=_non_negative, default=1e-6, metavar="S",
-                   help="time-of-flight noise standard deviation, s (default: 1e-6, the driver's)")
-    p.add_argument("--sigma-a", type=_non_negative, default=0.02, metavar="A",
-                   help="amplitude noise standard deviation relative to A_max (default: 0.02)")
+    p.add_argument("--sigma-t", type=_non_negative, metavar="S",
+                   help="time-of-flight noise standard deviation, s (default: the driver's sigma_tof in the "
+                        "layout's config/params file: 1e-6 for browne_ring, 0.33e-6 for a triad)")
+    p.add_argument("--sigma-a", type=_non_negative, metavar="A",
+                   help="amplitude noise standard deviation relative to A_max (default: the driver's "
+                        "sigma_amplitude there, 0.02)")
     p.add_argument("--no-range", action="store_true",
                    help="leave out /range/group_NN (a sensor_msgs/Range topic per group)")
     _add_world_options(p, default="realistic")

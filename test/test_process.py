@@ -209,9 +209,10 @@ def test_process_of_the_demo_bag_gives_the_live_graphs_messages(tmp_path):
     assert_same_landmarks(offline_map, live_map)
 
 
-def test_the_demo_runs_a_layout_with_its_shipped_parameters_as_process_does(tmp_path):
+def test_the_demo_runs_a_layout_with_its_shipped_parameters_as_process_and_record_sim_do(tmp_path):
     """kreczmer_two_triads: its parameters (sigma_tof 0.33 us, not the nodes' default 1 us) in the live graph too,
-    so the localiser's landmarks and the map are those ``sonar-ring process`` makes of the same bag."""
+    so the localiser's landmarks and the map are those ``sonar-ring process`` makes of the same bag, and
+    ``record-sim`` records the driver's echoes."""
     figures = demo.run("room", "kreczmer_two_triads", laps=1, seed=0, out=tmp_path, pings=PINGS)
     assert main(["process", str(tmp_path / "bag"), str(tmp_path / "processed"), "--quiet"]) == 0
     _, live = read_bag(tmp_path / "bag")
@@ -226,6 +227,11 @@ def test_the_demo_runs_a_layout_with_its_shipped_parameters_as_process_does(tmp_
     offline_map = deserialize_message(offline["/map/landmarks"][-1][1], LandmarkArray)
     assert len(landmarks_from_msg(live_map)) == sum(figures["map"].values())
     assert_same_landmarks(offline_map, live_map)
+    assert main(["record-sim", "room", str(tmp_path / "recorded"), "--layout", "kreczmer_two_triads",
+                 "--pings", str(PINGS), "--quiet"]) == 0
+    _, recorded = read_bag(tmp_path / "recorded")
+    for (_, live_data), (_, recorded_data) in zip(live["/echoes"], recorded["/echoes"], strict=True):
+        assert_array_equal(echoes_from_cdr(live_data)[1].tof, echoes_from_cdr(recorded_data)[1].tof)
 
 
 def test_process_reports_unknown_and_wrong_topics_and_goes_on(sim_bag, tmp_path, capsys):

@@ -55,7 +55,7 @@ from sonar_ring.map_builder import MapBuilder
 from sonar_ring.ping_stage import Counts, PingStage, check_ping
 from sonar_ring.progress import progress_bar
 from sonar_ring.realism import World, scene_realism
-from sonar_ring.ros import localiser, mapper
+from sonar_ring.ros import driver, localiser, mapper
 from sonar_ring.ros.bag import (
     TOPIC,
     BagError,
@@ -597,7 +597,7 @@ class RecordReport:
 
 
 def record_sim(scene, out_path, *, layout="browne_ring", laps: int = 1, pings: int | None = None, seed: int = 0,
-               sigma_t: float = 1e-6, sigma_a: float = 0.02, world: str = "realistic", realism=None,
+               sigma_t: float | None = None, sigma_a: float | None = None, world: str = "realistic", realism=None,
                with_range: bool = True, frame_id: str = "sonar_ring", storage: str = "mcap",
                progress: bool = True) -> RecordReport:
     """Write what the driver's simulator source publishes over ``laps`` of the scene's trajectory to a new bag.
@@ -610,7 +610,8 @@ def record_sim(scene, out_path, *, layout="browne_ring", laps: int = 1, pings: i
     driver's group frames need tf2_msgs).  Ping k is stamped (and written at) trajectory time
     ``k / ping_rate`` plus :data:`SIM_START_NS`; a scene without a trajectory
     pings at its ``sensor_pose``, one ping per lap.  The noise (``sigma_t``,
-    s; ``sigma_a`` relative to A_max), the ``world`` profile with the
+    s; ``sigma_a`` relative to A_max; default the driver's ``sigma_tof`` and
+    ``sigma_amplitude`` in the layout's shipped parameters, else its defaults), the ``world`` profile with the
     ``realism`` field overrides (:mod:`sonar_ring.realism`) and the seed mean
     what the driver's ``sigma_tof``, ``sigma_amplitude``, ``world``,
     ``realism.*`` and ``seed`` mean, so with the same values the echoes and
@@ -619,6 +620,10 @@ def record_sim(scene, out_path, *, layout="browne_ring", laps: int = 1, pings: i
     started = time.perf_counter()
     scene = load_scene(scene)
     sensor = load_layout(layout)
+    shipped = config_path("params", sensor.name)
+    driver_values = file_values(shipped if shipped.is_file() else {}, "driver", driver.PARAMS)
+    sigma_t = driver_values["sigma_tof"] if sigma_t is None else sigma_t
+    sigma_a = driver_values["sigma_amplitude"] if sigma_a is None else sigma_a
     rate = sensor.ping_rate
     simulated = World(scene, sensor, scene_realism(scene, world, realism, where="--realism"),
                       noise=Noise(tof=sigma_t, amplitude=sigma_a), seed=seed, ping_rate=rate)
