@@ -101,8 +101,8 @@ def one_lap(layout_name: str, world: str, seed: int) -> dict:
     score = score_map(snapshot, scene, np.array(sorted(heard), dtype=int))
     return dict(walls=score.per_class["plane"].mapped, walls_heard=score.per_class["plane"].heard,
                 claimed=int(np.isin(snapshot.landmark_class, (CORNER, EDGE)).sum()),
-                fixed=int(np.count_nonzero(snapshot.landmark_class == CORNER_OR_EDGE)), undecided=score.undecided,
-                ghosts=score.ghosts, misplaced=score.total("misplaced"),
+                fixed=int(np.count_nonzero(snapshot.landmark_class == CORNER_OR_EDGE)), ghosts=score.ghosts,
+                misplaced=score.total("misplaced"),
                 trajectory=trajectory_error(np.array(estimate), np.array(truth)))
 
 
