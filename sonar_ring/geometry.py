@@ -269,6 +269,12 @@ def config_path(folder: str, name: str) -> Path:
     return CONFIG_DIR / folder / f"{name}.yaml"
 
 
+def shipped_params(layout_name: str) -> Path | None:
+    """The node parameters shipped for a layout (``config/params/<name>.yaml``), None where it has none."""
+    path = config_path("params", layout_name)
+    return path if path.is_file() else None
+
+
 def layout_path(name: str) -> Path:
     """Path of a shipped layout by name, e.g. ``layout_path("browne_ring")``."""
     return config_path("layouts", name)

@@ -97,6 +97,12 @@ def test_two_triads_are_the_triad_module_turned_to_either_side():
         assert_allclose(two.height_offset()[group], module.height_offset()[0], atol=1e-12)
 
 
+def test_every_shipped_layout_has_its_node_parameters():
+    for name in SHIPPED:
+        assert geometry.shipped_params(name) == geometry.config_path("params", name)
+    assert geometry.shipped_params("no_such_layout") is None
+
+
 @pytest.mark.parametrize("name", SHIPPED)
 def test_a_group_is_seen_from_its_transmitters(name):
     """The viewpoint of each group is its emitter (the middle of a pair's two): Browne's ring's centre."""

@@ -45,7 +45,7 @@ from rclpy.serialization import deserialize_message
 
 from sonar_ring import poses
 from sonar_ring.cli import realism_field
-from sonar_ring.geometry import config_path, load_layout
+from sonar_ring.geometry import load_layout, shipped_params
 from sonar_ring.landmarks import CLASS_NAMES, CORNER_OR_EDGE, UNKNOWN
 from sonar_ring.msg import LandmarkArray
 from sonar_ring.progress import progress_bar
@@ -243,9 +243,9 @@ def run(scene: str, layout: str, laps: int, seed: int, out: Path, pings: int | N
                  Parameter("layout", value=layout), Parameter("loops", value=laps), Parameter("seed", value=seed),
                  Parameter("world", value=world),
                  *(Parameter(REALISM_PREFIX + name, value=float(value)) for name, value in (realism or {}).items())]
-    shipped = config_path("params", load_layout(layout).name)
+    shipped = shipped_params(load_layout(layout).name)
     recorder = _start_recorder(bag_path, layout)
-    rclpy.init(args=["--ros-args", "--params-file", str(shipped)] if shipped.is_file() else None)
+    rclpy.init(args=["--ros-args", "--params-file", str(shipped)] if shipped else None)
     try:
         nodes = [cls(parameter_overrides=overrides) for cls in NODES]
         compose(nodes)

@@ -49,7 +49,7 @@ from std_msgs.msg import Header
 
 from sonar_ring import slam
 from sonar_ring.echoes import EchoArrays
-from sonar_ring.geometry import Layout, LayoutError, config_path, load_layout
+from sonar_ring.geometry import Layout, LayoutError, load_layout, shipped_params
 from sonar_ring.landmarks import CLASS_NAMES, Landmarks
 from sonar_ring.map_builder import MapBuilder
 from sonar_ring.ping_stage import Counts, PingStage, check_ping
@@ -526,8 +526,8 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
         echo_connections = [c for name in chosen for c in topics[name]]
         sensor = _layout_of(bag, echo_connections, layout)
         report.layout = sensor.name
-        if params_file is None and config_path("params", sensor.name).is_file():
-            params_file = config_path("params", sensor.name)
+        if params_file is None:
+            params_file = shipped_params(sensor.name)
         report.params_file = str(params_file or "defaults")
         values = node_values(params_file)
         work = LocaliserWork(PingStage(sensor, localiser.settings_from(values["localiser"])),
@@ -620,8 +620,7 @@ def record_sim(scene, out_path, *, layout="browne_ring", laps: int = 1, pings: i
     started = time.perf_counter()
     scene = load_scene(scene)
     sensor = load_layout(layout)
-    shipped = config_path("params", sensor.name)
-    driver_values = file_values(shipped if shipped.is_file() else {}, "driver", driver.PARAMS)
+    driver_values = file_values(shipped_params(sensor.name) or {}, "driver", driver.PARAMS)
     sigma_t = driver_values["sigma_tof"] if sigma_t is None else sigma_t
     sigma_a = driver_values["sigma_amplitude"] if sigma_a is None else sigma_a
     rate = sensor.ping_rate
