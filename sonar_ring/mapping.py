@@ -1831,10 +1831,13 @@ class LandmarkMap:
         return np.unique(stored)
 
     def _fuse_models(self, s: Sightings, rows, slots) -> None:
-        """Fuse the point models of sightings ``rows`` (those that have both) into points ``slots``."""
+        """Fuse the point models of sightings ``rows`` (those that have both) into points ``slots``.
+
+        Not into points the curvature has decided: nothing reads their two fits again.
+        """
         if s.models is None:
             return
-        modelled = s.models.valid[rows]
+        modelled = s.models.valid[rows] & ~self._points.curvature_decided[slots]
         if not modelled.any():
             return
         rows, slots = rows[modelled], slots[modelled]
