@@ -25,7 +25,7 @@ import numpy as np
 from bench_triad_map import shipped_sigma_tof
 
 from sonar_ring import pipeline
-from sonar_ring.benchmark.environment import machine, revision, today
+from sonar_ring.benchmark.environment import machine, revision, today, write_report
 from sonar_ring.explain import EchoTests
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import Landmarks
@@ -134,10 +134,7 @@ def main() -> None:
             f"| ×{median['mapper all'] / median['mapper carried']:.1f} "
             f"| {entries['carried']:g} / {entries['all']:g} | {ghosts['carried']:g} / {ghosts['all']:g} |")
         print(lines[-1], flush=True)
-    lines += ["", f"Run time: {time.perf_counter() - started:.0f} s."]
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_report(args.output, lines, started)
 
 
 if __name__ == "__main__":

@@ -31,7 +31,7 @@ import numpy as np
 import yaml
 
 from sonar_ring import pipeline
-from sonar_ring.benchmark.environment import machine, revision, today
+from sonar_ring.benchmark.environment import machine, revision, today, write_report
 from sonar_ring.explain import EchoTests
 from sonar_ring.geometry import config_path, load_layout
 from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, Landmarks
@@ -168,10 +168,7 @@ def main() -> None:
                          f"| {spread['fixed']} | {spread['claimed']} | {spread['ghosts']} | {spread['misplaced']} "
                          f"| {100 * np.median(rms):.1f} / {100 * np.median(final):.1f} cm |")
             print(layout_name, world, "done", flush=True)
-    lines += ["", f"Run time: {time.perf_counter() - started:.0f} s."]
-    args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text("\n".join(lines) + "\n")
-    print("\n".join(lines))
+    write_report(args.output, lines, started)
 
 
 if __name__ == "__main__":

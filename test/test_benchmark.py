@@ -2,10 +2,12 @@
 
 import importlib.util
 import re
+import time
 
 import pytest
 
 from sonar_ring.benchmark import slam_cost, worlds
+from sonar_ring.benchmark.environment import write_report
 from sonar_ring.benchmark.measure import LSQ_NAME
 from sonar_ring.benchmark.methods import BEARING, RING_FAMILIES
 from sonar_ring.benchmark.report import LATENCY_BEGIN, LATENCY_END, PLOT_DIR, REPORT, TABLE_BEGIN, TABLE_END
@@ -180,3 +182,10 @@ def test_memory_growth_is_judged_after_the_warm_up_and_says_when_the_run_stopped
     assert verdict == "**missed** up to 20.0 min; not measured to 30 min"
     early = dict(run, samples=run["samples"][:2], stopped="stopped at the wall-time budget")
     assert slam_cost._memory_target(early, 30.0, 5.0)[1:] == ("stopped at the wall-time budget", "not measured")
+
+
+def test_a_study_report_ends_with_its_run_time(tmp_path):
+    started = time.perf_counter() - 3.0  # "3 s" unless writing stalls half a second
+    report = tmp_path / "results" / "study.md"
+    write_report(report, ["# A study", "", "| a |"], started)
+    assert report.read_text() == "# A study\n\n| a |\n\nRun time: 3 s.\n"

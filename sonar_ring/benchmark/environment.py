@@ -7,6 +7,7 @@ import importlib.metadata
 import os
 import platform
 import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
@@ -60,3 +61,14 @@ def revision(directory: Path) -> str:
 def today() -> str:
     """The current UTC date and time, ISO 8601 to the minute."""
     return datetime.datetime.now(datetime.UTC).strftime("%Y-%m-%d %H:%M UTC")
+
+
+def write_report(path: Path, lines: list[str], started: float) -> None:
+    """Write a study's Markdown ``lines`` to ``path``, ending with its run time since ``started``, and print it.
+
+    ``started`` is a :func:`time.perf_counter` reading taken when the study began.
+    """
+    lines = [*lines, "", f"Run time: {time.perf_counter() - started:.0f} s."]
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
