@@ -56,7 +56,7 @@ def one_lap(layout_name: str, seed: int) -> dict:
                 for way in ("carried", "all")}
     header = MessageHeader(Stamp(1, 0), "sonar_ring")
     counts = {key: [] for key in ("rows", "solved", "valid", "carried")}
-    times = {f"{step} {way}": [] for step in ("label", "markers", "mapper") for way in ("carried", "all")}
+    times = {"label": [], **{f"{step} {way}": [] for step in ("markers", "mapper") for way in ("carried", "all")}}
     heard = set()
     for k, pose in enumerate(scene.trajectory.poses(layout.ping_rate)[1]):
         ping = world.ping(pose, k / layout.ping_rate)
@@ -72,7 +72,7 @@ def one_lap(layout_name: str, seed: int) -> dict:
             continue
         started = time.perf_counter()
         hypotheses, carried = stage.label(usable)
-        times["label carried"].append(time.perf_counter() - started)
+        times["label"].append(time.perf_counter() - started)
         landmarks = {"carried": carried, "all": hypotheses.select(hypotheses.valid)}
         for key, value in (("rows", usable.n_echoes), ("solved", len(hypotheses)),
                            ("valid", len(landmarks["all"])), ("carried", len(carried))):
@@ -88,8 +88,8 @@ def one_lap(layout_name: str, seed: int) -> dict:
             times[f"mapper {way}"].append(time.perf_counter() - started)
     truth = np.array(sorted(heard), dtype=int)
     scores = {way: score_map(builder.snapshot(), scene, truth) for way, builder in builders.items()}
-    return dict(counts={key: np.array(value) for key, value in counts.items() if value},
-                times={key: np.array(value) for key, value in times.items() if value},
+    return dict(counts={key: np.array(value) for key, value in counts.items()},
+                times={key: np.array(value) for key, value in times.items()},
                 entries={way: score.entries for way, score in scores.items()},
                 ghosts={way: score.ghosts for way, score in scores.items()})
 
@@ -128,7 +128,7 @@ def main() -> None:
         ghosts = {way: np.median([run["ghosts"][way] for run in runs]) for way in ("carried", "all")}
         lines.append(
             f"| {layout_name} | {count['rows']:.1f} | {count['solved']:.1f} | {count['valid']:.1f} "
-            f"| {count['carried']:.1f} | {median['label carried']:.2f} "
+            f"| {count['carried']:.1f} | {median['label']:.2f} "
             f"| {median['markers carried']:.2f} / {median['markers all']:.2f} "
             f"| {median['mapper carried']:.2f} / {median['mapper all']:.2f} "
             f"| ×{median['mapper all'] / median['mapper carried']:.1f} "
