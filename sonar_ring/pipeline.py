@@ -190,6 +190,94 @@ def classify_ping(layout: Layout, echoes: EchoArrays, hypotheses: Landmarks,
     return picked.with_class(label, decided_confidence)
 
 
+def joint_landmarks(layout: Layout, echoes: EchoArrays, labelled: Landmarks, settings: Settings = Settings(),
+                    ping=None) -> Landmarks:
+    """One landmark per echo of a single-emitter ring: the fit over every receiver that heard it.
+
+    :func:`sonar_ring.ring_consistency.ring_consistency` joins each echo row with the
+    overlapping groups' rows of the same echo and fits both models over all their
+    receivers, at the joint Cramer-Rao bound (``bench/results/joint.md``).  Rows joined
+    (directly or through each other) are one echo; its landmark is that of its row with
+    the most joined rows (ties: the first), placed by the joint fit of its labelled
+    class's model: an EDGE's edge fit, any other's virtual image ``T'`` at
+    ``G = (T + T') / 2`` (an UNKNOWN one's covariance widened by ``g g^T``, ``g`` the
+    gap to the edge fit, as :func:`classify_ping` widens a pair's).  The echo's other
+    rows are left out: their fits share its receivers.  An echo whose row has no joint
+    fit (heard by one pair, not tested, or its model does not fit) keeps every row's
+    landmark as labelled, the pair's closed form.  Other layouts: ``labelled`` as it is.
+
+    Parameters
+    ----------
+    layout : Layout
+    echoes : EchoArrays
+        The screened ping (N rows), as :func:`classify_ping` took it.
+    labelled : Landmarks
+        :func:`classify_ping`'s landmarks of ``echoes`` (L), sensor frame.
+    settings : Settings
+        TOF and speed-of-sound noise and the test's significance, as for :func:`classify_ping`.
+    ping : array_like of int, shape (N,), optional
+        Ping of each row when several are stacked (rows join only within a ping).
+
+    Returns
+    -------
+    Landmarks
+        At most L landmarks, sensor frame, ``echo`` each one's row.
+    """
+    if layout.kind != "ring" or not len(labelled):
+        return labelled
+    row = labelled.echo.astype(np.int64)
+    if row.min() < 0 or row.max() >= echoes.n_echoes:
+        raise ValueError(f"joint_landmarks: the landmarks name echo rows {row.min()}-{row.max()}, the ping has "
+                         f"{echoes.n_echoes}")
+    speed = float(echoes.speed_of_sound)
+    result = ring_consistency.ring_consistency(layout, echoes.group, echoes.path_lengths(),
+                                               speed * settings.sigma_tof, ping=ping, z=settings.consistency_z,
+                                               covariances=True, relative_sigma_speed=settings.sigma_speed / speed)
+    size = (result.joined >= 0).sum(axis=1)
+    echo = _joined_echoes(result.joined)
+    # The row each echo is published by: the most joined rows, then the first.
+    order = np.lexsort((np.arange(echo.size), -size, echo))
+    first = order[np.r_[True, echo[order][1:] != echo[order][:-1]]]
+    representative = np.zeros(echo.size, dtype=np.int64)
+    representative[echo[first]] = first
+    is_edge = labelled.landmark_class == EDGE
+    transmitter = layout.plan.transmitters[echoes.group[row].astype(np.int64), 0]
+    position = np.where(is_edge[:, None], result.edge_position[row], 0.5 * (transmitter + result.virtual_image[row]))
+    covariance = np.where(is_edge[:, None, None], result.edge_covariance[row], 0.25 * result.image_covariance[row])
+    fitted = (size[row] >= 2) & np.all(np.isfinite(covariance), axis=(1, 2)) & np.all(np.isfinite(position), axis=1)
+    undecided = fitted & (labelled.landmark_class == UNKNOWN)
+    gap = np.where(np.isfinite(result.edge_position[row]), result.edge_position[row] - position, 0.0)
+    covariance[undecided] += gap[undecided, :, None] * gap[undecided, None, :]
+    published = representative[echo[row]] == row
+    # An echo is joint where its published row has a fit; its rows all go to it, else each keeps its own.
+    joint_echo = np.zeros(echo.size, dtype=bool)
+    joint_echo[echo[row[published & fitted]]] = True
+    kept = np.flatnonzero(np.where(joint_echo[echo[row]], published & fitted, True))
+    out = labelled.select(kept)
+    swap = fitted[kept] & published[kept]
+    out.position[swap] = position[kept[swap]]
+    out.covariance[swap] = covariance[kept[swap]]
+    return out
+
+
+def _joined_echoes(joined: np.ndarray) -> np.ndarray:
+    """The echo (N,) of each row: rows joined (``joined`` (N, J), -1 padded), directly or through others, share one.
+
+    Each echo is numbered by its lowest row.
+    """
+    echo = np.arange(joined.shape[0])
+    source = np.repeat(echo, joined.shape[1])
+    target = joined.ravel()
+    source, target = source[target >= 0], target[target >= 0]
+    while True:
+        lowest = echo.copy()
+        np.minimum.at(lowest, source, echo[target])
+        np.minimum.at(lowest, target, echo[source])
+        if np.array_equal(lowest, echo):
+            return echo
+        echo = lowest
+
+
 def load_kernels() -> None:
     """Load the compiled part of :func:`classify_ping` now instead of at the first ping.
 

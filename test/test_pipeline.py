@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from numpy.testing import assert_allclose, assert_array_equal
 
-from sonar_ring import localise, pipeline
+from sonar_ring import localise, pipeline, ring_consistency
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, Landmarks
@@ -151,6 +151,63 @@ def test_batched_pings_give_each_ping_its_own_result_exactly(layout_name, scene_
         assert decided > 0, "the comparison must cover decided landmarks too"
 
 
+def test_an_echo_several_pairs_heard_is_one_landmark_at_its_joint_fit():
+    settings = pipeline.Settings(sigma_tof=1e-6)
+    pair_error, joint_error, inside, joint = [], [], 0, 0
+    for ping in room_pings(150, 1e-6, seed=11):
+        echoes = ping.echoes
+        labelled = pipeline.classify_ping(RING, echoes, pipeline.localise_ping(RING, echoes, settings), settings)
+        published = pipeline.joint_landmarks(RING, echoes, labelled, settings)
+        fits = ring_consistency.ring_consistency(RING, echoes.group, echoes.path_lengths(),
+                                                 echoes.speed_of_sound * 1e-6, covariances=True)
+        echo = pipeline._joined_echoes(fits.joined)
+        assert len(np.unique(published.echo)) == len(published)
+        moved = np.any(published.position != labelled.position[np.searchsorted(labelled.echo, published.echo)],
+                       axis=1)
+        # a joint landmark is its echo's only one, at the fit of its class's model
+        assert np.all(np.bincount(echo[published.echo], minlength=echo.size)[echo[published.echo[moved]]] == 1)
+        row = published.echo[moved]
+        edge = published.landmark_class[moved] == EDGE
+        transmitter = RING.plan.transmitters[echoes.group[row], 0]
+        assert_allclose(published.position[moved], np.where(edge[:, None], fits.edge_position[row],
+                                                             0.5 * (transmitter + fits.virtual_image[row])))
+        assert np.all((fits.joined[row] >= 0).sum(axis=1) >= 2)
+        # accuracy on the plane and corner echoes (UNKNOWN landmarks, placed at the virtual image's G)
+        specular = np.isin(ping.truth_class, (PLANE, CORNER))
+        for landmarks, errors in ((labelled, pair_error), (published, joint_error)):
+            chosen = landmarks.select(specular[landmarks.echo] & (landmarks.landmark_class == UNKNOWN))
+            errors.extend(np.hypot(*(chosen.position - ping.truth_position[chosen.echo]).T))
+        chosen = published.select(moved & specular[published.echo] & (published.landmark_class == UNKNOWN))
+        error = chosen.position - ping.truth_position[chosen.echo]
+        inside += np.count_nonzero(np.einsum("ni,nij,nj->n", error, np.linalg.inv(chosen.covariance), error)
+                                   <= CHI2_2DOF_3SIGMA)
+        joint += len(chosen)
+    assert joint > 1000
+    assert inside / joint >= 0.98
+    assert np.median(joint_error) < 0.6 * np.median(pair_error)
+
+
+def test_an_echo_one_pair_heard_and_other_layouts_keep_their_landmarks():
+    ping = room_pings(1, 1e-6, seed=2)[0]
+    alone = dataclasses.replace(ping.echoes, group=ping.echoes.group[:1], transmitter=ping.echoes.transmitter[:1],
+                                tof=ping.echoes.tof[:1], amplitude=ping.echoes.amplitude[:1],
+                                phase_delay=ping.echoes.phase_delay[:1])
+    labelled = pipeline.classify_ping(RING, alone, pipeline.localise_ping(RING, alone))
+    published = pipeline.joint_landmarks(RING, alone, labelled)
+    assert len(labelled) == 1
+    assert_array_equal(published.position, labelled.position)
+    assert_array_equal(published.covariance, labelled.covariance)
+    pair = load_layout("barshan_kuc_pair")
+    echoes = Simulator(load_scene("single_wall"), pair).ping((0.0, 0.0, 0.0)).echoes
+    labelled = pipeline.classify_ping(pair, echoes, pipeline.localise_ping(pair, echoes))
+    assert pipeline.joint_landmarks(pair, echoes, labelled) is labelled
+
+
+def test_rows_joined_through_each_other_are_one_echo():
+    joined = np.array([[0, 1, -1], [1, 2, -1], [2, -1, -1], [3, -1, -1], [4, 3, -1]])
+    assert_array_equal(pipeline._joined_echoes(joined), [0, 0, 0, 3, 3])
+
+
 def test_error_handling():
     with pytest.raises(ValueError, match="models must be a non-empty subset"):
         pipeline.Settings(models=("plane", "wall"))
@@ -192,6 +249,8 @@ def test_error_handling():
                                                              transmitter=np.array(transmitter)))
     with pytest.raises(ValueError, match="one group, one transmitter and two TOFs per echo row"):
         pipeline.localise_ping(RING, dataclasses.replace(bad, tof=bad.tof[:2]))
+    with pytest.raises(ValueError, match="joint_landmarks: the landmarks name echo rows 0-1000000, the ping has 3"):
+        pipeline.joint_landmarks(RING, bad, Landmarks.concatenate([kept, stray.select([0])]))
     # noise parameters that make no sense are refused, as by path_covariance
     for settings, speed in ((pipeline.Settings(sigma_tof=-1e-6), 343.0), (pipeline.Settings(sigma_speed=np.nan), 343.0),
                             (pipeline.Settings(), 0.0)):
