@@ -5,10 +5,11 @@ Regenerate ``bench/results/hypotheses.md`` (about ten minutes on 2 cores):
     source tools/env.sh && python bench/bench_hypotheses.py   # from the repository root
 
 The localiser solves every enabled model for every echo row (plane, corner, edge: the evidence compares
-them), then keeps one landmark per echo: the decided class's, or the corner model's while the evidence
-decides nothing (:func:`sonar_ring.pipeline.classify_ping`); the markers and the mapper work on that one.  The
-other hypotheses go out on ``landmarks/raw`` only.  This script measures what the alternative would cost: the
-same pings' markers (built and serialized, as the localiser publishes them) and the same mapper (as it ships:
+them), then keeps one landmark per echo row: the decided class's, or the corner model's while the evidence
+decides nothing (:func:`sonar_ring.pipeline.classify_ping`); the mapper works on those, the markers on the
+landmarks published of them (:meth:`~sonar_ring.ping_stage.PingStage.publishable`: on a ring one per echo).
+The other hypotheses go out on ``landmarks/raw`` only.  This script measures what the alternative would cost:
+the same pings' markers (built and serialized, as the localiser publishes them) and the same mapper (as it ships:
 SLAM and the echo tests, :class:`~sonar_ring.map_builder.MapBuilder`) fed every valid hypothesis instead, side
 by side on every ping of the same run (each first on every other ping), so the ratios hold on a busy machine.
 The demo's lap of the room in the realistic world (:mod:`sonar_ring.realism`), each layout's shipped
@@ -55,7 +56,7 @@ def one_lap(layout_name: str, seed: int) -> dict:
     builders = {way: MapBuilder(MapperSettings(pose_history=None, layout=layout, echo_tests=EchoTests()), Counts())
                 for way in ("carried", "all")}
     header = MessageHeader(Stamp(1, 0), "sonar_ring")
-    counts = {key: [] for key in ("rows", "solved", "valid", "carried")}
+    counts = {key: [] for key in ("rows", "solved", "valid", "carried", "published")}
     times = {"label": [], **{f"{step} {way}": [] for step in ("markers", "mapper") for way in ("carried", "all")}}
     heard = set()
     for k, pose in enumerate(scene.trajectory.poses(layout.ping_rate)[1]):
@@ -72,16 +73,18 @@ def one_lap(layout_name: str, seed: int) -> dict:
             continue
         started = time.perf_counter()
         hypotheses, carried = stage.label(usable)
+        published = stage.publishable(usable, carried)
         times["label"].append(time.perf_counter() - started)
         landmarks = {"carried": carried, "all": hypotheses.select(hypotheses.valid)}
+        drawn = {"carried": published, "all": landmarks["all"]}
         for key, value in (("rows", usable.n_echoes), ("solved", len(hypotheses)),
-                           ("valid", len(landmarks["all"])), ("carried", len(carried))):
+                           ("valid", len(landmarks["all"])), ("carried", len(carried)), ("published", len(published))):
             counts[key].append(value)
         # Alternate which goes first: the second call of a ping runs on warm caches.
         for way in ("carried", "all") if k % 2 == 0 else ("all", "carried"):
             chosen = landmarks[way]
             started = time.perf_counter()
-            serialize_markers(landmark_markers(chosen, "landmarks", MARKER_LIFETIME), header)
+            serialize_markers(landmark_markers(drawn[way], "landmarks", MARKER_LIFETIME), header)
             times[f"markers {way}"].append(time.perf_counter() - started)
             started = time.perf_counter()
             builders[way].add_ping(stamp, chosen)
@@ -109,15 +112,16 @@ def main() -> None:
         "",
         f"The demo's lap of `{SCENE}`, realistic world, seeds 0-{args.seeds - 1} per layout, every ping.  Per ping "
         "(mean): *echo rows* the localiser takes, *solved* hypotheses (a row per echo and model), *valid* ones, "
-        "*carried*: the labelled landmarks (one per echo with a valid hypothesis).  Times per ping (median, "
-        "ms): *label* (localise and classify, the work both ways share), the markers (built and serialized) "
-        "and the mapper as it ships (SLAM and the echo tests) fed the carried landmarks, and the same fed "
-        "every valid hypothesis (*all*), on the same pings in the same run, each first on every other ping.  "
+        "*carried*: the labelled landmarks (one per echo row with a valid hypothesis), *published*: those on "
+        "`landmarks` (one per echo).  Times per ping (median, ms): *label* (localise, classify and publish, the "
+        "work both ways share), the markers (built and serialized) of the published landmarks and the mapper as "
+        "it ships (SLAM and the echo tests) fed the carried ones, and the same two fed every valid hypothesis "
+        "(*all*), on the same pings in the same run, each first on every other ping.  "
         "*Entries / ghosts*: the map after the lap (`sonar_ring.score`), median over the seeds.",
         "",
-        "| layout | echo rows | solved | valid | carried | label | markers: carried / all | mapper: carried / all "
-        "| mapper × | entries: carried / all | ghosts: carried / all |",
-        "|---|---|---|---|---|---|---|---|---|---|---|",
+        "| layout | echo rows | solved | valid | carried | published | label | markers: published / all "
+        "| mapper: carried / all | mapper × | entries: carried / all | ghosts: carried / all |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for layout_name in LAYOUTS:
         runs = [one_lap(layout_name, seed) for seed in range(args.seeds)]
@@ -128,7 +132,7 @@ def main() -> None:
         ghosts = {way: np.median([run["ghosts"][way] for run in runs]) for way in ("carried", "all")}
         lines.append(
             f"| {layout_name} | {count['rows']:.1f} | {count['solved']:.1f} | {count['valid']:.1f} "
-            f"| {count['carried']:.1f} | {median['label']:.2f} "
+            f"| {count['carried']:.1f} | {count['published']:.1f} | {median['label']:.2f} "
             f"| {median['markers carried']:.2f} / {median['markers all']:.2f} "
             f"| {median['mapper carried']:.2f} / {median['mapper all']:.2f} "
             f"| ×{median['mapper all'] / median['mapper carried']:.1f} "

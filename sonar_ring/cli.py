@@ -235,7 +235,7 @@ def _add_process(subparsers) -> None:
         "process",
         help="run the localiser and mapper over the echoes of a rosbag2, faster than real time",
         description="Read the echoes (sonar_ring/msg/Echoes) of a rosbag2 (sqlite3 or MCAP), run them through the "
-                    "localiser and mapper in bag time, and write landmarks/raw, landmarks, markers, "
+                    "localiser and mapper in bag time, and write landmarks/raw, landmarks, landmarks/pairs, markers, "
                     "map/landmarks, map/markers and map/points to a new bag: the messages the live graph publishes.",
     )
     p.add_argument("in_bag", metavar="IN_BAG", help="input rosbag2: a directory, .mcap or .db3 file")

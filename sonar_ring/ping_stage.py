@@ -11,7 +11,9 @@ and the map benchmarks all call this module:
   :func:`sonar_ring.pipeline.localise_ping` then
   :func:`~sonar_ring.pipeline.classify_ping`, one ping (:meth:`PingStage.label`)
   or many at once (:meth:`PingStage.label_many`), after loading exactly the
-  compiled kernels it runs (:meth:`PingStage.load_kernels`).
+  compiled kernels it runs (:meth:`PingStage.load_kernels`); and what it
+  publishes of a labelled ping, one landmark per echo
+  (:meth:`PingStage.publishable`, :func:`~sonar_ring.pipeline.joint_landmarks`).
 
 A ping's result needs nothing of other pings, so it does not depend on where
 the stage runs (a node's callback, a worker process of ``sonar-ring process``).
@@ -130,3 +132,12 @@ class PingStage:
         hypotheses (:func:`sonar_ring.pipeline.label_pings`).
         """
         return pipeline.label_pings(self.layout, pings, self.settings)
+
+    def publishable(self, echoes: EchoArrays, labelled: Landmarks) -> Landmarks:
+        """The landmarks to publish of a checked ping labelled ``labelled``: one per echo, joint where it can be.
+
+        :func:`sonar_ring.pipeline.joint_landmarks`: on a ring an echo two or more pairs heard is
+        one landmark, the fit over all their receivers; elsewhere ``labelled`` itself.  The
+        mapper takes ``labelled``, one independent sighting per echo row.
+        """
+        return pipeline.joint_landmarks(self.layout, echoes, labelled, self.settings)

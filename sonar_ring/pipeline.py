@@ -192,19 +192,20 @@ def classify_ping(layout: Layout, echoes: EchoArrays, hypotheses: Landmarks,
 
 def joint_landmarks(layout: Layout, echoes: EchoArrays, labelled: Landmarks, settings: Settings = Settings(),
                     ping=None) -> Landmarks:
-    """One landmark per echo of a single-emitter ring: the fit over every receiver that heard it.
+    """A ping's landmarks with every echo several pairs heard as one landmark: the fit over all their receivers.
 
     :func:`sonar_ring.ring_consistency.ring_consistency` joins each echo row with the
     overlapping groups' rows of the same echo and fits both models over all their
-    receivers, at the joint Cramer-Rao bound (``bench/results/joint.md``).  Rows joined
-    (directly or through each other) are one echo; its landmark is that of its row with
-    the most joined rows (ties: the first), placed by the joint fit of its labelled
-    class's model: an EDGE's edge fit, any other's virtual image ``T'`` at
-    ``G = (T + T') / 2`` (an UNKNOWN one's covariance widened by ``g g^T``, ``g`` the
-    gap to the edge fit, as :func:`classify_ping` widens a pair's).  The echo's other
-    rows are left out: their fits share its receivers.  An echo whose row has no joint
-    fit (heard by one pair, not tested, or its model does not fit) keeps every row's
-    landmark as labelled, the pair's closed form.  Other layouts: ``labelled`` as it is.
+    receivers, at the joint Cramer-Rao bound (``bench/results/joint.md``).  Rows are taken
+    by the number of rows joined to them, most first (ties: the first row); a row that
+    joined two or more, whose rows no landmark taken before used and whose fit of its
+    labelled class's model fits, becomes its echo's landmark at that fit -- an EDGE's edge
+    fit, any other's virtual image ``T'`` at ``G = (T + T') / 2`` (an UNKNOWN one's
+    covariance widened by ``g g^T``, ``g`` the gap to the edge fit, as :func:`classify_ping`
+    widens a pair's) -- and the rows it joined are left out: their paths are in its fit.
+    Every other row keeps its labelled landmark, the pair's closed form.  So no row's paths
+    go into two landmarks, and the landmarks stay independent sightings.  Other layouts
+    than a ring: ``labelled`` as it is.
 
     Parameters
     ----------
@@ -233,53 +234,60 @@ def joint_landmarks(layout: Layout, echoes: EchoArrays, labelled: Landmarks, set
     result = ring_consistency.ring_consistency(layout, echoes.group, echoes.path_lengths(),
                                                speed * settings.sigma_tof, ping=ping, z=settings.consistency_z,
                                                covariances=True, relative_sigma_speed=settings.sigma_speed / speed)
-    size = (result.joined >= 0).sum(axis=1)
-    echo = _joined_echoes(result.joined)
-    # The row each echo is published by: the most joined rows, then the first.
-    order = np.lexsort((np.arange(echo.size), -size, echo))
-    first = order[np.r_[True, echo[order][1:] != echo[order][:-1]]]
-    representative = np.zeros(echo.size, dtype=np.int64)
-    representative[echo[first]] = first
     is_edge = labelled.landmark_class == EDGE
     transmitter = layout.plan.transmitters[echoes.group[row].astype(np.int64), 0]
     position = np.where(is_edge[:, None], result.edge_position[row], 0.5 * (transmitter + result.virtual_image[row]))
     covariance = np.where(is_edge[:, None, None], result.edge_covariance[row], 0.25 * result.image_covariance[row])
-    fitted = (size[row] >= 2) & np.all(np.isfinite(covariance), axis=(1, 2)) & np.all(np.isfinite(position), axis=1)
-    undecided = fitted & (labelled.landmark_class == UNKNOWN)
+    fits = np.zeros(echoes.n_echoes, dtype=bool)
+    fits[row] = np.all(np.isfinite(covariance), axis=(1, 2)) & np.all(np.isfinite(position), axis=1)
+    joint, used = _joint_rows(result.joined, fits)
+    chosen = joint[row]
+    kept = np.flatnonzero(chosen | ~used[row])
+    undecided = chosen & (labelled.landmark_class == UNKNOWN)
     gap = np.where(np.isfinite(result.edge_position[row]), result.edge_position[row] - position, 0.0)
     covariance[undecided] += gap[undecided, :, None] * gap[undecided, None, :]
-    published = representative[echo[row]] == row
-    # An echo is joint where its published row has a fit; its rows all go to it, else each keeps its own.
-    joint_echo = np.zeros(echo.size, dtype=bool)
-    joint_echo[echo[row[published & fitted]]] = True
-    kept = np.flatnonzero(np.where(joint_echo[echo[row]], published & fitted, True))
-    out = labelled.select(kept)
-    swap = fitted[kept] & published[kept]
-    out.position[swap] = position[kept[swap]]
-    out.covariance[swap] = covariance[kept[swap]]
+    out = labelled.select(kept)  # new arrays
+    out.position[chosen[kept]] = position[kept[chosen[kept]]]
+    out.covariance[chosen[kept]] = covariance[kept[chosen[kept]]]
     return out
 
 
-def _joined_echoes(joined: np.ndarray) -> np.ndarray:
-    """The echo (N,) of each row: rows joined (``joined`` (N, J), -1 padded), directly or through others, share one.
+@kernel
+def _joint_rows(joined, fits):
+    """Which echo rows become joint landmarks, and which rows' paths those took, for :func:`joint_landmarks`.
 
-    Each echo is numbered by its lowest row.
+    ``joined`` (N, J): each row's own row and the rows its fits joined, -1 padded;
+    ``fits`` (N,): the row's fit of its landmark's model fits.  Rows by the number they
+    joined, most first (a stable order: ties by row); a row that joined two or more,
+    fits, and whose rows no joint landmark took yet becomes one and takes them.  Returns
+    ``joint`` and ``used``, (N,) bool each.
     """
-    echo = np.arange(joined.shape[0])
-    source = np.repeat(echo, joined.shape[1])
-    target = joined.ravel()
-    source, target = source[target >= 0], target[target >= 0]
-    while True:
-        lowest = echo.copy()
-        np.minimum.at(lowest, source, echo[target])
-        np.minimum.at(lowest, target, echo[source])
-        if np.array_equal(lowest, echo):
-            return echo
-        echo = lowest
+    count = joined.shape[0]
+    size = np.zeros(count, dtype=np.int64)
+    for n in range(count):
+        for j in range(joined.shape[1]):
+            if joined[n, j] >= 0:
+                size[n] += 1
+    joint = np.zeros(count, dtype=np.bool_)
+    used = np.zeros(count, dtype=np.bool_)
+    for n in np.argsort(-size, kind="mergesort"):
+        if size[n] < 2 or not fits[n]:
+            continue
+        free = True
+        for j in range(joined.shape[1]):
+            if joined[n, j] >= 0 and used[joined[n, j]]:
+                free = False
+        if not free:
+            continue
+        joint[n] = True
+        for j in range(joined.shape[1]):
+            if joined[n, j] >= 0:
+                used[joined[n, j]] = True
+    return joint, used
 
 
 def load_kernels() -> None:
-    """Load the compiled part of :func:`classify_ping` now instead of at the first ping.
+    """Load the compiled parts of :func:`classify_ping` and :func:`joint_landmarks` now instead of at the first ping.
 
     :meth:`sonar_ring.ping_stage.PingStage.load_kernels` calls it (the localiser node and the
     workers of ``sonar-ring process``, at start), with
@@ -288,6 +296,7 @@ def load_kernels() -> None:
     _picks(np.zeros(1, dtype=np.uint8), np.zeros(1, dtype=np.int64), np.ones(1, dtype=bool),
            np.zeros(1, dtype=np.uint8), np.zeros(1))
     _add_edge_discrepancy(np.zeros((1, 2, 2)), np.zeros((1, 2)), np.zeros((1, 2)), np.zeros(1, dtype=np.int64))
+    _joint_rows(np.zeros((1, 2), dtype=np.int64), np.zeros(1, dtype=bool))
     confidence.load_kernels()
 
 

@@ -226,7 +226,7 @@ def test_a_burst_beyond_the_queue_is_dropped_and_counted_not_queued(ros):
 
 def test_mapper_integrates_a_ping_once_and_refuses_stale_and_future_ones(ros):
     mapper = Mapper(parameter_overrides=[Parameter("use_odometry", value=False)])
-    bench = Bench(mapper, "landmarks", LandmarkArray, "map/landmarks", LandmarkArray)
+    bench = Bench(mapper, "landmarks/pairs", LandmarkArray, "map/landmarks", LandmarkArray)
     landmarks = landmarks_from_msg(_one_ping_of_landmarks())
     first = bench.send(landmarks_to_msg(landmarks, bench.header()))
     bench.send(first)
@@ -246,21 +246,25 @@ def test_mapper_integrates_a_ping_once_and_refuses_stale_and_future_ones(ros):
 
 def test_localiser_labels_the_rows_it_localised_once_per_ping(ros):
     localiser = Localiser()
-    bench = Bench(localiser, "echoes", Echoes, "landmarks", LandmarkArray)
-    raw, markers = [], []
+    bench = Bench(localiser, "echoes", Echoes, "landmarks/pairs", LandmarkArray)
+    raw, markers, published = [], [], []
     bench.peer.create_subscription(LandmarkArray, "landmarks/raw", raw.append, qos_profile_sensor_data)
     bench.peer.create_subscription(MarkerArray, "markers", markers.append, 10)
+    bench.peer.create_subscription(LandmarkArray, "landmarks", published.append, qos_profile_sensor_data)
     assert spin_until(bench.executor, lambda: bench.peer.count_publishers("landmarks/raw") > 0
-                      and bench.peer.count_publishers("markers") > 0, timeout=10)
+                      and bench.peer.count_publishers("markers") > 0
+                      and bench.peer.count_publishers("landmarks") > 0, timeout=10)
     good = wall_ping()
     mixed = with_rows(good, group=[60, 2], transmitter=[0, 5], tof=[[0.01, 0.01], [0.01, 0.01]])
     ping = bench.send(echoes_to_msg(mixed, bench.header()))
     bench.send(ping)  # the same ping again: refused, nothing published twice
     assert bench.outputs_settle(1)
-    assert spin_until(bench.executor, lambda: raw and markers, timeout=5)
-    assert (len(bench.out), len(raw), len(markers)) == (1, 1, 1)
+    assert spin_until(bench.executor, lambda: raw and markers and published, timeout=5)
+    assert (len(bench.out), len(raw), len(markers), len(published)) == (1, 1, 1, 1)
     labelled, hypotheses = landmarks_from_msg(bench.out[0]), landmarks_from_msg(raw[0])
     assert len(labelled) == good.n_echoes and set(labelled.echo) == set(hypotheses.echo)
+    # the wall's echo, heard by three pairs, is one landmark on ``landmarks``: their joint fit
+    assert len(landmarks_from_msg(published[0])) == 1
     for row, position in zip(labelled.echo, labelled.position, strict=True):  # one of the row's hypotheses
         assert np.min(np.abs(hypotheses.position[hypotheses.echo == row] - position).max(axis=1)) == 0.0
     assert problems(localiser) == {"unknown_group": 1, "unknown_transmitter": 1, "duplicate_stamp": 1}

@@ -35,11 +35,12 @@ from sonar_ring.ros.mapper import Mapper
 pytestmark = pytest.mark.ros
 
 OUTPUTS = {"driver": {"echoes": Echoes},
-           "localiser": {"landmarks/raw": LandmarkArray, "landmarks": LandmarkArray, "markers": MarkerArray},
+           "localiser": {"landmarks/raw": LandmarkArray, "landmarks": LandmarkArray,
+                         "landmarks/pairs": LandmarkArray, "markers": MarkerArray},
            "mapper": {"map/landmarks": LandmarkArray, "map/markers": MarkerArray, "map/points": PointCloud2,
                       "slam/pose": PoseWithCovarianceStamped}}
 """The topics each node's ``published`` counts."""
-INPUTS = {"localiser": "echoes", "mapper": "landmarks"}
+INPUTS = {"localiser": "echoes", "mapper": "landmarks/pairs"}
 """The topic whose messages each node downstream of the driver counts as ``inputs``."""
 ALL_MESSAGES = QoSProfile(depth=1000, reliability=ReliabilityPolicy.RELIABLE,
                           durability=DurabilityPolicy.TRANSIENT_LOCAL)

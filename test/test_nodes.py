@@ -81,7 +81,7 @@ def test_graph_in_one_process_matches_ground_truth(ros):
     nodes, listener = _run_graph([])
     assert nodes[0].realism.effects() and nodes[1].params["sigma_speed"] > 1.0  # the air is 2 K off
     d2 = np.concatenate([mahalanobis_squared(found, truth) for found, truth in listener.paired()])
-    assert d2.size > 1000
+    assert d2.size > 500  # one landmark per echo: the pairs that heard it fitted together
     assert np.mean(d2 <= CHI2_2DOF_3SIGMA) >= 0.99
     assert_markers_valid(listener.markers[-1])
     assert {m.ns for m in listener.markers[-1].markers} == {f"landmarks/{c}" for c in CLASS_NAMES}

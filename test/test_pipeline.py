@@ -160,13 +160,14 @@ def test_an_echo_several_pairs_heard_is_one_landmark_at_its_joint_fit():
         published = pipeline.joint_landmarks(RING, echoes, labelled, settings)
         fits = ring_consistency.ring_consistency(RING, echoes.group, echoes.path_lengths(),
                                                  echoes.speed_of_sound * 1e-6, covariances=True)
-        echo = pipeline._joined_echoes(fits.joined)
         assert len(np.unique(published.echo)) == len(published)
         moved = np.any(published.position != labelled.position[np.searchsorted(labelled.echo, published.echo)],
                        axis=1)
-        # a joint landmark is its echo's only one, at the fit of its class's model
-        assert np.all(np.bincount(echo[published.echo], minlength=echo.size)[echo[published.echo[moved]]] == 1)
+        # a joint landmark is at the fit of its class's model, and no row's paths are in two landmarks
         row = published.echo[moved]
+        taken = np.concatenate([fits.joined[row].ravel(), published.echo[~moved]])
+        taken = taken[taken >= 0]
+        assert len(np.unique(taken)) == len(taken)
         edge = published.landmark_class[moved] == EDGE
         transmitter = RING.plan.transmitters[echoes.group[row], 0]
         assert_allclose(published.position[moved], np.where(edge[:, None], fits.edge_position[row],
@@ -203,9 +204,13 @@ def test_an_echo_one_pair_heard_and_other_layouts_keep_their_landmarks():
     assert pipeline.joint_landmarks(pair, echoes, labelled) is labelled
 
 
-def test_rows_joined_through_each_other_are_one_echo():
-    joined = np.array([[0, 1, -1], [1, 2, -1], [2, -1, -1], [3, -1, -1], [4, 3, -1]])
-    assert_array_equal(pipeline._joined_echoes(joined), [0, 0, 0, 3, 3])
+def test_no_rows_paths_go_into_two_landmarks():
+    # rows 0-2 one echo, row 3 joined 2 and 4 (a chain): 0 takes 0-2 first, 3 cannot, 4 keeps its own
+    joined = np.array([[0, 1, 2], [1, 0, -1], [2, 0, -1], [3, 2, 4], [4, -1, -1], [5, 6, -1], [6, 5, -1]])
+    fits = np.array([True, True, True, True, True, False, False])
+    joint, used = pipeline._joint_rows(joined, fits)
+    assert_array_equal(joint, [True, False, False, False, False, False, False])
+    assert_array_equal(used, [True, True, True, False, False, False, False])
 
 
 def test_error_handling():
@@ -249,7 +254,7 @@ def test_error_handling():
                                                              transmitter=np.array(transmitter)))
     with pytest.raises(ValueError, match="one group, one transmitter and two TOFs per echo row"):
         pipeline.localise_ping(RING, dataclasses.replace(bad, tof=bad.tof[:2]))
-    with pytest.raises(ValueError, match="joint_landmarks: the landmarks name echo rows 0-1000000, the ping has 3"):
+    with pytest.raises(ValueError, match="joint_landmarks: the landmarks name echo rows 2-1000000, the ping has 3"):
         pipeline.joint_landmarks(RING, bad, Landmarks.concatenate([kept, stray.select([0])]))
     # noise parameters that make no sense are refused, as by path_covariance
     for settings, speed in ((pipeline.Settings(sigma_tof=-1e-6), 343.0), (pipeline.Settings(sigma_speed=np.nan), 343.0),

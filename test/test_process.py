@@ -31,8 +31,8 @@ pytestmark = pytest.mark.ros
 
 ROOT = Path(__file__).resolve().parents[1]
 PINGS = 40
-OUTPUTS = ["/landmarks/raw", "/landmarks", "/markers", "/map/landmarks", "/map/markers", "/map/points", "/slam/pose",
-           "/tf", "/tf_static"]
+OUTPUTS = ["/landmarks/raw", "/landmarks", "/landmarks/pairs", "/markers", "/map/landmarks", "/map/markers",
+           "/map/points", "/slam/pose", "/tf", "/tf_static"]
 
 
 def read_bag(path):
@@ -127,7 +127,7 @@ def test_process_of_a_simulated_bag_finds_the_true_reflectors(sim_bag, tmp_path,
     assert sorted(types) == sorted(OUTPUTS)
     _, source = read_bag(sim_bag)
     echo_times = [t for t, _ in source["/echoes"]]
-    for topic in ("/landmarks/raw", "/landmarks", "/markers"):
+    for topic in ("/landmarks/raw", "/landmarks", "/landmarks/pairs", "/markers"):
         assert [t for t, _ in messages[topic]] == echo_times  # one per ping, at the echoes' bag time
     map_times = [t for t, _ in messages["/map/landmarks"]]
     period = 10**9 // 2  # map_rate 2 Hz in bag time, the first tick half a second after the first ping
@@ -177,7 +177,8 @@ def test_process_of_the_demo_bag_gives_the_live_graphs_messages(tmp_path):
     assert len(live["/echoes"]) == PINGS
     assert all(len(live[f"/range/group_{group:02d}"]) == PINGS for group in range(48))  # the recorder keeps up
     compared = 0
-    for topic, kind in (("/landmarks/raw", LandmarkArray), ("/landmarks", LandmarkArray), ("/markers", MarkerArray)):
+    for topic, kind in (("/landmarks/raw", LandmarkArray), ("/landmarks", LandmarkArray),
+                        ("/landmarks/pairs", LandmarkArray), ("/markers", MarkerArray)):
         expected, got = by_stamp(live[topic], kind), by_stamp(offline[topic], kind)
         assert len(got) == PINGS
         assert len(set(expected) & set(got)) >= PINGS - 2  # best effort may drop the odd live message
@@ -187,7 +188,7 @@ def test_process_of_the_demo_bag_gives_the_live_graphs_messages(tmp_path):
             else:
                 assert got[stamp] == expected[stamp]
             compared += 1
-    assert compared >= 3 * (PINGS - 2)
+    assert compared >= 4 * (PINGS - 2)
     # record-sim with the demo's seed gives the demo driver's echoes and odometry, in order (its stamps are
     # trajectory time, the driver's the clock's), in the realistic world with every effect drawing its numbers.
     assert figures["world"] == "realistic" and figures["effects"]

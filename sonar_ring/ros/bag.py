@@ -76,6 +76,7 @@ GRAPH_TOPICS = (
     Topic("truth", LandmarkArray, RELIABLE),
     Topic("landmarks/raw", LandmarkArray, qos_profile_sensor_data),
     Topic("landmarks", LandmarkArray, qos_profile_sensor_data),
+    Topic("landmarks/pairs", LandmarkArray, qos_profile_sensor_data),
     Topic("markers", MarkerArray, RELIABLE),
     Topic("map/landmarks", LandmarkArray, LATCHED),
     Topic("map/markers", MarkerArray, LATCHED),

@@ -5,11 +5,12 @@ to the next (:func:`compose`), as rclcpp's intra-process communication does,
 so a ping is one executor callback from the driver's input to the map.  Every
 topic is still published for RViz, recorders and your nodes, in the order that
 gets a ping to RViz first: the driver hands a ping on before it publishes
-``echoes``, and the localiser publishes ``markers`` and ``landmarks`` before it
-hands the ping to the mapper, and ``landmarks/raw`` after.  The nodes take
-their inputs only from each other, so feed this process through the driver's
-source (``source:=topic`` reads ``tof_in``) -- or run the three executables to
-take ``echoes`` or ``landmarks`` from elsewhere.  Odometry still comes over DDS.
+``echoes``, and the localiser publishes ``markers``, ``landmarks`` and
+``landmarks/pairs`` before it hands the ping to the mapper, and
+``landmarks/raw`` after.  The nodes take their inputs only from each other, so
+feed this process through the driver's source (``source:=topic`` reads
+``tof_in``) -- or run the three executables to take ``echoes`` or
+``landmarks/pairs`` from elsewhere.  Odometry still comes over DDS.
 """
 
 import itertools

@@ -1,16 +1,21 @@
 """localiser: each ping's echoes to landmark hypotheses, labelled, and drawn for RViz.
 
 Subscribes ``echoes`` (sonar_ring/Echoes); publishes ``markers``
-(visualization_msgs/MarkerArray), ``landmarks`` (sonar_ring/LandmarkArray: one
-labelled landmark per echo, class, confidence), ``landmarks/raw`` (every valid
-hypothesis: plane / corner / edge per echo) -- one message each per ping, in the
-echoes' frame -- and ``/diagnostics`` (refused inputs, and invalid hypotheses
-counted by reason: a receiver that missed the echo, no real solution, ...).
+(visualization_msgs/MarkerArray) and ``landmarks`` (sonar_ring/LandmarkArray:
+one labelled landmark per echo, class, confidence; on a ring an echo several
+pairs heard is fitted over all their receivers), ``landmarks/pairs`` (one per
+echo row, its pair's closed form: independent sightings, the mapper's input),
+``landmarks/raw`` (every valid hypothesis: plane / corner / edge per echo row)
+-- one message each per ping, in the echoes' frame -- and ``/diagnostics``
+(refused inputs, and invalid hypotheses counted by reason: a receiver that
+missed the echo, no real solution, ...).
 
 The work on a ping is the core's :class:`~sonar_ring.ping_stage.PingStage`:
 Browne's localisation, then the layout's evidence (Barshan & Kuc's amplitude
-rules, the ring's consistency test) picks one hypothesis per echo.  Both run
-here, on the ping they need, so the echoes are decoded and checked once.
+rules, the ring's consistency test) picks one hypothesis per echo row, and
+:meth:`~sonar_ring.ping_stage.PingStage.publishable` makes one landmark of each
+echo.  All run here, on the ping they need, so the echoes are decoded and
+checked once.
 """
 
 from __future__ import annotations
@@ -82,7 +87,7 @@ def settings_from(values: dict) -> pipeline.Settings:
 
 
 class Localiser(SonarNode):
-    """Echoes in; markers, labelled landmarks and hypotheses out, one message each per ping."""
+    """Echoes in; markers, landmarks, the pairs' landmarks and hypotheses out, one message each per ping."""
 
     def __init__(self, **kwargs) -> None:
         super().__init__("localiser", **kwargs)
@@ -93,6 +98,7 @@ class Localiser(SonarNode):
         self.health = NodeHealth(self, hardware_id=self.layout.name)
         self._markers = self.create_publisher(MarkerArray, "markers", 10)
         self._landmarks = self.create_publisher(LandmarkArray, "landmarks", qos_profile_sensor_data)
+        self._pairs = self.create_publisher(LandmarkArray, "landmarks/pairs", qos_profile_sensor_data)
         self._hypotheses = self.create_publisher(LandmarkArray, "landmarks/raw", qos_profile_sensor_data)
         self._check = TopicCheck(node_clock(self), self.health, "echoes", self.params)
         self.ping_inputs = (self.create_subscription(Echoes, "echoes", self._on_echoes, qos_profile_sensor_data,
@@ -121,16 +127,18 @@ class Localiser(SonarNode):
 
     def _label(self, header: AnyHeader, echoes: EchoArrays, started: float) -> None:
         hypotheses, labelled = self.stage.label(echoes)
-        # Markers first: RViz shows a ping as soon as it can; then the mapper's input, then the hypotheses.
-        self._markers.publish(serialize_markers(landmark_markers(labelled, "landmarks", self.params["marker_lifetime"]),
-                                                header))
-        self._landmarks.publish(serialize_landmarks(labelled, header))
+        published = self.stage.publishable(echoes, labelled)
+        # Markers first: RViz shows a ping as soon as it can; then the landmarks, the mapper's input, the hypotheses.
+        self._markers.publish(serialize_markers(landmark_markers(published, "landmarks",
+                                                                 self.params["marker_lifetime"]), header))
+        self._landmarks.publish(serialize_landmarks(published, header))
+        self._pairs.publish(serialize_landmarks(labelled, header))
         downstream = self.pass_on(header, labelled)
         invalid = hypotheses.reason[~hypotheses.valid]
         for code, count in zip(*np.unique(invalid, return_counts=True), strict=True):
             self.health.note(f"invalid hypothesis: {localise.REASONS[int(code)]}", int(count))
         self._hypotheses.publish(serialize_landmarks(hypotheses.select(hypotheses.valid), header))
-        self.health.processed(time.perf_counter() - started - downstream, published=3)
+        self.health.processed(time.perf_counter() - started - downstream, published=4)
 
 
 def main(args=None) -> None:

@@ -1,6 +1,7 @@
 """mapper: labelled landmarks of every ping and the odometry into a map, with SLAM in ``map`` by default.
 
-Subscribes ``landmarks`` (sonar_ring/LandmarkArray, sensor frame) and ``odom``
+Subscribes ``landmarks/pairs`` (sonar_ring/LandmarkArray, sensor frame: one
+landmark per echo row, independent sightings) and ``odom``
 (nav_msgs/Odometry: the robot, ``base_frame``, in ``odom``; the sensor sits at
 ``sensor_offset`` in the robot frame).  A ping is placed at the robot's pose at
 its stamp, interpolated between the odometry messages around it; without
@@ -230,10 +231,10 @@ class Mapper(SonarNode):
         if self.params["slam"]:
             self._pose_publisher = self.create_publisher(PoseWithCovarianceStamped, "slam/pose", 10)
             self._transform_publisher()
-        self._landmarks_check = TopicCheck(node_clock(self), self.health, "landmarks", self.params)
+        self._landmarks_check = TopicCheck(node_clock(self), self.health, "landmarks/pairs", self.params)
         self._odometry_check = TopicCheck(node_clock(self), self.health, "odom", self.params, frame_param="odom_frame",
                                         on_clock_jump=self.builder.forget_odometry)
-        self.ping_inputs = (self.create_subscription(LandmarkArray, "landmarks", self._on_landmarks,
+        self.ping_inputs = (self.create_subscription(LandmarkArray, "landmarks/pairs", self._on_landmarks,
                                                      qos_profile_sensor_data),)
         if self.params["use_odometry"]:
             self.create_subscription(Odometry, "odom", self._on_odometry, 50)

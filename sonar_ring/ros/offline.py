@@ -167,12 +167,12 @@ class PingOutput:
     problems, notes : dict of str to int
         Refusals and expected losses of :func:`~sonar_ring.ping_stage.check_ping`, by reason.
     messages : tuple of bytes
-        Serialized ``landmarks/raw``, ``landmarks`` and ``markers`` messages;
+        Serialized ``landmarks/raw``, ``landmarks``, ``landmarks/pairs`` and ``markers`` messages;
         empty when the ping was refused.
     per_class : ndarray of int or None
-        The labelled landmarks per class code; None when the ping was refused.
+        The published landmarks (``landmarks``) per class code; None when the ping was refused.
     labelled : Landmarks or None
-        The labelled landmarks, for the mapper; None when the ping was refused.
+        The pairs' labelled landmarks, for the mapper; None when the ping was refused.
     """
 
     problems: dict
@@ -212,10 +212,12 @@ class LocaliserWork:
                 outputs.append(PingOutput(dict(count.problems), dict(count.notes)))
                 continue
             hypotheses, labelled = labels[index]
+            published = self.stage.publishable(checked[index], labelled)
             data = (serialize_landmarks(hypotheses, header),
+                    serialize_landmarks(published, header),
                     serialize_landmarks(labelled, header),
-                    serialize_markers(landmark_markers(labelled, "landmarks", self.marker_lifetime), header))
-            per_class = np.bincount(labelled.landmark_class, minlength=len(CLASS_NAMES))
+                    serialize_markers(landmark_markers(published, "landmarks", self.marker_lifetime), header))
+            per_class = np.bincount(published.landmark_class, minlength=len(CLASS_NAMES))
             outputs.append(PingOutput(dict(count.problems), dict(count.notes), data, per_class, labelled))
         return outputs
 
@@ -311,7 +313,8 @@ class OfflineGraph:
         The sensor (its group frames go on ``/tf_static``).
     """
 
-    OUTPUTS = ("landmarks/raw", "landmarks", "markers", "map/landmarks", "map/markers", "map/points", "slam/pose")
+    OUTPUTS = ("landmarks/raw", "landmarks", "landmarks/pairs", "markers", "map/landmarks", "map/markers", "map/points",
+               "slam/pose")
 
     def __init__(self, values: dict, namespace: str, odometry, writer: BagWriter, counts: Counts,
                  layout: Layout) -> None:
@@ -350,7 +353,8 @@ class OfflineGraph:
         self._counts.notes.update(output.notes)
         if output.per_class is None:
             return
-        for name, data in zip(("landmarks/raw", "landmarks", "markers"), output.messages, strict=True):
+        for name, data in zip(("landmarks/raw", "landmarks", "landmarks/pairs", "markers"), output.messages,
+                              strict=True):
             self._writer.write(self._connections[name], time_ns, data)
         self.per_class += output.per_class
         if self.builder.add_ping(stamp_ns(header), output.labelled) and self.builder.slam is not None:
