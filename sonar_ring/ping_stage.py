@@ -13,7 +13,8 @@ and the map benchmarks all call this module:
   or many at once (:meth:`PingStage.label_many`), after loading exactly the
   compiled kernels it runs (:meth:`PingStage.load_kernels`); and what it
   publishes of a labelled ping, one landmark per echo
-  (:meth:`PingStage.publishable`, :func:`~sonar_ring.pipeline.joint_landmarks`).
+  (:meth:`PingStage.publishable`, :func:`~sonar_ring.pipeline.joint_landmarks`),
+  or all three for one ping (:meth:`PingStage.label_and_publish`).
 
 A ping's result needs nothing of other pings, so it does not depend on where
 the stage runs (a node's callback, a worker process of ``sonar-ring process``).
@@ -132,6 +133,16 @@ class PingStage:
         hypotheses (:func:`sonar_ring.pipeline.label_pings`).
         """
         return pipeline.label_pings(self.layout, pings, self.settings)
+
+    def label_and_publish(self, echoes: EchoArrays) -> tuple[Landmarks, Landmarks, Landmarks]:
+        """:meth:`label` and :meth:`publishable` of one checked ping, the ring's fits computed once.
+
+        The hypotheses, the labelled landmarks and those to publish, as the two give them.
+        """
+        hypotheses = pipeline.localise_ping(self.layout, echoes, self.settings)
+        fits = pipeline.ring_fits(self.layout, echoes, self.settings) if self.layout.kind == "ring" else None
+        labelled = pipeline.classify_ping(self.layout, echoes, hypotheses, self.settings, fits=fits)
+        return hypotheses, labelled, pipeline.joint_landmarks(self.layout, echoes, labelled, self.settings, fits=fits)
 
     def publishable(self, echoes: EchoArrays, labelled: Landmarks) -> Landmarks:
         """The landmarks to publish of a checked ping labelled ``labelled``: one per echo, joint where it can be.

@@ -166,7 +166,7 @@ def _localise_triads(layout: Layout, echoes: EchoArrays, settings: Settings) -> 
 
 
 def classify_ping(layout: Layout, echoes: EchoArrays, hypotheses: Landmarks,
-                  settings: Settings = Settings(), ping=None) -> Landmarks:
+                  settings: Settings = Settings(), ping=None, fits=None) -> Landmarks:
     """One labelled landmark per echo row that has a valid hypothesis.
 
     The class comes from the evidence the layout gives: amplitude rules for
@@ -176,10 +176,11 @@ def classify_ping(layout: Layout, echoes: EchoArrays, hypotheses: Landmarks,
     all rows one ping).  The position is the
     hypothesis of the decided class, or the corner model's (Browne s7) while
     the class is UNKNOWN or its model is not enabled; the confidence is the
-    deciding test's.
+    deciding test's.  ``fits``: on a ring, :func:`ring_fits` of the same rows, if
+    the caller has it (computed here otherwise).
     """
     ping = np.zeros(echoes.n_echoes, dtype=np.int64) if ping is None else np.asarray(ping, dtype=np.int64)
-    decided, confidence = _evidence(layout, echoes, settings, ping)
+    decided, confidence = _evidence(layout, echoes, settings, ping, fits)
     # Copies (astype) in the types load_kernels compiled, whatever arrays the caller's hypotheses hold:
     # Landmarks' uint32 echo rows become int64, a read-only or strided array (another type to numba) a new one.
     pick, label, decided_confidence, edge_row = _picks(hypotheses.landmark_class.astype(np.uint8),
@@ -190,8 +191,21 @@ def classify_ping(layout: Layout, echoes: EchoArrays, hypotheses: Landmarks,
     return picked.with_class(label, decided_confidence)
 
 
+def ring_fits(layout: Layout, echoes: EchoArrays, settings: Settings = Settings(), ping=None):
+    """The ring's consistency test of a ping with its fits' covariances (:func:`sonar_ring.ring_consistency`).
+
+    What :func:`classify_ping` decides by and :func:`joint_landmarks` places by; a
+    caller that runs both computes it once and gives it to each.  ``ping`` as for
+    :func:`classify_ping`.
+    """
+    speed = float(echoes.speed_of_sound)
+    return ring_consistency.ring_consistency(layout, echoes.group, echoes.path_lengths(), speed * settings.sigma_tof,
+                                             ping=ping, z=settings.consistency_z, covariances=True,
+                                             relative_sigma_speed=settings.sigma_speed / speed)
+
+
 def joint_landmarks(layout: Layout, echoes: EchoArrays, labelled: Landmarks, settings: Settings = Settings(),
-                    ping=None) -> Landmarks:
+                    ping=None, fits=None) -> Landmarks:
     """A ping's landmarks with every echo several pairs heard as one landmark: the fit over all their receivers.
 
     :func:`sonar_ring.ring_consistency.ring_consistency` joins each echo row with the
@@ -218,6 +232,8 @@ def joint_landmarks(layout: Layout, echoes: EchoArrays, labelled: Landmarks, set
         TOF and speed-of-sound noise and the test's significance, as for :func:`classify_ping`.
     ping : array_like of int, shape (N,), optional
         Ping of each row when several are stacked (rows join only within a ping).
+    fits : ConsistencyResult, optional
+        :func:`ring_fits` of the same rows, if the caller has it (computed here otherwise).
 
     Returns
     -------
@@ -230,10 +246,7 @@ def joint_landmarks(layout: Layout, echoes: EchoArrays, labelled: Landmarks, set
     if row.min() < 0 or row.max() >= echoes.n_echoes:
         raise ValueError(f"joint_landmarks: the landmarks name echo rows {row.min()}-{row.max()}, the ping has "
                          f"{echoes.n_echoes}")
-    speed = float(echoes.speed_of_sound)
-    result = ring_consistency.ring_consistency(layout, echoes.group, echoes.path_lengths(),
-                                               speed * settings.sigma_tof, ping=ping, z=settings.consistency_z,
-                                               covariances=True, relative_sigma_speed=settings.sigma_speed / speed)
+    result = fits if fits is not None else ring_fits(layout, echoes, settings, ping)
     is_edge = labelled.landmark_class == EDGE
     transmitter = layout.plan.transmitters[echoes.group[row].astype(np.int64), 0]
     position = np.where(is_edge[:, None], result.edge_position[row], 0.5 * (transmitter + result.virtual_image[row]))
@@ -361,12 +374,12 @@ def _add_edge_discrepancy(covariance, position, hypothesis_position, edge_row):
         covariance[n, 1, 1] += gap_y * gap_y
 
 
-def _evidence(layout: Layout, echoes: EchoArrays, settings: Settings, ping: np.ndarray):
+def _evidence(layout: Layout, echoes: EchoArrays, settings: Settings, ping: np.ndarray, fits):
     """Class decision and confidence per echo row, shapes (N,); ``ping`` (N,) keeps pings apart."""
     if echoes.n_echoes and layout.kind == "ring":
-        result = ring_consistency.ring_consistency(layout, echoes.group, echoes.path_lengths(),
-                                           echoes.speed_of_sound * settings.sigma_tof, ping=ping,
-                                           z=settings.consistency_z)
+        result = fits if fits is not None else ring_consistency.ring_consistency(
+            layout, echoes.group, echoes.path_lengths(), echoes.speed_of_sound * settings.sigma_tof, ping=ping,
+            z=settings.consistency_z)
         return result.cls, np.where(result.cls == EDGE, result.confidence, 0.0)
     decided = np.full(echoes.n_echoes, UNKNOWN, dtype=np.uint8)
     confidence = np.zeros(echoes.n_echoes)

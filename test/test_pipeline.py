@@ -10,6 +10,7 @@ from sonar_ring import localise, pipeline, ring_consistency
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, Landmarks
+from sonar_ring.ping_stage import PingStage
 from sonar_ring.simulate import Noise, Simulator, load_scene
 
 CHI2_2DOF_3SIGMA = 11.83  # P(chi2_2 <= 11.83) = 99.73 %
@@ -202,6 +203,17 @@ def test_an_echo_one_pair_heard_and_other_layouts_keep_their_landmarks():
     echoes = Simulator(load_scene("single_wall"), pair).ping((0.0, 0.0, 0.0)).echoes
     labelled = pipeline.classify_ping(pair, echoes, pipeline.localise_ping(pair, echoes))
     assert pipeline.joint_landmarks(pair, echoes, labelled) is labelled
+
+
+def test_one_ping_labelled_and_published_at_once_is_what_each_step_gives():
+    stage = PingStage(RING, pipeline.Settings(sigma_tof=1e-6, sigma_speed=1.2))
+    for ping in room_pings(20, 1e-6, seed=4):
+        hypotheses, labelled, published = stage.label_and_publish(ping.echoes)
+        alone = stage.label(ping.echoes)
+        for got, expected in ((hypotheses, alone[0]), (labelled, alone[1]),
+                              (published, stage.publishable(ping.echoes, alone[1]))):
+            for field in dataclasses.fields(Landmarks):
+                assert_array_equal(getattr(got, field.name), getattr(expected, field.name))
 
 
 def test_no_rows_paths_go_into_two_landmarks():

@@ -126,8 +126,7 @@ class Localiser(SonarNode):
             self._label(header, echoes, started)
 
     def _label(self, header: AnyHeader, echoes: EchoArrays, started: float) -> None:
-        hypotheses, labelled = self.stage.label(echoes)
-        published = self.stage.publishable(echoes, labelled)
+        hypotheses, labelled, published = self.stage.label_and_publish(echoes)
         # Markers first: RViz shows a ping as soon as it can; then the landmarks, the mapper's input, the hypotheses.
         self._markers.publish(serialize_markers(landmark_markers(published, "landmarks",
                                                                  self.params["marker_lifetime"]), header))
