@@ -13,8 +13,9 @@ limit): the error of the fitted point -- a plane's foot point and a corner's ver
 point -- against the joint CRLB, the same receivers' ``(J^T W J)^-1`` at the true point (computed here in numpy,
 apart from the kernel), the share of normalised errors within the 3-sigma ellipse of the fit's own covariance
 (the 2-D chi-square's 99.73 % point), and the pair's closed form of the same model
-(:func:`sonar_ring.pipeline.localise_ping`) on the same echoes.  Seeded: a rerun on the same versions gives the
-same file but for the date and the revision.
+(:func:`sonar_ring.pipeline.localise_ping`) on the same echoes.  Then what a ping's landmarks are: the pairs'
+labelled ones against those :func:`sonar_ring.pipeline.joint_landmarks` publishes, one per echo.  Seeded: a rerun
+on the same versions gives the same file but for the date and the revision.
 """
 
 from __future__ import annotations
