@@ -251,9 +251,9 @@ def joint_landmarks(layout: Layout, echoes: EchoArrays, labelled: Landmarks, set
     transmitter = layout.plan.transmitters[echoes.group[row].astype(np.int64), 0]
     position = np.where(is_edge[:, None], result.edge_position[row], 0.5 * (transmitter + result.virtual_image[row]))
     covariance = np.where(is_edge[:, None, None], result.edge_covariance[row], 0.25 * result.image_covariance[row])
-    fits = np.zeros(echoes.n_echoes, dtype=bool)
-    fits[row] = np.all(np.isfinite(covariance), axis=(1, 2)) & np.all(np.isfinite(position), axis=1)
-    joint, used = _joint_rows(result.joined, fits)
+    fitting = np.zeros(echoes.n_echoes, dtype=bool)
+    fitting[row] = np.all(np.isfinite(covariance), axis=(1, 2)) & np.all(np.isfinite(position), axis=1)
+    joint, used = _joint_rows(result.joined, fitting)
     chosen = joint[row]
     kept = np.flatnonzero(chosen | ~used[row])
     undecided = chosen & (labelled.landmark_class == UNKNOWN)
@@ -266,11 +266,11 @@ def joint_landmarks(layout: Layout, echoes: EchoArrays, labelled: Landmarks, set
 
 
 @kernel
-def _joint_rows(joined, fits):
+def _joint_rows(joined, fitting):
     """Which echo rows become joint landmarks, and which rows' paths those took, for :func:`joint_landmarks`.
 
     ``joined`` (N, J): each row's own row and the rows its fits joined, -1 padded;
-    ``fits`` (N,): the row's fit of its landmark's model fits.  Rows by the number they
+    ``fitting`` (N,): the row's fit of its landmark's model fits.  Rows by the number they
     joined, most first (a stable order: ties by row); a row that joined two or more,
     fits, and whose rows no joint landmark took yet becomes one and takes them.  Returns
     ``joint`` and ``used``, (N,) bool each.
@@ -284,7 +284,7 @@ def _joint_rows(joined, fits):
     joint = np.zeros(count, dtype=np.bool_)
     used = np.zeros(count, dtype=np.bool_)
     for n in np.argsort(-size, kind="mergesort"):
-        if size[n] < 2 or not fits[n]:
+        if size[n] < 2 or not fitting[n]:
             continue
         free = True
         for j in range(joined.shape[1]):

@@ -219,8 +219,8 @@ def test_one_ping_labelled_and_published_at_once_is_what_each_step_gives():
 def test_no_rows_paths_go_into_two_landmarks():
     # rows 0-2 one echo, row 3 joined 2 and 4 (a chain): 0 takes 0-2 first, 3 cannot, 4 keeps its own
     joined = np.array([[0, 1, 2], [1, 0, -1], [2, 0, -1], [3, 2, 4], [4, -1, -1], [5, 6, -1], [6, 5, -1]])
-    fits = np.array([True, True, True, True, True, False, False])
-    joint, used = pipeline._joint_rows(joined, fits)
+    fitting = np.array([True, True, True, True, True, False, False])
+    joint, used = pipeline._joint_rows(joined, fitting)
     assert_array_equal(joint, [True, False, False, False, False, False, False])
     assert_array_equal(used, [True, True, True, False, False, False, False])
 
