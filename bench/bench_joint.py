@@ -68,13 +68,19 @@ def joint_crlb(layout, table, result, horizontal, sigma, truth, edge):
     return bound
 
 
+def ping_echoes(layout, table, tof):
+    """Each ping of the table as the localiser takes it: its rows (indices into the table) and its echoes."""
+    for ping in np.unique(table["ping"]):
+        rows = np.flatnonzero(table["ping"] == ping)
+        yield rows, EchoArrays(layout, float(table["speed_of_sound"][ping]), table["group"][rows],
+                               table["transmitter"][rows], tof[rows], np.zeros((rows.size, 1)),
+                               np.zeros((rows.size, 0)))
+
+
 def pair_errors(layout, table, tof, truth, edge):
     """Each row's error (N,) of its pair's closed form of the true model (corner for a plane too: the same G), m."""
     error = np.full(len(truth), np.nan)
-    for ping in np.unique(table["ping"]):
-        rows = np.flatnonzero(table["ping"] == ping)
-        echoes = EchoArrays(layout, float(table["speed_of_sound"][ping]), table["group"][rows],
-                            table["transmitter"][rows], tof[rows], np.zeros((rows.size, 1)), np.zeros((rows.size, 0)))
+    for rows, echoes in ping_echoes(layout, table, tof):
         hypotheses = pipeline.localise_ping(layout, echoes)
         hypotheses = hypotheses.select(hypotheses.valid)
         for wanted in (CORNER, EDGE):
@@ -93,10 +99,7 @@ def published(layout, table, tof, sigma_tof):
     """
     settings = pipeline.Settings(sigma_tof=sigma_tof)
     found = {name: dict(pairs=[], published=[], joint=0, within=0) for name in CLASSES}
-    for ping in np.unique(table["ping"]):
-        rows = np.flatnonzero(table["ping"] == ping)
-        echoes = EchoArrays(layout, float(table["speed_of_sound"][ping]), table["group"][rows],
-                            table["transmitter"][rows], tof[rows], np.zeros((rows.size, 1)), np.zeros((rows.size, 0)))
+    for rows, echoes in ping_echoes(layout, table, tof):
         labelled = pipeline.classify_ping(layout, echoes, pipeline.localise_ping(layout, echoes, settings), settings)
         joint = pipeline.joint_landmarks(layout, echoes, labelled, settings)
         moved = np.any(joint.position != labelled.position[np.searchsorted(labelled.echo, joint.echo)], axis=1)
