@@ -185,7 +185,9 @@ def test_memory_growth_is_judged_after_the_warm_up_and_says_when_the_run_stopped
 
 
 def test_a_study_report_ends_with_its_run_time(tmp_path):
-    started = time.perf_counter() - 3.0  # "3 s" unless writing stalls half a second
+    started = time.perf_counter() - 3.0
     report = tmp_path / "results" / "study.md"
     write_report(report, ["# A study", "", "| a |"], started)
-    assert report.read_text() == "# A study\n\n| a |\n\nRun time: 3 s.\n"
+    # 3 s, or more on a machine busy enough to stall the write: the test times nothing
+    assert re.fullmatch(r"# A study\n\n\| a \|\n\nRun time: \d+ s\.\n", report.read_text())
+    assert int(report.read_text().split("Run time: ")[1].split(" ")[0]) >= 3
