@@ -1411,6 +1411,7 @@ class LandmarkMap:
         self.min_support_travel = float(min_support_travel)
         self.viewpoints = viewpoints
         """Each receiver group's viewpoint in the sensor frame (G, 2), m (empty: all at the origin)."""
+        self._viewpoint_rows = np.vstack([viewpoints, np.zeros((1, 2))])  # a group beyond them: the origin
         self._points = _Points(self.max_points)
         self._walls = _Walls(self.max_walls)
         self._counts = MapCounts()
@@ -1598,11 +1599,8 @@ class LandmarkMap:
         (L, 2), m, in the frame ``pose`` is given in (:attr:`viewpoints`, as :func:`transform_landmarks` moves
         positions).
         """
-        group = np.asarray(group, dtype=np.int64)
-        offset = np.zeros((group.size, 2))
-        known = group < len(self.viewpoints)
-        offset[known] = self.viewpoints[group[known]]
-        return offset @ _rotation(pose[2]).T + pose[:2]
+        row = np.minimum(np.asarray(group, dtype=np.int64), len(self.viewpoints))
+        return self._viewpoint_rows[row] @ _rotation(pose[2]).T + pose[:2]
 
     # ------------------------------------------------------------------ association
 
@@ -1947,6 +1945,8 @@ class LandmarkMap:
 
         A point that finds no room among the walls stays an UNKNOWN point.
         """
+        if slots.size == 0:  # most pings that reach here turn nothing into a wall
+            return np.empty(0, np.int64)
         p, w = self._points, self._walls
         walls = self._allocate(w, slots.size)
         p.landmark_class[slots[walls.size:]] = UNKNOWN
