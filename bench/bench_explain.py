@@ -156,7 +156,7 @@ def main() -> None:
     rows = np.array([p.n_echoes for p in pings])
     explain.load_kernels()
     pipeline.load_kernels()
-    labelled = [landmarks for _, landmarks in pipeline.label_pings(layout, pings)]
+    labelled = [landmarks for _, landmarks, _ in pipeline.label_pings(layout, pings)]
     known = known_map(walls, points, poses)
     preparation = preparation_seconds(known)
     sigma_path = 1e-6 * scene.speed_of_sound

@@ -7,14 +7,14 @@ and the map benchmarks all call this module:
   names, then :func:`sonar_ring.echoes.screen_ping`; what is refused or dropped
   is counted by reason on a :class:`Counts` (or a node's ``NodeHealth``, which
   has the same two methods).
-* :class:`PingStage` -- the localiser's work on a checked ping:
+* :class:`PingStage` -- the localiser's work on a checked ping, after loading
+  exactly the compiled kernels it runs (:meth:`PingStage.load_kernels`):
   :func:`sonar_ring.pipeline.localise_ping` then
-  :func:`~sonar_ring.pipeline.classify_ping`, one ping (:meth:`PingStage.label`)
-  or many at once (:meth:`PingStage.label_many`), after loading exactly the
-  compiled kernels it runs (:meth:`PingStage.load_kernels`); and what it
+  :func:`~sonar_ring.pipeline.classify_ping` (:meth:`PingStage.label`); what it
   publishes of a labelled ping, one landmark per echo
-  (:meth:`PingStage.publishable`, :func:`~sonar_ring.pipeline.joint_landmarks`),
-  or all three for one ping (:meth:`PingStage.label_and_publish`).
+  (:meth:`PingStage.publishable`, :func:`~sonar_ring.pipeline.joint_landmarks`);
+  all three for one ping (:meth:`PingStage.label_and_publish`) or for many at
+  once (:meth:`PingStage.label_and_publish_many`).
 
 A ping's result needs nothing of other pings, so it does not depend on where
 the stage runs (a node's callback, a worker process of ``sonar-ring process``).
@@ -126,10 +126,10 @@ class PingStage:
         hypotheses = pipeline.localise_ping(self.layout, echoes, self.settings)
         return hypotheses, pipeline.classify_ping(self.layout, echoes, hypotheses, self.settings)
 
-    def label_many(self, pings: list[EchoArrays]) -> list[tuple[Landmarks, Landmarks]]:
-        """:meth:`label` of each checked ping, valid hypotheses only, computed in stacked batches.
+    def label_and_publish_many(self, pings: list[EchoArrays]) -> list[tuple[Landmarks, Landmarks, Landmarks]]:
+        """:meth:`label_and_publish` of each checked ping, valid hypotheses only, computed in stacked batches.
 
-        Per ping exactly what :meth:`label` gives it alone, less its invalid
+        Per ping exactly what :meth:`label_and_publish` gives it alone, less its invalid
         hypotheses (:func:`sonar_ring.pipeline.label_pings`).
         """
         return pipeline.label_pings(self.layout, pings, self.settings)

@@ -410,16 +410,18 @@ def _matched_rows(layout: Layout, echoes: EchoArrays, ping: np.ndarray):
 
 
 def label_pings(layout: Layout, pings: list[EchoArrays], settings: Settings = Settings()
-                ) -> list[tuple[Landmarks, Landmarks]]:
-    """:func:`localise_ping` then :func:`classify_ping` for many pings at once; per ping the same result.
+                ) -> list[tuple[Landmarks, Landmarks, Landmarks]]:
+    """:func:`localise_ping`, :func:`classify_ping` and :func:`joint_landmarks` for many pings at once.
 
     For each ping of ``pings`` (screened echoes of ``layout``): its valid
-    hypotheses and its labelled landmarks, ``echo`` counting the ping's own rows -- exactly
-    what the two functions give for that ping alone, since a row's results
-    depend only on its own ping.  Consecutive pings with the same speed of sound
-    (and the same amplitude and phase-delay columns) are stacked and go through
-    each step in one call, so numpy's cost per call
-    is paid once per batch instead of once per ping (``sonar-ring process``).
+    hypotheses, its labelled landmarks and the landmarks to publish, ``echo``
+    counting the ping's own rows -- exactly what the three functions give for
+    that ping alone, since a row's results depend only on its own ping.
+    Consecutive pings with the same speed of sound (and the same amplitude and
+    phase-delay columns) are stacked and go through each step in one call, so
+    numpy's cost per call is paid once per batch instead of once per ping, and
+    a ring's consistency test (:func:`ring_fits`) runs once for both the labels
+    and the joint landmarks (``sonar-ring process``).
     """
     results = []
     start = 0
@@ -433,11 +435,14 @@ def label_pings(layout: Layout, pings: list[EchoArrays], settings: Settings = Se
         stacked = EchoArrays(batch[0].layout, batch[0].speed_of_sound,
                              *(np.concatenate([getattr(p, name) for p in batch])
                                for name in ("group", "transmitter", "tof", "amplitude", "phase_delay")))
+        ping = np.repeat(np.arange(len(batch)), sizes)
         hypotheses = localise_ping(layout, stacked, settings)
         hypotheses = hypotheses.select(hypotheses.valid)
-        labelled = classify_ping(layout, stacked, hypotheses, settings,
-                                 ping=np.repeat(np.arange(len(batch)), sizes))
-        results += zip(_split(hypotheses, offsets), _split(labelled, offsets), strict=True)
+        fits = ring_fits(layout, stacked, settings, ping) if layout.kind == "ring" else None
+        labelled = classify_ping(layout, stacked, hypotheses, settings, ping=ping, fits=fits)
+        published = joint_landmarks(layout, stacked, labelled, settings, ping=ping, fits=fits)
+        results += zip(_split(hypotheses, offsets), _split(labelled, offsets), _split(published, offsets),
+                       strict=True)
         start = stop
     return results
 

@@ -114,7 +114,7 @@ def test_a_turning_robot_maps_the_same_with_device_stamps_as_with_the_true_firin
     simulator, rng = Simulator(scene, layout), np.random.default_rng(0)
     pings = [screen_ping(simulator.ping(pose(seconds), noise=Noise(tof=1e-6, amplitude=0.02), rng=rng).echoes,
                          layout).echoes for seconds in (fired - HOST_EPOCH_NS) * 1e-9]
-    labelled = [landmarks for _, landmarks in pipeline.label_pings(layout, pings)]
+    labelled = [landmarks for _, landmarks, _ in pipeline.label_pings(layout, pings)]
     odometry_seconds = np.arange(0.0, 2 * np.pi / turn_rate + 0.1, 0.02)
     odometry_stamps = list(HOST_EPOCH_NS + np.round(odometry_seconds * 1e9).astype(np.int64))
     odometry_poses = [pose(seconds) for seconds in odometry_seconds]

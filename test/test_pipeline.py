@@ -135,19 +135,22 @@ def test_batched_pings_give_each_ping_its_own_result_exactly(layout_name, scene_
     settings = pipeline.Settings(models=("plane", "edge", "corner"), sigma_tof=3e-7)
     batched = pipeline.label_pings(layout, pings, settings)
     assert len(batched) == len(pings)
-    decided = invalid = 0
-    for echoes, (hypotheses, labelled) in zip(pings, batched, strict=True):
+    decided = invalid = joint = 0
+    for echoes, (hypotheses, labelled, published) in zip(pings, batched, strict=True):
         everything = pipeline.localise_ping(layout, echoes, settings)
         alone = everything.select(everything.valid)
         assert_same_landmarks(hypotheses, alone)
         assert_same_landmarks(labelled, pipeline.classify_ping(layout, echoes, alone, settings))
         # Invalid hypotheses change nothing: the composed localiser hands them all on.
         assert_same_landmarks(labelled, pipeline.classify_ping(layout, echoes, everything, settings))
+        assert_same_landmarks(published, pipeline.joint_landmarks(layout, echoes, labelled, settings))
         decided += np.count_nonzero(labelled.landmark_class != UNKNOWN)
         invalid += np.count_nonzero(~everything.valid)
-    assert sum(len(h) for h, _ in batched) > 0
+        joint += len(labelled) - len(published)
+    assert sum(len(h) for h, _, _ in batched) > 0
     if (layout_name, scene_name) == ("browne_ring", "room"):
         assert invalid > 0, "the comparison must cover invalid hypotheses too"
+        assert joint > 0, "the comparison must cover echoes several pairs heard (joint landmarks) too"
     if scene_name != "room":
         assert decided > 0, "the comparison must cover decided landmarks too"
 

@@ -8,7 +8,7 @@ Three measurements, each judged against its target (:data:`MEDIAN_TARGET_MS`,
    echo tests on: the mapper node's), maps ``laps`` laps of the room in the
    realistic world (:func:`sonar_ring.benchmark.worlds.simulated`, seed 0:
    the pings of ``sonar-ring bench --map``'s realistic runs), each ping
-   labelled by :meth:`sonar_ring.ping_stage.PingStage.label_many` first; the time of each
+   labelled by :meth:`sonar_ring.ping_stage.PingStage.label_and_publish_many` first; the time of each
    ``add_ping`` (its odometry is already there, so it maps at once).  For the
    split, the builder's echo tests (``MapBuilder._explain``), the
    :func:`~sonar_ring.explain.explain_landmarks` it calls and the SLAM update
@@ -97,7 +97,7 @@ def labelled_pings(count: int, seed: int = SEED, batch: int = 64):
     """``(stamp ns, odometry pose, labelled landmarks)`` of ``count`` pings of the room in the realistic world.
 
     Simulated (:func:`~sonar_ring.benchmark.worlds.simulated`) and labelled
-    (:meth:`~sonar_ring.ping_stage.PingStage.label_many`, with a robot's settings) ``batch``
+    (:meth:`~sonar_ring.ping_stage.PingStage.label_and_publish_many`, with a robot's settings) ``batch``
     at a time, as they are taken; ping ``k`` is stamped ``1 + k / ping_rate`` s.
     """
     layout = load_layout(worlds.LAYOUT)
@@ -106,8 +106,8 @@ def labelled_pings(count: int, seed: int = SEED, batch: int = 64):
     first = 0
     while taken := [(odometry, echoes) for _, _, odometry, echoes in itertools.islice(pings, batch)]:
         usable = [index for index, (_, echoes) in enumerate(taken) if echoes is not None]
-        labels = stage.label_many([taken[index][1] for index in usable])
-        labelled = dict(zip(usable, (landmarks for _, landmarks in labels), strict=True))
+        labels = stage.label_and_publish_many([taken[index][1] for index in usable])
+        labelled = dict(zip(usable, (landmarks for _, landmarks, _ in labels), strict=True))
         for index, (odometry, _) in enumerate(taken):
             stamp = int(round(1e9 * (1.0 + (first + index) / layout.ping_rate)))
             yield stamp, odometry, labelled.get(index, Landmarks.empty())

@@ -197,7 +197,7 @@ class LocaliserWork:
         """Check, localise, label and draw decoded Echoes messages as the localiser does, one output per message.
 
         ``pings`` holds each message's header and arrays (:func:`~sonar_ring.ros.convert.echoes_from_cdr`).
-        The checked pings go through :meth:`~sonar_ring.ping_stage.PingStage.label_many`
+        The checked pings go through :meth:`~sonar_ring.ping_stage.PingStage.label_and_publish_many`
         together, which gives each ping what the node gives it alone.
         """
         counts = [Counts() for _ in pings]
@@ -205,14 +205,13 @@ class LocaliserWork:
                    for (header, echoes), count in zip(pings, counts, strict=True)]
         usable = [index for index, echoes in enumerate(checked) if echoes is not None]
         # The messages carry the arrays' own dtypes, so the node's message round trips are lossless and skipped.
-        labels = dict(zip(usable, self.stage.label_many([checked[i] for i in usable]), strict=True))
+        labels = dict(zip(usable, self.stage.label_and_publish_many([checked[i] for i in usable]), strict=True))
         outputs = []
         for index, ((header, _), count) in enumerate(zip(pings, counts, strict=True)):
             if index not in labels:
                 outputs.append(PingOutput(dict(count.problems), dict(count.notes)))
                 continue
-            hypotheses, labelled = labels[index]
-            published = self.stage.publishable(checked[index], labelled)
+            hypotheses, labelled, published = labels[index]
             data = (serialize_landmarks(hypotheses, header),
                     serialize_landmarks(published, header),
                     serialize_landmarks(labelled, header),
