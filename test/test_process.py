@@ -253,16 +253,21 @@ def test_malformed_and_misfit_messages_are_counted_not_fatal(sim_bag, tmp_path, 
     wrong_layout.layout = "kreczmer_triad"
     with BagWriter(bag) as writer:
         echoes = writer.connection("/echoes", TOPIC["echoes"].message, TOPIC["echoes"].qos)
+        odom = writer.connection("/odom", TOPIC["odom"].message, TOPIC["odom"].qos)
         for k, (time_ns, raw) in enumerate(source["/echoes"][:6]):
             if k == 1:
                 raw = serialize_message(wrong_layout)
             writer.write(echoes, time_ns, raw[:20] if k == 3 else raw)
+        for k, (time_ns, raw) in enumerate(source["/odom"][:8]):
+            writer.write(odom, time_ns, raw[:30] if k == 2 else raw)
     code, printed, err = run_cli(capsys, "process", str(bag), str(tmp_path / "out"), "--quiet",
                                  "--layout", "browne_ring")
     assert code == 0, err
     assert "processed 6 pings" in printed
-    assert "refused: 1 layout_mismatch, 1 malformed_message" in printed
-    assert len(read_bag(tmp_path / "out")[1]["/landmarks"]) == 4
+    assert "refused: 1 layout_mismatch, 1 malformed_message, 1 undecodable_odometry" in printed, printed
+    out = read_bag(tmp_path / "out")[1]
+    assert len(out["/landmarks"]) == 4
+    assert len(out["/slam/pose"]) == 4  # the odometry on either side of the lost one places every ping
 
 
 def test_pings_the_odometry_does_not_cover_are_counted_not_mapped(sim_bag, tmp_path, capsys):
