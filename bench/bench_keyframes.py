@@ -12,7 +12,8 @@ the pings between ride on the odometry since it.  This script maps the same runs
 :data:`SETTINGS` (the spacing's travel in m and turn in rad alike, the rest as it ships): the map
 benchmark's realistic runs (``sonar-ring bench --map``: three laps of the room, the
 realistic world, seeds 0 up), each run simulated and labelled once, its mappers fed side by side ping by
-ping (each first on every other ping), so the time ratios hold on a busy machine.  Scored by
+ping (each first on every other ping), so the time ratios hold on a busy machine (the times themselves,
+six mappers in a process and a run on each core, are above one mapper's alone).  Scored by
 :func:`sonar_ring.score.score_map` and :func:`~sonar_ring.score.trajectory_error` against the truth.
 """
 
@@ -117,7 +118,9 @@ def main() -> None:
         "setting's in the same run (median over the runs); *complete*: runs with every heard reflector mapped "
         "once with its class and nothing else (`sonar_ring.score`); *ghosts* and *wrong* entries summed over the "
         "runs; *point error*: each run's median corner and edge error, median over the runs; the pose's error "
-        "against the truth, RMS over a run (median and worst run) and at its end (worst run).",
+        "against the truth, RMS over a run (median and worst run) and at its end (worst run).  Two runs at once, "
+        "one a core, six mappers in each: the times are above those of one mapper alone (`sonar-ring bench "
+        "--slam-cost`); their ratios are the result.",
         "",
         "| spacing | window | keyframes | update median / p99 | time | complete | ghosts | wrong | point error "
         "| pose RMS: median / worst | final: worst |",
