@@ -139,10 +139,7 @@ class PingStage:
 
         The hypotheses, the labelled landmarks and those to publish, as the two give them.
         """
-        hypotheses = pipeline.localise_ping(self.layout, echoes, self.settings)
-        fits = pipeline.ring_fits(self.layout, echoes, self.settings) if self.layout.kind == "ring" else None
-        labelled = pipeline.classify_ping(self.layout, echoes, hypotheses, self.settings, fits=fits)
-        return hypotheses, labelled, pipeline.joint_landmarks(self.layout, echoes, labelled, self.settings, fits=fits)
+        return pipeline.label_and_publish(self.layout, echoes, self.settings)
 
     def publishable(self, echoes: EchoArrays, labelled: Landmarks) -> Landmarks:
         """The landmarks to publish of a checked ping labelled ``labelled``: one per echo, joint where it can be.

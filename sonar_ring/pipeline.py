@@ -409,13 +409,26 @@ def _matched_rows(layout: Layout, echoes: EchoArrays, ping: np.ndarray):
     return np.concatenate(firsts).astype(np.int64), np.concatenate(seconds).astype(np.int64)
 
 
+def label_and_publish(layout: Layout, echoes: EchoArrays, settings: Settings = Settings(), ping=None
+                      ) -> tuple[Landmarks, Landmarks, Landmarks]:
+    """:func:`localise_ping`, :func:`classify_ping` and :func:`joint_landmarks` of a ping, the ring's fits once.
+
+    The hypotheses (valid and not), the labelled landmarks and those to publish;
+    ``ping`` as for :func:`classify_ping` (stacked pings, :func:`label_pings`).
+    """
+    hypotheses = localise_ping(layout, echoes, settings)
+    fits = ring_fits(layout, echoes, settings, ping) if layout.kind == "ring" else None
+    labelled = classify_ping(layout, echoes, hypotheses, settings, ping=ping, fits=fits)
+    return hypotheses, labelled, joint_landmarks(layout, echoes, labelled, settings, ping=ping, fits=fits)
+
+
 def label_pings(layout: Layout, pings: list[EchoArrays], settings: Settings = Settings()
                 ) -> list[tuple[Landmarks, Landmarks, Landmarks]]:
     """:func:`localise_ping`, :func:`classify_ping` and :func:`joint_landmarks` for many pings at once.
 
     For each ping of ``pings`` (screened echoes of ``layout``): its valid
     hypotheses, its labelled landmarks and the landmarks to publish, ``echo``
-    counting the ping's own rows -- exactly what the three functions give for
+    counting the ping's own rows -- exactly what :func:`label_and_publish` gives
     that ping alone, since a row's results depend only on its own ping.
     Consecutive pings with the same speed of sound (and the same amplitude and
     phase-delay columns) are stacked and go through each step in one call, so
@@ -435,14 +448,10 @@ def label_pings(layout: Layout, pings: list[EchoArrays], settings: Settings = Se
         stacked = EchoArrays(batch[0].layout, batch[0].speed_of_sound,
                              *(np.concatenate([getattr(p, name) for p in batch])
                                for name in ("group", "transmitter", "tof", "amplitude", "phase_delay")))
-        ping = np.repeat(np.arange(len(batch)), sizes)
-        hypotheses = localise_ping(layout, stacked, settings)
-        hypotheses = hypotheses.select(hypotheses.valid)
-        fits = ring_fits(layout, stacked, settings, ping) if layout.kind == "ring" else None
-        labelled = classify_ping(layout, stacked, hypotheses, settings, ping=ping, fits=fits)
-        published = joint_landmarks(layout, stacked, labelled, settings, ping=ping, fits=fits)
-        results += zip(_split(hypotheses, offsets), _split(labelled, offsets), _split(published, offsets),
-                       strict=True)
+        hypotheses, labelled, published = label_and_publish(layout, stacked, settings,
+                                                            ping=np.repeat(np.arange(len(batch)), sizes))
+        results += zip(_split(hypotheses.select(hypotheses.valid), offsets), _split(labelled, offsets),
+                       _split(published, offsets), strict=True)
         start = stop
     return results
 
