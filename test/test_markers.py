@@ -1,4 +1,5 @@
-"""Messages written straight into CDR (RViz markers, landmark arrays): the ones rclpy serializes from objects.
+"""Messages written straight into CDR (RViz markers, landmark arrays, SLAM's pose, tf): the ones rclpy (or, for tf,
+the bag library) serializes from objects.
 
 CDR leaves the padding bytes unspecified (rclpy's are whatever the buffer held), so
 the check is: same length, and the same message when either is decoded.
@@ -9,7 +10,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 from builtin_interfaces.msg import Duration
-from geometry_msgs.msg import Point
+from geometry_msgs.msg import Point, PoseWithCovarianceStamped
 from numpy.testing import assert_allclose
 from rclpy.serialization import deserialize_message, serialize_message
 from sonar_ring.msg import LandmarkArray
@@ -17,7 +18,9 @@ from std_msgs.msg import ColorRGBA, Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from sonar_ring.landmarks import CORNER, EDGE, PLANE, UNKNOWN, make_landmarks
+from sonar_ring.ros.bag import TF_TYPE, tf_message, typestore
 from sonar_ring.ros.convert import landmarks_from_msg, landmarks_to_msg, serialize_landmarks
+from sonar_ring.ros.mapper import serialize_pose
 from sonar_ring.ros.markers import (
     MIN_ALPHA,
     MarkerParts,
@@ -134,6 +137,47 @@ def test_alpha_is_per_point_only_where_the_alphas_differ():
         alpha = MIN_ALPHA + (1.0 - MIN_ALPHA) * np.clip(np.float32(confidence), 0.0, 1.0)
         assert len(edges.colors) == (2 if per_point else 0)
         assert edges.color[3] == float(alpha[0])
+
+
+def test_slam_pose_serializes_exactly_as_rclpy_does():
+    rng = np.random.default_rng(5)
+    for frame in ("map", "", "mäp/x"):  # frame lengths that leave the pose's doubles 0, 4 and 7 bytes to align
+        pose = rng.uniform(-5, 5, 3)
+        spread = rng.normal(0, 0.01, (3, 3))
+        covariance = spread @ spread.T
+        ours = serialize_pose(pose, covariance, header(frame))
+        reference = PoseWithCovarianceStamped(header=header(frame))
+        reference.pose.pose.position.x, reference.pose.pose.position.y = pose[0], pose[1]
+        reference.pose.pose.orientation.z, reference.pose.pose.orientation.w = np.sin(pose[2] / 2), np.cos(pose[2] / 2)
+        full = np.zeros((6, 6))
+        full[np.ix_([0, 1, 5], [0, 1, 5])] = covariance
+        reference.pose.covariance = full.reshape(-1)
+        theirs = serialize_message(reference)
+        assert len(ours) == len(theirs)
+        assert deserialize_message(ours, PoseWithCovarianceStamped) == reference
+
+
+def test_tf_messages_are_the_bytes_of_the_bag_librarys_types():
+    """tf2_msgs need not be installed: the reference is the bag library's own TFMessage, byte for byte."""
+    store = typestore()
+    types = store.types
+    rng = np.random.default_rng(6)
+    frames = ["", "a", "odom", "base_link", "sonar_ring/group_07", "ünïcode"]
+    time, stamped, vector, quaternion = (types[name] for name in (
+        "builtin_interfaces/msg/Time", "std_msgs/msg/Header", "geometry_msgs/msg/Vector3",
+        "geometry_msgs/msg/Quaternion"))
+    for count in (0, 1, 3, 9):
+        transforms = [(int(rng.integers(0, 2**40)), *rng.choice(frames, 2).tolist(), tuple(rng.uniform(-4, 4, 4)))
+                      for _ in range(count)]
+        items = []
+        for stamp, parent, child, (x, y, z, yaw) in transforms:
+            sec, nanosec = divmod(stamp, 10**9)
+            items.append(types["geometry_msgs/msg/TransformStamped"](
+                header=stamped(stamp=time(sec=sec, nanosec=nanosec), frame_id=parent), child_frame_id=child,
+                transform=types["geometry_msgs/msg/Transform"](
+                    translation=vector(x=x, y=y, z=z),
+                    rotation=quaternion(x=0.0, y=0.0, z=np.sin(yaw / 2), w=np.cos(yaw / 2)))))
+        assert tf_message(transforms) == bytes(store.serialize_cdr(types[TF_TYPE](transforms=items), TF_TYPE))
 
 
 def test_error_handling():

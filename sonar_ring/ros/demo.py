@@ -140,7 +140,7 @@ class _TransformsFromTopics:
     ``sensor_offset``, zero in the demo) and its receiver groups;
     ``/tf``: ``odom -> base_link`` per odometry message and ``map -> odom`` per
     ``slam/pose`` (the robot's pose in ``map`` after its odometry pose at the
-    same stamp), written with the bag library's own types.
+    same stamp), written by :func:`~sonar_ring.ros.bag.tf_message` (the bag library's types for the schema).
     """
 
     def __init__(self, writer: BagWriter, layout) -> None:

@@ -7,11 +7,12 @@ Both call what the nodes call -- :class:`sonar_ring.ros.inputs.TopicCheck`,
 :func:`sonar_ring.ping_stage.check_ping` and :class:`~sonar_ring.ping_stage.PingStage`, :mod:`sonar_ring.ros.convert`,
 :mod:`sonar_ring.ros.markers`, the mapper's core (:class:`~sonar_ring.map_builder.MapBuilder`,
 with SLAM by default) and its :func:`~sonar_ring.ros.mapper.map_messages` and
-:func:`~sonar_ring.ros.mapper.pose_message`, the driver's message builders
--- on rclpy messages serialized by rclpy (markers by
-:func:`~sonar_ring.ros.markers.serialize_markers`, as the nodes publish them), so
-each output message is the one the live graph publishes for the same input;
-rosbags only reads and writes the files.
+:func:`~sonar_ring.ros.mapper.serialize_pose`, the driver's message builders
+-- on rclpy messages serialized by rclpy (markers, landmarks and the pose
+written straight into CDR by :func:`~sonar_ring.ros.markers.serialize_markers`
+and its kind, as the nodes publish them), so each output message is the one
+the live graph publishes for the same input; rosbags only reads and writes the
+files.
 
 Bag time replaces the node clocks: a ping's outputs are written at its echoes'
 bag time with its echoes' header, and the map at ``map_rate`` ticks of bag time
@@ -23,8 +24,8 @@ of pings at once (:class:`LocaliserWork`) and hands the batches to worker
 processes; the header check, the mapper and the file I/O stay in order in the
 main process.
 
-``process`` also writes what tf would carry, with the bag library's own types
-(so without tf2_msgs): ``/tf_static`` once (the robot's ``base_frame`` to the
+``process`` also writes what tf would carry (:func:`~sonar_ring.ros.bag.tf_message`:
+the bag library's types for the schema, so without tf2_msgs): ``/tf_static`` once (the robot's ``base_frame`` to the
 sensor frame at ``sensor_offset``, and the receiver groups' frames) and ``/tf``
 (``odom -> base_frame`` per odometry message; ``map -> odom`` per ping with
 SLAM), so a viewer can place the map and the sensor-frame markers together.
@@ -365,7 +366,7 @@ class OfflineGraph:
         header.stamp.sec, header.stamp.nanosec = divmod(self.builder.latest_stamp, 10**9)
         pose, covariance = self.builder.slam.pose()
         self._writer.write(self._connections["slam/pose"], time_ns,
-                           serialize_message(mapper.pose_message(pose, covariance, header)))
+                           mapper.serialize_pose(pose, covariance, header))
         x, y, yaw = self.builder.slam.map_to_odom(pose)
         self._writer.write(self._connections["/tf"], time_ns, tf_message([
             (self.builder.latest_stamp, self._mapper["map_frame"], self._mapper["odom_frame"], (x, y, 0.0, yaw))]))
