@@ -28,7 +28,10 @@ Three measurements, each judged against its target (:data:`MEDIAN_TARGET_MS`,
    --laps N`` records the realistic world, then ``sonar-ring process BAG OUT
    --quiet`` (SLAM on: its default) is timed as a whole command, start of the
    interpreter to its exit, ``runs`` times; the speed is the bag's data
-   duration (as the command prints it) over the median wall time.
+   duration (as the command prints it) over the median wall time.  Two
+   recordings (:data:`BAG_LAPS`): the demo's one lap, which the target is
+   judged on (the command's start weighs most there), and the per-ping run's
+   three laps.
 
 The section lies between :data:`SECTION_BEGIN` and :data:`SECTION_END` of
 ``BENCHMARKS.md``; ``sonar-ring bench`` and ``sonar-ring bench --map`` keep it.
@@ -68,7 +71,8 @@ SAMPLE_EVERY = 900
 """Pings between two readings of the resident set size (30 s at the ring's 30 Hz)."""
 BUDGET_MINUTES = 60.0
 """Wall time after which the memory run stops, whatever it reached."""
-BAG_LAPS = 1
+BAG_LAPS = (1, LAPS)
+"""Laps of the recordings ``sonar-ring process`` is timed on: the first is the target's."""
 RUNS = 5
 
 MEDIAN_TARGET_MS = 2.0
@@ -333,7 +337,7 @@ def sonar_ring_command() -> list[str]:
     return [script] if script else [sys.executable, "-m", "sonar_ring.cli"]
 
 
-def process_speed(laps: int = BAG_LAPS, pings: int | None = None, runs: int = RUNS, tell=print) -> dict:
+def process_speed(laps: int = LAPS, pings: int | None = None, runs: int = RUNS, tell=print) -> dict:
     """Record a bag of the realistic room, then time ``sonar-ring process`` on it ``runs`` times (module docstring).
 
     Returns ``pings``, ``data_seconds`` (as the command prints it), ``wall``
@@ -361,7 +365,7 @@ def process_speed(laps: int = BAG_LAPS, pings: int | None = None, runs: int = RU
                 return dict(error=f"`sonar-ring process` failed: {_last_line(done)}")
             inside.append(float(found.group(3)))
             shutil.rmtree(out, ignore_errors=True)
-            tell(f"slam cost: sonar-ring process, run {run + 1}/{runs}: {wall[-1]:.2f} s")
+            tell(f"slam cost: sonar-ring process ({' '.join(record[-2:])}), run {run + 1}/{runs}: {wall[-1]:.2f} s")
     return dict(pings=int(found.group(1)), data_seconds=float(found.group(2)), wall=wall, inside=inside,
                 record="sonar-ring " + " ".join([*record[:2], "BAG", *record[2:]]), load=os.getloadavg())
 
@@ -420,15 +424,24 @@ def _memory_target(run: dict, minutes: float, warmup: float) -> tuple[str, str, 
     return target, figures, verdict
 
 
-def _process_target(speed: dict) -> tuple[str, str, str]:
+def _process_target(speeds: list[dict]) -> tuple[str, str, str]:
+    """The target's row: judged on the first recording, the others' speeds after it."""
     target = f"`sonar-ring process` with SLAM ≥ {SPEED_TARGET:g}× real time"
-    if "error" in speed:
-        return target, speed["error"], "not measured"
-    wall = statistics.median(speed["wall"])
-    ratio = speed["data_seconds"] / wall
-    return (target, f"×{ratio:.1f}: {speed['data_seconds']:.1f} s of data in {wall:.2f} s (median of "
-                    f"{_runs(len(speed['wall']))} of the whole command)",
+    first, *others = speeds
+    if "error" in first:
+        return target, first["error"], "not measured"
+    ratio = _ratio(first)
+    figures = (f"×{ratio:.1f}: {first['data_seconds']:.1f} s of data in {statistics.median(first['wall']):.2f} s "
+               f"(median of {_runs(len(first['wall']))} of the whole command)")
+    figures += "".join(f"; {other['pings']} pings: ×{_ratio(other):.1f} ({other['data_seconds']:.1f} s in "
+                       f"{statistics.median(other['wall']):.2f} s)" for other in others if "error" not in other)
+    return (target, figures,
             _met(ratio >= SPEED_TARGET) + ("" if ratio >= SPEED_TARGET else f" (×{SPEED_TARGET / ratio:.1f} short)"))
+
+
+def _ratio(speed: dict) -> float:
+    """Times real time: the bag's data over the median wall time of the whole command."""
+    return speed["data_seconds"] / statistics.median(speed["wall"])
 
 
 def _runs(count: int) -> str:
@@ -477,7 +490,7 @@ def _memory_table(run: dict, rows: int = 13) -> list[str]:
     return lines
 
 
-def section(result: PerPing, run: dict, speed: dict, settings: dict, seconds: float, code: str,
+def section(result: PerPing, run: dict, speeds: list[dict], settings: dict, seconds: float, code: str,
             quick: bool) -> list[str]:
     """The ``BENCHMARKS.md`` section: how it was made, the targets, the three tables."""
     command = COMMAND + (" --quick" if quick else "")
@@ -489,16 +502,24 @@ def section(result: PerPing, run: dict, speed: dict, settings: dict, seconds: fl
                      f"set size every {settings['sample_every']} pings; load average at the end "
                      f"{_load(run['load'])}. Refused by the mapper: {_problems(run['problems'])}.", "",
                      *_memory_table(run)])
-    if "error" in speed:
-        process_lines = ["Not measured: " + speed["error"] + "."]
-    else:
+    process_lines = []
+    for speed in speeds:
+        if "error" in speed:
+            process_lines += ["Not measured: " + speed["error"] + ".", ""]
+            continue
         wall = speed["wall"]
-        process_lines = [
+        process_lines += [
             f"`{speed['record']}` ({speed['pings']} pings, {speed['data_seconds']:.1f} s of data), then "
             f"`sonar-ring process BAG OUT --quiet` (SLAM on, `--jobs` one per CPU: the defaults) timed as a whole "
             f"command, {_runs(len(wall))}: {', '.join(f'{w:.2f}' for w in wall)} s (median "
-            f"{statistics.median(wall):.2f} s); the command's own time, opening the bag to closing the output, median "
-            f"{statistics.median(speed['inside']):.2f} s. Load average at the end {_load(speed['load'])}."]
+            f"{statistics.median(wall):.2f} s, ×{_ratio(speed):.1f} real time); the command's own time, opening the "
+            f"bag to closing the output, median {statistics.median(speed['inside']):.2f} s. Load average at the end "
+            f"{_load(speed['load'])}.", ""]
+    process_lines = [
+        "The target is judged on the first recording, the demo's lap, the shorter: the command's start (the "
+        "interpreter, its imports and the compiled kernels: a second or two) weighs more there than over the "
+        "per-ping run's laps.", "",
+        *process_lines[:-1]]
     return [
         SECTION_BEGIN,
         TITLE,
@@ -514,7 +535,7 @@ def section(result: PerPing, run: dict, speed: dict, settings: dict, seconds: fl
         "|---|---|---|",
         "| {} | {} | {} |".format(*_per_ping_target(result)),
         "| {} | {} | {} |".format(*_memory_target(run, settings["minutes"], settings["warmup"])),
-        "| {} | {} | {} |".format(*_process_target(speed)),
+        "| {} | {} | {} |".format(*_process_target(speeds)),
         "",
         "### Per ping",
         "",
@@ -551,25 +572,26 @@ def kept_section(report: Path) -> list[str]:
 
 def run(out_dir: Path = Path("."), laps: int = LAPS, pings: int | None = None, minutes: float = MINUTES,
         warmup: float = WARMUP_MINUTES, sample_every: int = SAMPLE_EVERY, budget: float = 60 * BUDGET_MINUTES,
-        bag_laps: int = BAG_LAPS, bag_pings: int | None = None, runs: int = RUNS, quick: bool = False,
+        bag_laps: tuple = BAG_LAPS, bag_pings: int | None = None, runs: int = RUNS, quick: bool = False,
         tell=print) -> Path:
     """Measure the three costs and put the section into ``out_dir/BENCHMARKS.md`` (appended when it has none).
 
     ``laps`` (``pings`` stops earlier) for the time per ping; ``minutes``,
     ``warmup`` (minutes), ``sample_every`` (pings) and ``budget`` (s of wall
-    time) for the memory run; ``bag_laps`` (``bag_pings`` stops earlier) and
-    ``runs`` for ``sonar-ring process``.  ``quick`` only marks the section's
+    time) for the memory run; ``bag_laps`` (the recordings' laps; ``bag_pings``: one
+    recording of that many pings instead) and ``runs`` for ``sonar-ring process``.  ``quick`` only marks the section's
     figures as not for reading.
     """
     started = time.perf_counter()
     code = revision(Path(__file__).parent)
     result = per_ping(laps, pings, tell)
-    speed = process_speed(bag_laps, bag_pings, runs, tell)
+    recordings = [(1, bag_pings)] if bag_pings else [(laps, None) for laps in bag_laps]
+    speeds = [process_speed(laps, pings, runs, tell) for laps, pings in recordings]
     tell(f"slam cost: memory over {minutes:g} simulated minutes in a process of its own (at most {budget / 60:.0f} "
          "min of wall time)")
     footprint = memory(minutes, sample_every, budget)
     settings = dict(minutes=minutes, warmup=warmup, sample_every=sample_every)
-    lines = section(result, footprint, speed, settings, time.perf_counter() - started, code, quick)
+    lines = section(result, footprint, speeds, settings, time.perf_counter() - started, code, quick)
     report = Path(out_dir) / "BENCHMARKS.md"
     sections.write(report, SECTION_BEGIN, SECTION_END, lines)
     tell(f"wrote the SLAM cost section of {report}")
