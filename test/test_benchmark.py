@@ -149,8 +149,9 @@ def test_quick_slam_cost_writes_its_section_beside_the_others(tmp_path):
     if importlib.util.find_spec("rclpy") is None or importlib.util.find_spec("sonar_ring.msg") is None:
         assert "needs ROS 2" in process and process.endswith("| not measured |")
     else:  # make test runs in the built ROS 2 environment: the command must have run
-        assert re.search(r"\| ×\d+\.\d: 2\.0 s of data in \d+\.\d\d s \(median of 1 run of the whole command\) "
-                         r"\| \*\*(met|missed)\*\*", process), process
+        assert re.search(r"\| ×\d+\.\d: 2\.0 s of data in \d+\.\d\d s \(median of 1 run of the whole command\); "
+                         r"120 pings: ×\d+\.\d \(4\.0 s in \d+\.\d\d s\) \| \*\*(met|missed)\*\*", process), process
+        assert section.count("timed as a whole command, 1 run:") == 2  # a paragraph per recording
 
     lap = next(line for line in section.splitlines() if line.startswith("| lap 1 | 150 |"))
     assert lap.count(" ms") >= 12 and "not measured" not in lap, lap  # every part timed

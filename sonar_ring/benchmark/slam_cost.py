@@ -337,7 +337,7 @@ def sonar_ring_command() -> list[str]:
     return [script] if script else [sys.executable, "-m", "sonar_ring.cli"]
 
 
-def process_speed(laps: int = LAPS, pings: int | None = None, runs: int = RUNS, tell=print) -> dict:
+def process_speed(laps: int | None = LAPS, pings: int | None = None, runs: int = RUNS, tell=print) -> dict:
     """Record a bag of the realistic room, then time ``sonar-ring process`` on it ``runs`` times (module docstring).
 
     Returns ``pings``, ``data_seconds`` (as the command prints it), ``wall``
@@ -572,20 +572,20 @@ def kept_section(report: Path) -> list[str]:
 
 def run(out_dir: Path = Path("."), laps: int = LAPS, pings: int | None = None, minutes: float = MINUTES,
         warmup: float = WARMUP_MINUTES, sample_every: int = SAMPLE_EVERY, budget: float = 60 * BUDGET_MINUTES,
-        bag_laps: tuple = BAG_LAPS, bag_pings: int | None = None, runs: int = RUNS, quick: bool = False,
+        bag_laps: tuple = BAG_LAPS, bag_pings: tuple = (), runs: int = RUNS, quick: bool = False,
         tell=print) -> Path:
     """Measure the three costs and put the section into ``out_dir/BENCHMARKS.md`` (appended when it has none).
 
     ``laps`` (``pings`` stops earlier) for the time per ping; ``minutes``,
     ``warmup`` (minutes), ``sample_every`` (pings) and ``budget`` (s of wall
-    time) for the memory run; ``bag_laps`` (the recordings' laps; ``bag_pings``: one
-    recording of that many pings instead) and ``runs`` for ``sonar-ring process``.  ``quick`` only marks the section's
-    figures as not for reading.
+    time) for the memory run; ``bag_laps`` (the recordings' laps; ``bag_pings``,
+    when given: their pings instead) and ``runs`` for ``sonar-ring process``.
+    ``quick`` only marks the section's figures as not for reading.
     """
     started = time.perf_counter()
     code = revision(Path(__file__).parent)
     result = per_ping(laps, pings, tell)
-    recordings = [(1, bag_pings)] if bag_pings else [(laps, None) for laps in bag_laps]
+    recordings = [(None, count) for count in bag_pings] or [(count, None) for count in bag_laps]
     speeds = [process_speed(laps, pings, runs, tell) for laps, pings in recordings]
     tell(f"slam cost: memory over {minutes:g} simulated minutes in a process of its own (at most {budget / 60:.0f} "
          "min of wall time)")

@@ -3,10 +3,10 @@
 Messages stay serialized CDR bytes here: rclpy serializes them
 (``rclpy.serialization.serialize_message``), the nodes' own CDR writers do, or
 they are received raw, so the results are those of the nodes by construction;
-``/tf`` (:func:`tf_message`) is written the same way, tf2_msgs or not.
-rosbags only does the file I/O; it needs the message definitions for the bag's schema (what Foxglove and
-``ros2 bag play`` decode with): the standard ones of ROS 2 Kilted plus this
-package's ``msg/*.msg``, read from the installed share folder.
+``/tf`` (:func:`tf_message`) is written the same way, tf2_msgs or not.  rosbags
+only does the file I/O; it needs the message definitions for the bag's schema
+(what Foxglove and ``ros2 bag play`` decode with): the standard ones of ROS 2
+Kilted plus this package's ``msg/*.msg``, read from the installed share folder.
 
 Connections are written with the QoS the nodes publish with, so ``ros2 bag
 play`` offers the map topics reliable and transient local (a late RViz still

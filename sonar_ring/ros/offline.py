@@ -9,10 +9,9 @@ Both call what the nodes call -- :class:`sonar_ring.ros.inputs.TopicCheck`,
 with SLAM by default) and its :func:`~sonar_ring.ros.mapper.map_messages` and
 :func:`~sonar_ring.ros.mapper.serialize_pose`, the driver's message builders
 -- on rclpy messages serialized by rclpy (markers, landmarks and the pose
-written straight into CDR by :func:`~sonar_ring.ros.markers.serialize_markers`
-and its kind, as the nodes publish them), so each output message is the one
-the live graph publishes for the same input; rosbags only reads and writes the
-files.
+written straight into CDR, as the nodes publish them), so each output message
+is the one the live graph publishes for the same input; rosbags only reads and
+writes the files.
 
 Bag time replaces the node clocks: a ping's outputs are written at its echoes'
 bag time with its echoes' header, and the map at ``map_rate`` ticks of bag time
@@ -24,11 +23,12 @@ of pings at once (:class:`LocaliserWork`) and hands the batches to worker
 processes; the header check, the mapper and the file I/O stay in order in the
 main process.
 
-``process`` also writes what tf would carry (:func:`~sonar_ring.ros.bag.tf_message`:
-the bag library's types for the schema, so without tf2_msgs): ``/tf_static`` once (the robot's ``base_frame`` to the
-sensor frame at ``sensor_offset``, and the receiver groups' frames) and ``/tf``
-(``odom -> base_frame`` per odometry message; ``map -> odom`` per ping with
-SLAM), so a viewer can place the map and the sensor-frame markers together.
+``process`` also writes what tf would carry (:func:`~sonar_ring.ros.bag.tf_message`;
+the bag library's types give the schema, so without tf2_msgs): ``/tf_static``
+once (the robot's ``base_frame`` to the sensor frame at ``sensor_offset``, and
+the receiver groups' frames) and ``/tf`` (``odom -> base_frame`` per odometry
+message; ``map -> odom`` per ping with SLAM), so a viewer can place the map and
+the sensor-frame markers together.
 """
 
 from __future__ import annotations
