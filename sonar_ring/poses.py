@@ -58,10 +58,23 @@ def turned_covariances(covariance, rotation) -> np.ndarray:
             @ rotation.T).reshape(count, 2, 2)
 
 
+QUATERNION_NORM_TOLERANCE = 1e-3
+"""How far a quaternion's squared norm may be from 1 for :func:`yaw_of` to take it as a rotation; its yaw is then
+off by at most about as many radians (a float32 quaternion's round-off is about 1e-7; an unset orientation is all
+zeros)."""
+
+
 def yaw_of(orientation) -> float:
-    """Yaw (rotation about z) of a quaternion with fields ``x, y, z, w``, rad."""
-    return float(math.atan2(2.0 * (orientation.w * orientation.z + orientation.x * orientation.y),
-                            1.0 - 2.0 * (orientation.y ** 2 + orientation.z ** 2)))
+    """Yaw (rotation about z) of a unit quaternion with fields ``x, y, z, w``, rad; NaN when it is not a rotation.
+
+    Not a rotation: a component that is not finite, or a squared norm more than
+    :data:`QUATERNION_NORM_TOLERANCE` off 1 -- such a quaternion's yaw would be a number, and wrong.
+    """
+    x, y, z, w = orientation.x, orientation.y, orientation.z, orientation.w
+    # Products, not powers: a huge component makes inf here, where ** raises OverflowError.
+    if not abs(x * x + y * y + z * z + w * w - 1.0) <= QUATERNION_NORM_TOLERANCE:  # NaN fails too
+        return math.nan
+    return float(math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y ** 2 + z ** 2)))
 
 
 class PoseHistory:

@@ -1,10 +1,12 @@
 """Bad messages at every node: counted per reason on /diagnostics, and the valid rest of a ping still used."""
 
+import math
 from dataclasses import replace
 
 import numpy as np
 import pytest
 import rclpy
+from nav_msgs.msg import Odometry
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.parameter import Parameter
 from rclpy.qos import qos_profile_sensor_data
@@ -242,6 +244,35 @@ def test_mapper_integrates_a_ping_once_and_refuses_stale_and_future_ones(ros):
     assert problems(mapper) == {"duplicate_stamp": 1, "out_of_order_stamp": 1, "future_stamp": 1,
                                 "empty_frame_id": 1, "malformed_message": 1}
     bench.close()
+
+
+def test_mapper_drops_odometry_that_places_nothing_and_goes_on(ros):
+    """A position not finite, an orientation left all zeros, one with a huge component (whose yaw raised)."""
+    mapper = Mapper()
+    peer = rclpy.create_node("odometry_peer")
+    publisher = peer.create_publisher(Odometry, "odom", 10)
+    executor = SingleThreadedExecutor()
+    for node in (mapper, peer):
+        executor.add_node(node)
+    assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, timeout=10)
+    start = peer.get_clock().now().nanoseconds - 10**9
+    stamps = [start + k * 10**7 for k in range(5)]
+    for stamp, (x, orientation) in zip(stamps, [(0.0, (0.0, 0.0, 0.0, 1.0)), (math.nan, (0.0, 0.0, 0.0, 1.0)),
+                                                (0.1, (0.0, 0.0, 0.0, 0.0)), (0.2, (0.0, 0.0, 1e200, 1.0)),
+                                                (0.3, (0.0, 0.0, 0.0, 1.0))], strict=True):
+        message = Odometry(child_frame_id="base_link")
+        message.header.frame_id = "odom"
+        message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp, 10**9)
+        message.pose.pose.position.x = x
+        (message.pose.pose.orientation.x, message.pose.pose.orientation.y, message.pose.pose.orientation.z,
+         message.pose.pose.orientation.w) = orientation
+        publisher.publish(message)
+    assert spin_until(executor, lambda: len(mapper.builder.history) == 2
+                      and problems(mapper).get("bad_odometry_pose") == 3, timeout=10), problems(mapper)
+    assert problems(mapper) == {"bad_odometry_pose": 3}
+    np.testing.assert_array_equal(mapper.builder.history.at(stamps[4]), [0.3, 0.0, 0.0])
+    for node in (mapper, peer):
+        node.destroy_node()
 
 
 def test_localiser_labels_the_rows_it_localised_once_per_ping(ros):

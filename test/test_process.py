@@ -258,16 +258,19 @@ def test_malformed_and_misfit_messages_are_counted_not_fatal(sim_bag, tmp_path, 
             if k == 1:
                 raw = serialize_message(wrong_layout)
             writer.write(echoes, time_ns, raw[:20] if k == 3 else raw)
+        unset = deserialize_message(source["/odom"][4][1], Odometry)
+        unset.pose.pose.orientation.z, unset.pose.pose.orientation.w = 1e200, 0.0  # not a rotation: its yaw raised
         for k, (time_ns, raw) in enumerate(source["/odom"][:8]):
-            writer.write(odom, time_ns, raw[:30] if k == 2 else raw)
+            writer.write(odom, time_ns, raw[:30] if k == 2 else serialize_message(unset) if k == 4 else raw)
     code, printed, err = run_cli(capsys, "process", str(bag), str(tmp_path / "out"), "--quiet",
                                  "--layout", "browne_ring")
     assert code == 0, err
     assert "processed 6 pings" in printed
-    assert "refused: 1 layout_mismatch, 1 malformed_message, 1 undecodable_odometry" in printed, printed
+    assert "refused: 1 bad_odometry_pose, 1 layout_mismatch, 1 malformed_message, 1 undecodable_odometry" \
+        in printed, printed
     out = read_bag(tmp_path / "out")[1]
     assert len(out["/landmarks"]) == 4
-    assert len(out["/slam/pose"]) == 4  # the odometry on either side of the lost one places every ping
+    assert len(out["/slam/pose"]) == 4  # the odometry on either side of the lost ones places every ping
 
 
 def test_pings_the_odometry_does_not_cover_are_counted_not_mapped(sim_bag, tmp_path, capsys):

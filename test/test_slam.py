@@ -3,6 +3,7 @@ and a corner, a loop closed without duplicates, faults detected, and the mapper'
 
 import math
 from dataclasses import replace
+from types import SimpleNamespace
 
 import gtsam
 import numpy as np
@@ -17,7 +18,7 @@ from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, Landmarks, make_landmarks
 from sonar_ring.map_builder import MapBuilder, MapperSettings
 from sonar_ring.ping_stage import Counts, PingStage
-from sonar_ring.poses import compose, relative_pose
+from sonar_ring.poses import QUATERNION_NORM_TOLERANCE, compose, relative_pose, yaw_of
 from sonar_ring.realism import IDEAL, World, air_speed
 from sonar_ring.score import score_map, trajectory_error
 from sonar_ring.simulate import DIRECT, Noise, load_scene
@@ -319,6 +320,23 @@ def test_the_builder_waits_for_odometry_and_counts_what_it_cannot_place():
     assert health.problems["no_odometry"] == 40 - 32
     builder.give_up_waiting()
     assert health.problems["no_odometry"] == 40 and builder.frame == "odom"
+
+
+def test_the_yaw_of_a_quaternion_that_is_not_a_rotation_is_nan():
+    """An odometry orientation left unset (all zeros), garbled or not finite gives no yaw, where it gave a wrong
+    one (or, a component near 1e200, raised OverflowError in the mapper's odometry callback)."""
+    def quaternion(x, y, z, w):
+        return SimpleNamespace(x=x, y=y, z=z, w=w)
+
+    for yaw in (-3.0, -0.4, 0.0, 1.2, math.pi):
+        assert yaw_of(quaternion(0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2))) == pytest.approx(yaw, abs=1e-12)
+    for yaw in np.linspace(-3.1, 3.1, 21):  # within the tolerance, the yaw is off by about as much
+        scale = math.sqrt(1.0 + 0.9 * QUATERNION_NORM_TOLERANCE)
+        assert yaw_of(quaternion(0.0, 0.0, scale * math.sin(yaw / 2), scale * math.cos(yaw / 2))) \
+            == pytest.approx(yaw, abs=QUATERNION_NORM_TOLERANCE)
+    for bad in [(0.0, 0.0, 0.0, 0.0), (0.0, 0.0, 1e200, 1.0), (0.0, 0.0, math.inf, 1.0), (math.nan, 0.0, 0.0, 1.0),
+                (0.0, 0.0, 0.0, 1.001), (1e-200, 1e-200, 1e-200, 1e-200)]:
+        assert math.isnan(yaw_of(quaternion(*bad))), bad
 
 
 def test_error_handling():

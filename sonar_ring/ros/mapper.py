@@ -159,9 +159,25 @@ def mapper_settings(values: dict) -> MapperSettings:
 
 
 def odometry_pose(msg: Odometry) -> tuple[float, float, float]:
-    """The robot's ``(x, y, yaw)`` of an Odometry message, m and rad."""
+    """The robot's ``(x, y, yaw)`` of an Odometry message, m and rad.
+
+    The yaw is NaN when the orientation is not a rotation (:func:`~sonar_ring.poses.yaw_of`).
+    """
     pose = msg.pose.pose
     return pose.position.x, pose.position.y, yaw_of(pose.orientation)
+
+
+def usable_odometry_pose(msg: Odometry, health) -> tuple[float, float, float] | None:
+    """:func:`odometry_pose`, or None after counting ``bad_odometry_pose`` on ``health`` when it is not finite.
+
+    The mapper's input gate for odometry (the node's and ``sonar-ring process``'s): such a message is dropped,
+    so the odometry on either side of it places the pings around it.
+    """
+    pose = odometry_pose(msg)
+    if all(math.isfinite(value) for value in pose):
+        return pose
+    health.problem("bad_odometry_pose", "odometry position not finite or orientation not a rotation")
+    return None
 
 
 def map_messages(builder: MapBuilder, header: Header) -> tuple[bytes, bytes, bytes]:
@@ -276,8 +292,11 @@ class Mapper(SonarNode):
     def _on_odometry(self, msg: Odometry, info: MessageInfo) -> None:
         if not self._odometry_check.admit(msg.header, info):
             return
+        pose = usable_odometry_pose(msg, self.health)
+        if pose is None:
+            return
         started = time.perf_counter()
-        placed = self.builder.add_odometry(stamp_ns(msg.header), odometry_pose(msg))
+        placed = self.builder.add_odometry(stamp_ns(msg.header), pose)
         if placed:
             self._mapped(started, placed)
 

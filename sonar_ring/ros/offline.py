@@ -455,9 +455,9 @@ def _read_odometry(bag: BagReader, connections, mapper_values: dict, counts: Cou
             counts.problem("undecodable_odometry")
             continue
         clock.nanoseconds = time_ns
-        if check.admit(msg.header):
+        if check.admit(msg.header) and (pose := mapper.usable_odometry_pose(msg, counts)) is not None:
             stamps.append(stamp_ns(msg.header))
-            poses.append(mapper.odometry_pose(msg))
+            poses.append(pose)
     return stamps, np.array(poses, dtype=float).reshape(-1, 3)
 
 
