@@ -200,6 +200,12 @@ class SlamSettings:
     sigma_speed: float = 0.0035
 
 
+ESTIMATOR_FAILED = "estimator failed"
+"""The fault when GTSAM raises in a keyframe's update (an indeterminate system: sightings that leave a variable
+unfixed, as a ping of damaged landmarks can give): the session's graph is dropped and a new one starts at the
+ping, as after an odometry jump, so the mapper goes on."""
+
+
 @dataclass
 class SlamReport:
     """What one :meth:`LandmarkSlam.add_ping` did.
@@ -218,7 +224,7 @@ class SlamReport:
         Sightings that keyframe left out of the graph, too far from the graph's estimate
         (``sighting_gate_chi2``).
     fault : str
-        Empty, or why a new session started (``odometry jump``).
+        Empty, or why a new session started: ``odometry jump`` or :data:`ESTIMATOR_FAILED`.
     """
 
     pose: np.ndarray
@@ -568,7 +574,12 @@ class LandmarkSlam:
         if self._keyframe < 0:
             self._first_keyframe(odometry, time)
         elif self._is_keyframe(odometry):
-            inconsistent = self._add_keyframe(odometry, time)
+            try:
+                inconsistent = self._add_keyframe(odometry, time)
+            except RuntimeError:  # GTSAM's exceptions (an indeterminate system): the graph is not to be trusted
+                fault = ESTIMATOR_FAILED
+                self._start_session()
+                self._first_keyframe(odometry, time)
         keyframe = self._pings_since_keyframe == 0
         self._pings_since_keyframe += 1
         self._ping += 1

@@ -1,6 +1,7 @@
 """The SLAM core on small hand-built cases: the wall factor's Jacobians, a pose offset recovered from two walls
 and a corner, a loop closed without duplicates, faults detected, and the mapper's core around it."""
 
+import itertools
 import math
 from dataclasses import replace
 from types import SimpleNamespace
@@ -22,7 +23,14 @@ from sonar_ring.poses import QUATERNION_NORM_TOLERANCE, compose, relative_pose, 
 from sonar_ring.realism import IDEAL, World, air_speed
 from sonar_ring.score import score_map, trajectory_error
 from sonar_ring.simulate import DIRECT, Noise, load_scene
-from sonar_ring.slam import LandmarkSlam, SlamSettings, _expected_measurements, consistent_sightings, wall_error
+from sonar_ring.slam import (
+    POSE,
+    LandmarkSlam,
+    SlamSettings,
+    _expected_measurements,
+    consistent_sightings,
+    wall_error,
+)
 
 RING = load_layout("browne_ring")
 SETTINGS = pipeline.Settings(sigma_speed=pipeline.ROBOT_SIGMA_SPEED)
@@ -320,6 +328,39 @@ def test_the_builder_waits_for_odometry_and_counts_what_it_cannot_place():
     assert health.problems["no_odometry"] == 40 - 32
     builder.give_up_waiting()
     assert health.problems["no_odometry"] == 40 and builder.frame == "odom"
+
+
+class _Indeterminate:
+    """A session's smoother whose updates bring a point that only a bearing fixes (its range free): GTSAM raises."""
+
+    def __init__(self, smoother):
+        self.smoother, self.points = smoother, itertools.count()
+
+    def update(self, graph, values, timestamps):
+        key = gtsam.symbol("z", next(self.points))
+        pose = max(k for k in timestamps if gtsam.Symbol(k).chr() == ord(POSE))
+        graph.add(gtsam.BearingFactor2D(pose, key, gtsam.Rot2(0.0), gtsam.noiseModel.Isotropic.Sigma(1, 0.01)))
+        values.insert(key, gtsam.Point2(1.0, 0.0))
+        timestamps[key] = max(timestamps.values())
+        return self.smoother.update(graph, values, timestamps)
+
+    def __getattr__(self, name):
+        return getattr(self.smoother, name)
+
+
+def test_an_estimator_that_raises_starts_a_new_session_and_the_mapper_goes_on():
+    """GTSAM raises on an indeterminate system (damaged landmarks gave one in a fuzzed run): the mapper said
+    nothing and died; now the session's graph is dropped, the fault counted, and the next pings are mapped."""
+    health = Counts()
+    builder = MapBuilder(MapperSettings(), health)
+    for k in range(60):
+        if k == 10:
+            builder.slam._smoother = _Indeterminate(builder.slam._smoother)
+        stamp = 10**9 + k * 10**8
+        builder.add_odometry(stamp, (0.05 * k, 0.0, 0.0))
+        assert builder.add_ping(stamp, Landmarks.empty())
+    assert health.problems["estimator_failed"] == 1 and builder.slam.sessions == 2
+    assert_allclose(builder.robot_pose, (0.05 * 59, 0.0, 0.0), atol=1e-9)  # the new session follows the odometry
 
 
 def test_the_yaw_of_a_quaternion_that_is_not_a_rotation_is_nan():
