@@ -186,8 +186,16 @@ class MapBuilder:
 
         A ping older than the odometry history is dropped (``pose_too_old``);
         one after the latest odometry waits for it (``no_odometry`` when more
-        than :data:`PENDING_LIMIT` wait).
+        than :data:`PENDING_LIMIT` wait).  Landmarks of a group the layout does
+        not have are dropped (``unknown_group``; the echo tests and the point
+        models look the group up), the rest of the ping mapped.
         """
+        layout = self.settings.layout
+        if layout is not None and len(landmarks) and landmarks.group.max() >= layout.n_groups:
+            known = landmarks.group < layout.n_groups
+            self.health.problem("unknown_group", f"landmark of group {landmarks.group[~known][0]}, not of the "
+                                f"layout's 0..{layout.n_groups - 1}", int(np.count_nonzero(~known)))
+            landmarks = landmarks.select(known)
         if not self.settings.use_odometry:
             self._map(stamp, landmarks)
             return True

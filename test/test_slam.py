@@ -16,7 +16,7 @@ from sonar_ring.curvature import point_models
 from sonar_ring.echoes import screen_ping
 from sonar_ring.explain import EchoTests
 from sonar_ring.geometry import load_layout
-from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, Landmarks, make_landmarks
+from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, UNKNOWN, Landmarks, make_landmarks
 from sonar_ring.map_builder import MapBuilder, MapperSettings
 from sonar_ring.ping_stage import Counts, PingStage
 from sonar_ring.poses import QUATERNION_NORM_TOLERANCE, compose, relative_pose, yaw_of
@@ -361,6 +361,21 @@ def test_an_estimator_that_raises_starts_a_new_session_and_the_mapper_goes_on():
         assert builder.add_ping(stamp, Landmarks.empty())
     assert health.problems["estimator_failed"] == 1 and builder.slam.sessions == 2
     assert_allclose(builder.robot_pose, (0.05 * 59, 0.0, 0.0), atol=1e-9)  # the new session follows the odometry
+
+
+def test_landmarks_of_a_group_the_layout_lacks_are_dropped_and_counted_the_rest_mapped():
+    """A landmarks/pairs message is any node's: a group beyond the layout's raised IndexError in the point models
+    (or ValueError in the echo tests), which killed the mapper."""
+    health = Counts()
+    builder = MapBuilder(MapperSettings(layout=load_layout("browne_ring"), echo_tests=EchoTests()), health)
+    covariance = np.tile(1e-4 * np.eye(2), (2, 1, 1))
+    for k in range(3):
+        stamp = 10**9 + k * 10**8
+        builder.add_odometry(stamp, (0.01 * k, 0.0, 0.0))
+        assert builder.add_ping(stamp, make_landmarks([UNKNOWN, UNKNOWN], [[1.0, 0.2], [1.5, -0.3]],
+                                                      covariance=covariance, group=[0, 5000 if k == 1 else 1]))
+    assert dict(health.problems) == {"unknown_group": 1}
+    assert builder.landmark_map.counts.sightings == 5
 
 
 def test_the_yaw_of_a_quaternion_that_is_not_a_rotation_is_nan():
