@@ -247,7 +247,8 @@ def test_mapper_integrates_a_ping_once_and_refuses_stale_and_future_ones(ros):
 
 
 def test_mapper_drops_odometry_that_places_nothing_and_goes_on(ros):
-    """A position not finite, an orientation left all zeros, one with a huge component (whose yaw raised)."""
+    """A position not finite, an orientation left all zeros, one with a huge component (whose yaw raised), a
+    position beyond 10^6 m (whose odometry noise raised OverflowError)."""
     mapper = Mapper()
     peer = rclpy.create_node("odometry_peer")
     publisher = peer.create_publisher(Odometry, "odom", 10)
@@ -256,10 +257,11 @@ def test_mapper_drops_odometry_that_places_nothing_and_goes_on(ros):
         executor.add_node(node)
     assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, timeout=10)
     start = peer.get_clock().now().nanoseconds - 10**9
-    stamps = [start + k * 10**7 for k in range(5)]
+    stamps = [start + k * 10**7 for k in range(6)]
     for stamp, (x, orientation) in zip(stamps, [(0.0, (0.0, 0.0, 0.0, 1.0)), (math.nan, (0.0, 0.0, 0.0, 1.0)),
                                                 (0.1, (0.0, 0.0, 0.0, 0.0)), (0.2, (0.0, 0.0, 1e200, 1.0)),
-                                                (0.3, (0.0, 0.0, 0.0, 1.0))], strict=True):
+                                                (1e300, (0.0, 0.0, 0.0, 1.0)), (0.3, (0.0, 0.0, 0.0, 1.0))],
+                                        strict=True):
         message = Odometry(child_frame_id="base_link")
         message.header.frame_id = "odom"
         message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp, 10**9)
@@ -268,9 +270,9 @@ def test_mapper_drops_odometry_that_places_nothing_and_goes_on(ros):
          message.pose.pose.orientation.w) = orientation
         publisher.publish(message)
     assert spin_until(executor, lambda: len(mapper.builder.history) == 2
-                      and problems(mapper).get("bad_odometry_pose") == 3, timeout=10), problems(mapper)
-    assert problems(mapper) == {"bad_odometry_pose": 3}
-    np.testing.assert_array_equal(mapper.builder.history.at(stamps[4]), [0.3, 0.0, 0.0])
+                      and problems(mapper).get("bad_odometry_pose") == 4, timeout=10), problems(mapper)
+    assert problems(mapper) == {"bad_odometry_pose": 4}
+    np.testing.assert_array_equal(mapper.builder.history.at(stamps[5]), [0.3, 0.0, 0.0])
     for node in (mapper, peer):
         node.destroy_node()
 

@@ -378,6 +378,17 @@ def test_landmarks_of_a_group_the_layout_lacks_are_dropped_and_counted_the_rest_
     assert builder.landmark_map.counts.sightings == 5
 
 
+def test_an_odometry_pose_beyond_a_million_metres_is_refused_not_raised():
+    """Its odometry noise, squared in Python floats for the echo tests' pose, raised OverflowError."""
+    health = Counts()
+    builder = MapBuilder(MapperSettings(layout=load_layout("browne_ring"), echo_tests=EchoTests()), health)
+    landmarks = make_landmarks([UNKNOWN], [[1.0, 0.2]], covariance=1e-4 * np.eye(2)[None])
+    for k, x in enumerate([0.0, 0.01, 1e300, 0.03]):
+        builder.add_odometry(10**9 + k * 10**8, (x, 0.0, 0.0))
+        builder.add_ping(10**9 + k * 10**8, landmarks)
+    assert dict(health.problems) == {"not_finite_pose": 1}
+
+
 def test_the_yaw_of_a_quaternion_that_is_not_a_rotation_is_nan():
     """An odometry orientation left unset (all zeros), garbled or not finite gives no yaw, where it gave a wrong
     one (or, a component near 1e200, raised OverflowError in the mapper's odometry callback)."""

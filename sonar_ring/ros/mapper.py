@@ -41,6 +41,7 @@ from sonar_ring.explain import EchoTests
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import Landmarks
 from sonar_ring.map_builder import MapBuilder, MapperSettings
+from sonar_ring.mapping import MAX_COORDINATE
 from sonar_ring.msg import LandmarkArray
 from sonar_ring.poses import yaw_of
 from sonar_ring.ros.convert import AnyHeader, Cdr, MessageError, landmarks_from_msg, serialize_landmarks
@@ -168,15 +169,18 @@ def odometry_pose(msg: Odometry) -> tuple[float, float, float]:
 
 
 def usable_odometry_pose(msg: Odometry, health) -> tuple[float, float, float] | None:
-    """:func:`odometry_pose`, or None after counting ``bad_odometry_pose`` on ``health`` when it is not finite.
+    """:func:`odometry_pose`, or None after counting ``bad_odometry_pose`` on ``health`` when it is unusable.
 
-    The mapper's input gate for odometry (the node's and ``sonar-ring process``'s): such a message is dropped,
-    so the odometry on either side of it places the pings around it.
+    Unusable: not finite (the orientation not a rotation, too), or a position beyond
+    :data:`~sonar_ring.mapping.MAX_COORDINATE`.  The mapper's input gate for odometry (the node's and
+    ``sonar-ring process``'s): such a message is dropped, so the odometry on either side of it places the
+    pings around it.
     """
-    pose = odometry_pose(msg)
-    if all(math.isfinite(value) for value in pose):
+    x, y, yaw = pose = odometry_pose(msg)
+    if math.isfinite(yaw) and abs(x) <= MAX_COORDINATE and abs(y) <= MAX_COORDINATE:  # NaN fails too
         return pose
-    health.problem("bad_odometry_pose", "odometry position not finite or orientation not a rotation")
+    health.problem("bad_odometry_pose", "odometry position not finite or beyond 10^6 m, or orientation not a "
+                   "rotation")
     return None
 
 
