@@ -46,7 +46,7 @@ from sonar_ring.curvature import point_models
 from sonar_ring.explain import EchoTests, audible, explain_landmarks, known_map
 from sonar_ring.geometry import Layout
 from sonar_ring.landmarks import Landmarks
-from sonar_ring.mapping import MAX_COORDINATE, LandmarkMap, MapCounts, transform_landmarks
+from sonar_ring.mapping import LandmarkMap, MapCounts, transform_landmarks, usable_pose
 from sonar_ring.poses import PoseHistory, compose, pose_covariance_at
 from sonar_ring.slam import LandmarkSlam, SlamSettings
 
@@ -214,7 +214,7 @@ class MapBuilder:
     def _map(self, stamp: int, landmarks: Landmarks) -> None:
         odometry = self.history.at(stamp) if self.settings.use_odometry else np.asarray(self.settings.fixed_pose,
                                                                                            dtype=float)
-        if not (np.all(np.isfinite(odometry)) and np.all(np.abs(odometry[:2]) <= MAX_COORDINATE)):
+        if not usable_pose(odometry):
             self.health.problem("not_finite_pose", "odometry pose not finite or beyond 10^6 m")
             return
         offset = np.asarray(self.settings.sensor_offset, dtype=float)

@@ -188,6 +188,15 @@ MAX_COORDINATE = 1e6
 squares in the association would overflow), so it is counted like a non-finite one."""
 
 
+def usable_pose(pose) -> bool:
+    """Whether a pose ``(x, y, yaw)`` (m, rad) is one the map takes: finite, its position within the bound.
+
+    (:data:`MAX_COORDINATE`; the mapper's core and its odometry gate check poses with it.)
+    """
+    pose = np.asarray(pose, dtype=float)
+    return bool(np.all(np.isfinite(pose)) and np.all(np.abs(pose[:2]) <= MAX_COORDINATE))
+
+
 # --------------------------------------------------------------------------- 2-D helpers
 
 def _rotation(yaw: float) -> np.ndarray:
@@ -1474,7 +1483,7 @@ class LandmarkMap:
         """
         check_landmarks(landmarks, "LandmarkMap.usable_sightings")
         pose = _pose(sensor_pose, "LandmarkMap.usable_sightings")
-        if not (np.all(np.isfinite(pose)) and np.all(np.abs(pose[:2]) <= MAX_COORDINATE)):
+        if not usable_pose(pose):
             return None
         explained = np.zeros(len(landmarks), bool) if explained is None else np.asarray(explained, dtype=bool)
         if explained.shape != (len(landmarks),):

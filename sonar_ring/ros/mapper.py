@@ -41,7 +41,7 @@ from sonar_ring.explain import EchoTests
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import Landmarks
 from sonar_ring.map_builder import MapBuilder, MapperSettings
-from sonar_ring.mapping import MAX_COORDINATE
+from sonar_ring.mapping import usable_pose
 from sonar_ring.msg import LandmarkArray
 from sonar_ring.poses import yaw_of
 from sonar_ring.ros.convert import AnyHeader, Cdr, MessageError, landmarks_from_msg, serialize_landmarks
@@ -171,13 +171,12 @@ def odometry_pose(msg: Odometry) -> tuple[float, float, float]:
 def usable_odometry_pose(msg: Odometry, health) -> tuple[float, float, float] | None:
     """:func:`odometry_pose`, or None after counting ``bad_odometry_pose`` on ``health`` when it is unusable.
 
-    Unusable: not finite (the orientation not a rotation, too), or a position beyond
-    :data:`~sonar_ring.mapping.MAX_COORDINATE`.  The mapper's input gate for odometry (the node's and
-    ``sonar-ring process``'s): such a message is dropped, so the odometry on either side of it places the
-    pings around it.
+    Unusable: what the map does not take (:func:`~sonar_ring.mapping.usable_pose`; an orientation that is not a
+    rotation has a NaN yaw).  The mapper's input gate for odometry (the node's and ``sonar-ring process``'s):
+    such a message is dropped, so the odometry on either side of it places the pings around it.
     """
-    x, y, yaw = pose = odometry_pose(msg)
-    if math.isfinite(yaw) and abs(x) <= MAX_COORDINATE and abs(y) <= MAX_COORDINATE:  # NaN fails too
+    pose = odometry_pose(msg)
+    if usable_pose(pose):
         return pose
     health.problem("bad_odometry_pose", "odometry position not finite or beyond 10^6 m, or orientation not a "
                    "rotation")
@@ -219,7 +218,7 @@ def serialize_pose(pose: np.ndarray, covariance: np.ndarray, header: AnyHeader) 
     cdr = Cdr()
     cdr.header(header.stamp.sec, header.stamp.nanosec, header.frame_id)
     cdr.pack("7d", pose[0], pose[1], 0.0, 0.0, 0.0, math.sin(pose[2] / 2), math.cos(pose[2] / 2), align=8)
-    cdr.buffer += full.astype("<f8").tobytes()  # a fixed-size array: no length, aligned after the pose
+    cdr.pack("36d", *full, align=8)  # a fixed-size array: no length
     return bytes(cdr.buffer)
 
 
