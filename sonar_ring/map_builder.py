@@ -162,9 +162,13 @@ class MapBuilder:
 
     # ------------------------------------------------------------------ input
 
-    def add_odometry(self, stamp: int, pose) -> int:
-        """The robot's odometry pose ``(x, y, yaw)`` in ``odom`` at ``stamp`` (ns); returns the pings it placed."""
-        self.history.add(stamp, pose)
+    def add_odometry(self, stamp: int, pose, covariance=None) -> int:
+        """The robot's odometry pose ``(x, y, yaw)`` in ``odom`` at ``stamp`` (ns); returns the pings it placed.
+
+        ``covariance`` (3, 3): the pose's in ``odom`` when the odometry gives one, else None; SLAM takes the
+        odometry's noise from its growth (:meth:`~sonar_ring.slam.LandmarkSlam.add_ping`).
+        """
+        self.history.add(stamp, pose, covariance)
         placed = 0
         while self._pending and self.history.at(self._pending[0][0]) is not None:
             self._map(*self._pending.popleft())
@@ -217,9 +221,10 @@ class MapBuilder:
         if not usable_pose(odometry):
             self.health.problem("not_finite_pose", "odometry pose not finite or beyond 10^6 m")
             return
+        covariance = self.history.covariance_at(stamp) if self.settings.use_odometry else None
         offset = np.asarray(self.settings.sensor_offset, dtype=float)
         layout = self.settings.layout
-        explained = self._explain(landmarks, odometry, offset)
+        explained = self._explain(landmarks, odometry, covariance, offset)
         models = None if layout is None else point_models(layout, landmarks,
                                                            None if explained is None else ~explained)
         if self.slam is None:
@@ -229,7 +234,7 @@ class MapBuilder:
             self._hear()
             self.robot_pose = odometry
         else:
-            report = self.slam.add_ping(landmarks, odometry, stamp * 1e-9, offset, models, explained)
+            report = self.slam.add_ping(landmarks, odometry, stamp * 1e-9, offset, models, explained, covariance)
             if report.fault:  # a new session: its entries are not the tests' map's
                 self._known, self._expected, self._hearing = None, np.empty(0, np.int64), {}
             self._hear()
@@ -237,6 +242,7 @@ class MapBuilder:
             if report.fault:
                 self.health.problem(report.fault.replace(" ", "_"), f"{report.fault}: a new map session starts")
             self.health.note("sightings inconsistent with the map", report.inconsistent)
+            self.health.note("odometry covariance not growing", int(report.step_noise_assumed))
             no_landmarks = self.slam.no_landmarks(stamp * 1e-9)
             if no_landmarks and not self._no_landmarks:
                 self.health.problem("no_landmarks",
@@ -246,15 +252,18 @@ class MapBuilder:
         self.latest_stamp = stamp
         self.changed = True
 
-    def _explain(self, landmarks: Landmarks, odometry: np.ndarray, offset: np.ndarray) -> np.ndarray | None:
-        """Which landmarks the published map explains (module docstring), counted; None without the tests."""
+    def _explain(self, landmarks: Landmarks, odometry: np.ndarray, covariance, offset: np.ndarray) -> np.ndarray | None:
+        """Which landmarks the published map explains (module docstring), counted; None without the tests.
+
+        ``odometry`` and its ``covariance`` (or None) place the robot (SLAM's :meth:`pose_at`).
+        """
         tests, layout = self.settings.echo_tests, self.settings.layout
         if tests is None or layout is None or not len(landmarks):
             return None
         if self.slam is None:
             robot, covariance = odometry, np.zeros((3, 3))
         else:
-            robot, covariance = self.slam.pose_at(odometry)
+            robot, covariance = self.slam.pose_at(odometry, covariance)
         if self._known is None or self._known_age >= tests.refresh_pings:
             snapshot, self._known_uids = self.snapshot_and_uids()
             self._known, self._known_age = known_map(snapshot, tests), 0

@@ -31,6 +31,25 @@ def pose_covariance_at(pose, covariance, step) -> np.ndarray:
     return jacobian @ np.asarray(covariance, dtype=float) @ jacobian.T
 
 
+def step_covariance(start, start_covariance, end, end_covariance) -> np.ndarray | None:
+    """Covariance (3, 3) of the step from ``start`` to ``end`` in ``start``'s frame, of the two poses' covariances.
+
+    ``start``, ``end``: poses ``(x, y, yaw)`` in one frame with their covariances (3, 3) in it.  Odometry
+    integrated step by step (wheel odometry, an EKF's prediction) grows its covariance so:
+    ``C_end = J C_start J^T + R C_step R^T`` (``J C_start J^T``: :func:`pose_covariance_at`; ``R`` the start's
+    rotation), hence ``C_step = R^T (C_end - J C_start J^T) R``.  None when that is not positive definite: a
+    covariance that does not grow so (a fixed one, all zeros for unknown) says nothing of the step.
+    """
+    c, s = math.cos(start[2]), math.sin(start[2])
+    rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    growth = np.asarray(end_covariance, dtype=float) - pose_covariance_at(start, start_covariance,
+                                                                          relative_pose(start, end))
+    step = rotation.T @ (0.5 * (growth + growth.T)) @ rotation
+    if not np.all(np.isfinite(step)) or np.linalg.eigvalsh(step)[0] <= 0.0:
+        return None
+    return step
+
+
 def relative_pose(start, end) -> tuple[float, float, float]:
     """``end`` in the frame of ``start`` (both in one frame): forward, sideways (m) and turn (rad, wrapped)."""
     c, s = math.cos(start[2]), math.sin(start[2])
@@ -78,7 +97,7 @@ def yaw_of(orientation) -> float:
 
 
 class PoseHistory:
-    """Odometry poses by stamp, to place a ping at its stamp.
+    """Odometry poses and their covariances by stamp, to place a ping at its stamp.
 
     Parameters
     ----------
@@ -90,21 +109,24 @@ class PoseHistory:
         self._limit = limit
         self._stamps: list[int] = []
         self._poses: list[np.ndarray] = []
+        self._covariances: list[np.ndarray | None] = []
 
     def __len__(self) -> int:
         return len(self._stamps)
 
-    def add(self, stamp: int, pose) -> None:
-        """Append the pose ``(x, y, yaw)`` stamped ``stamp`` (ns, after the last one's)."""
+    def add(self, stamp: int, pose, covariance=None) -> None:
+        """Append the pose ``(x, y, yaw)`` stamped ``stamp`` (ns, after the last one's), and its covariance or None."""
         self._stamps.append(stamp)
         self._poses.append(np.asarray(pose, dtype=float))
+        self._covariances.append(None if covariance is None else np.asarray(covariance, dtype=float))
         if self._limit is not None and len(self._stamps) >= 2 * self._limit:
-            del self._stamps[:-self._limit], self._poses[:-self._limit]
+            del self._stamps[:-self._limit], self._poses[:-self._limit], self._covariances[:-self._limit]
 
     def clear(self) -> None:
         """Forget every pose (time jumped back)."""
         self._stamps.clear()
         self._poses.clear()
+        self._covariances.clear()
 
     def too_old(self, stamp: int) -> bool:
         """Whether ``stamp`` (ns) lies before the oldest pose kept."""
@@ -116,12 +138,37 @@ class PoseHistory:
         A stamp before the first pose gets the first pose (a ping older than
         the history: check :meth:`too_old` first where that matters).
         """
+        around = self._around(stamp)
+        if around is None:
+            return None
+        index, weight = around
+        if weight is None:
+            return self._poses[index]
+        before, after = self._poses[index - 1], self._poses[index]
+        turn = math.remainder(after[2] - before[2], 2.0 * math.pi)
+        return np.array([*(before[:2] + weight * (after[:2] - before[:2])), before[2] + weight * turn])
+
+    def covariance_at(self, stamp: int) -> np.ndarray | None:
+        """The pose's covariance (3, 3) at ``stamp`` (ns), interpolated as :meth:`at`; None where a pose lacks one."""
+        around = self._around(stamp)
+        if around is None:
+            return None
+        index, weight = around
+        if weight is None:
+            return self._covariances[index]
+        before, after = self._covariances[index - 1], self._covariances[index]
+        if before is None or after is None:
+            return None
+        return before + weight * (after - before)
+
+    def _around(self, stamp: int) -> tuple[int, float | None] | None:
+        """The first pose at or after ``stamp`` and the weight of it against the one before (None: it alone).
+
+        None when there is no such pose.  It alone: at the stamp, or the first pose.
+        """
         index = bisect.bisect_left(self._stamps, stamp)
         if index == len(self._stamps):
             return None
         if self._stamps[index] == stamp or index == 0:
-            return self._poses[index]
-        before, after = self._poses[index - 1], self._poses[index]
-        weight = (stamp - self._stamps[index - 1]) / (self._stamps[index] - self._stamps[index - 1])
-        turn = math.remainder(after[2] - before[2], 2.0 * math.pi)
-        return np.array([*(before[:2] + weight * (after[:2] - before[:2])), before[2] + weight * turn])
+            return index, None
+        return index, (stamp - self._stamps[index - 1]) / (self._stamps[index] - self._stamps[index - 1])

@@ -99,7 +99,7 @@ from sonar_ring.landmarks import CORNER, EDGE, Landmarks
 from sonar_ring.localise import OK, PointEstimate, reflector_paths
 from sonar_ring.mapping import LandmarkMap, transform_landmarks
 from sonar_ring.mapping import load_kernels as load_map_kernels
-from sonar_ring.poses import compose, inverse, relative_pose, turned_covariances
+from sonar_ring.poses import compose, inverse, relative_pose, step_covariance, turned_covariances
 from sonar_ring.uncertainty import position_jacobian
 
 POSE, POINT, WALL = "x", "l", "w"
@@ -121,7 +121,8 @@ class SlamSettings:
     keyframe_pings : int
         Pings after which a new keyframe is made even without motion.
     odometry_distance_noise : float
-        Odometry noise assumed along the travel, m per sqrt(m) rolled.
+        Odometry noise assumed along the travel, m per sqrt(m) rolled.  These four make the noise of an
+        odometry step where the odometry's own covariance does not give it (:func:`~sonar_ring.poses.step_covariance`).
     odometry_heading_noise : float
         Odometry heading noise assumed, rad per sqrt(m) rolled.
     odometry_scale : float
@@ -225,6 +226,9 @@ class SlamReport:
         (``sighting_gate_chi2``).
     fault : str
         Empty, or why a new session started: ``odometry jump`` or :data:`ESTIMATOR_FAILED`.
+    step_noise_assumed : bool
+        Whether the keyframe's odometry step had a covariance with it that did not give the step's noise
+        (:func:`~sonar_ring.poses.step_covariance`), so the odometry parameters' noise was taken.
     """
 
     pose: np.ndarray
@@ -233,6 +237,7 @@ class SlamReport:
     keyframe: bool = False
     inconsistent: int = 0
     fault: str = ""
+    step_noise_assumed: bool = False
 
 
 @dataclass
@@ -535,6 +540,7 @@ class LandmarkSlam:
         self._held: list[_Held] = []  # the keyframes still in the smoother's window, oldest first
         self._keyframe = -1  # index of the latest keyframe
         self._keyframe_odometry = None  # its odometry pose
+        self._keyframe_odometry_covariance = None  # and that pose's covariance, when the odometry gives one
         self._keyframe_pose = None  # its estimate in map
         self._keyframe_covariance = np.zeros((3, 3))
         self._origin = np.zeros(2)  # the first keyframe's position in map: the published map's scale is about it
@@ -543,7 +549,7 @@ class LandmarkSlam:
         self._next_landmark = 0
         self._air_rows: list[_AirRows] = []  # the air's sightings measured since the last update
         self.air.start_session()
-        self._last_odometry = None
+        self._last_odometry = self._last_odometry_covariance = None
         self._last_time = None
         self._last_seen_time = None
         self._ping = 0
@@ -552,8 +558,12 @@ class LandmarkSlam:
     # ------------------------------------------------------------------ per ping
 
     def add_ping(self, landmarks: Landmarks, odometry, time: float, sensor_offset=(0.0, 0.0, 0.0),
-                 models: PointModels | None = None, explained=None) -> SlamReport:
+                 models: PointModels | None = None, explained=None, odometry_covariance=None) -> SlamReport:
         """Add one ping's landmarks (sensor frame) taken with the robot at ``odometry`` (``odom``) at ``time`` s.
+
+        ``odometry_covariance`` (3, 3), that pose's covariance in ``odom`` when the odometry gives one: the
+        noise of the odometry's steps is then its growth where it grows (:func:`~sonar_ring.poses.step_covariance`),
+        else the parameters' (:class:`SlamSettings`).
 
         ``models`` are both point models of each landmark (sensor frame,
         :func:`sonar_ring.curvature.point_models`): the front end's evidence
@@ -570,28 +580,30 @@ class LandmarkSlam:
         fault = self._check_odometry(odometry, time)
         if fault:
             self._start_session()
-        inconsistent = 0
+        inconsistent, assumed = 0, False
         if self._keyframe < 0:
-            self._first_keyframe(odometry, time)
+            self._first_keyframe(odometry, odometry_covariance, time)
         elif self._is_keyframe(odometry):
             try:
-                inconsistent = self._add_keyframe(odometry, time)
+                inconsistent, assumed = self._add_keyframe(odometry, odometry_covariance, time)
             except RuntimeError:  # GTSAM's exceptions (an indeterminate system): the graph is not to be trusted
                 fault = ESTIMATOR_FAILED
                 self._start_session()
-                self._first_keyframe(odometry, time)
+                self._first_keyframe(odometry, odometry_covariance, time)
         keyframe = self._pings_since_keyframe == 0
         self._pings_since_keyframe += 1
         self._ping += 1
-        self._last_odometry, self._last_time = odometry, time
+        self._last_odometry, self._last_odometry_covariance, self._last_time = odometry, odometry_covariance, time
         step = relative_pose(self._keyframe_odometry, odometry)
         pose = compose(self._keyframe_pose, step)
-        report = SlamReport(pose=self._scaled_pose(pose), keyframe=keyframe, inconsistent=inconsistent, fault=fault)
+        report = SlamReport(pose=self._scaled_pose(pose), keyframe=keyframe, inconsistent=inconsistent, fault=fault,
+                            step_noise_assumed=assumed)
         if not len(landmarks):
             return report
         sensor = compose(pose, offset)
         in_map = transform_landmarks(landmarks, sensor)
-        extra = self._pose_spread(in_map.position, pose, step)
+        extra = self._pose_spread(in_map.position, pose,
+                                  self._pose_covariance(pose, step, self._measured_step(odometry, odometry_covariance)))
         widened = Landmarks(in_map.landmark_class, in_map.position, in_map.normal, in_map.covariance + extra,
                             in_map.confidence, in_map.segment, in_map.observations, in_map.group, in_map.echo,
                             in_map.valid, in_map.reason)
@@ -627,14 +639,14 @@ class LandmarkSlam:
             return "odometry jump"
         return ""
 
-    def _pose_spread(self, position, pose, step) -> np.ndarray:
+    @staticmethod
+    def _pose_spread(position, pose, covariance) -> np.ndarray:
         """What the pose's uncertainty adds to the covariance of map-frame positions (L, 2): (L, 2, 2).
 
         A landmark at ``p`` moves by ``dt`` and ``dphi x (p - t)`` when the pose
-        moves: ``J = [I, (p - t) turned by 90 deg]`` with the keyframe's covariance
-        and the odometry's since (:meth:`_odometry_covariance` of ``step``).
+        moves: ``J = [I, (p - t) turned by 90 deg]`` with the pose's ``covariance``
+        (:meth:`_pose_covariance`).
         """
-        covariance = self._keyframe_covariance_in_map() + self._odometry_covariance(step, pose[2])
         lever = position - pose[:2]
         jacobian = np.zeros((len(position), 2, 3))
         jacobian[:, 0, 0] = jacobian[:, 1, 1] = 1.0
@@ -651,8 +663,45 @@ class LandmarkSlam:
         rotate = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
         return rotate @ self._keyframe_covariance @ rotate.T + self._unmodelled
 
+    def _pose_covariance(self, pose, step, measured) -> np.ndarray:
+        """Covariance (3, 3) in ``map`` of the robot's ``pose`` there, the odometry ``step`` past the keyframe.
+
+        The keyframe's (:meth:`_keyframe_covariance_in_map`) and the step's: ``measured``, the odometry's own
+        in the keyframe's frame (:meth:`_measured_step`), turned into ``map``; else the parameters'.
+        """
+        if measured is None:
+            odometry = self._odometry_covariance(step, pose[2])
+        else:
+            c, s = math.cos(self._keyframe_pose[2]), math.sin(self._keyframe_pose[2])
+            rotate = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            odometry = rotate @ self._step_noise(step, measured) @ rotate.T
+        return self._keyframe_covariance_in_map() + odometry
+
+    def _measured_step(self, odometry, covariance) -> np.ndarray | None:
+        """The odometry's covariance (3, 3) of its step from the keyframe to ``odometry`` (``covariance``).
+
+        In the keyframe's frame; None where either pose has no covariance or it did not grow
+        (:func:`~sonar_ring.poses.step_covariance`).
+        """
+        if covariance is None or self._keyframe_odometry_covariance is None:
+            return None
+        return step_covariance(self._keyframe_odometry, self._keyframe_odometry_covariance, odometry, covariance)
+
+    def _step_noise(self, step, measured) -> np.ndarray:
+        """Covariance (3, 3) of the odometry ``step`` in the keyframe's frame: ``measured``, else the parameters'.
+
+        ``measured`` (:meth:`_measured_step`) with the parameters' floor, a step never known better than to 0.1
+        mm and 0.1 mrad (its information stays finite).
+        """
+        if measured is None:
+            return self._odometry_covariance(step, 0.0)
+        return measured + 1e-8 * np.eye(3)
+
     def _odometry_covariance(self, step, yaw: float) -> np.ndarray:
-        """Covariance of the odometry ``step`` (forward, sideways, turn) as ``(x, y, yaw)`` in ``map``, (3, 3)."""
+        """Covariance of the odometry ``step`` (forward, sideways, turn) as ``(x, y, yaw)`` in ``map``, (3, 3).
+
+        Of the parameters (:class:`SlamSettings`), with the robot's heading ``yaw``.
+        """
         forward, sideways, turn = step
         distance = math.hypot(forward, sideways)
         s = self.settings
@@ -807,7 +856,7 @@ class LandmarkSlam:
         return (math.hypot(forward, sideways) >= s.keyframe_distance or abs(turn) >= s.keyframe_turn
                 or self._pings_since_keyframe >= s.keyframe_pings)
 
-    def _first_keyframe(self, odometry: np.ndarray, time: float) -> None:
+    def _first_keyframe(self, odometry: np.ndarray, covariance, time: float) -> None:
         """The session's first keyframe: ``map`` = ``odom`` there (a tight prior); clock of :meth:`no_landmarks`."""
         self._last_seen_time = time
         key = gtsam.symbol(POSE, 0)
@@ -817,24 +866,28 @@ class LandmarkSlam:
         values.insert(key, pose)
         self._smoother.update(graph, values, {key: time})
         self._keyframe, self._keyframe_odometry, self._keyframe_time = 0, odometry.copy(), time
+        self._keyframe_odometry_covariance = covariance
         self._keyframe_pose = odometry.copy()
         self._origin = odometry[:2].copy()
         self._keyframe_covariance = np.diag([1e-8, 1e-8, 1e-10])
         self._pings_since_keyframe = 0
 
-    def _add_keyframe(self, odometry: np.ndarray, time: float) -> int:
+    def _add_keyframe(self, odometry: np.ndarray, covariance, time: float) -> tuple[int, bool]:
         """Odometry to a new keyframe at this ping, the sightings since the last, promotions; update the estimate.
 
-        Returns how many sightings were left out as inconsistent (:meth:`_consistent`).
+        ``covariance``: the odometry pose's, or None.  Returns how many sightings were left out as
+        inconsistent (:meth:`_consistent`), and whether the odometry step's noise was the parameters' though the
+        odometry had a covariance (it did not grow).
         """
         previous, key = gtsam.symbol(POSE, self._keyframe), gtsam.symbol(POSE, self._keyframe + 1)
         step = relative_pose(self._keyframe_odometry, odometry)
         graph, values, timestamps = gtsam.NonlinearFactorGraph(), gtsam.Values(), {key: time, previous: time}
-        odometry_noise = self._odometry_covariance(step, 0.0)  # in the previous keyframe's frame
+        measured = self._measured_step(odometry, covariance)
+        odometry_noise = self._step_noise(step, measured)  # in the previous keyframe's frame
         graph.add(gtsam.BetweenFactorPose2(previous, key, gtsam.Pose2(*step),
                                            gtsam.noiseModel.Gaussian.Covariance(odometry_noise)))
         values.insert(key, gtsam.Pose2(*compose(self._keyframe_pose, step)))
-        inconsistent = self._add_measurements(previous, step, graph, values)
+        inconsistent = self._add_measurements(previous, odometry_noise, graph, values)
         # Landmarks stay: only keyframes older than the lag are marginalised (the map's size bounds the rest).
         timestamps.update({record.key: time for record in self._confirmed.values()})
         self._smoother.update(graph, values, timestamps)
@@ -853,13 +906,14 @@ class LandmarkSlam:
             self._keyframe_covariance = adjoint @ self._keyframe_covariance @ adjoint.T
             self._fit_air(estimate)
             self.air_estimate = self.air.fit()
-        self._keyframe_odometry, self._keyframe_time = odometry.copy(), time
+        self._keyframe_odometry, self._keyframe_odometry_covariance = odometry.copy(), covariance
+        self._keyframe_time = time
         self._pings_since_keyframe = 0
         self._since_keyframe.clear()
         self._write_back(estimate)
-        return inconsistent
+        return inconsistent, covariance is not None and measured is None
 
-    def _add_measurements(self, pose_key: int, step: np.ndarray, graph, values) -> int:
+    def _add_measurements(self, pose_key: int, odometry_noise: np.ndarray, graph, values) -> int:
         """Factors of the sightings since the keyframe ``pose_key`` and of those held for entries confirmed now.
 
         One fused factor per entry in the graph and keyframe: of the sightings since ``pose_key``, and, for an
@@ -868,9 +922,9 @@ class LandmarkSlam:
         the graph has them from the first ping, when the odometry's heading was still right.  Only a
         persistent, decided wall or point is confirmed (module docstring); the sightings of entries not
         confirmed are held for later, as long as their keyframe stays in the window.  The sightings since
-        ``pose_key`` (the odometry ``step`` from it to the new keyframe) are checked against the graph's estimate
-        (:meth:`_consistent`); the held ones, of entries the graph has no estimate of yet, are not.  Returns how
-        many it left out.
+        ``pose_key`` are checked against the graph's estimate (:meth:`_consistent`; ``odometry_noise``: the
+        covariance (3, 3) of the odometry step from ``pose_key`` to the new keyframe); the held ones, of entries
+        the graph has no estimate of yet, are not.  Returns how many it left out.
         """
         seen = _Seen.joined(self._since_keyframe) if self._since_keyframe else None
         entries = self.front.entries()
@@ -895,7 +949,7 @@ class LandmarkSlam:
                 confirmed_now.append(uid)
             measured.append(uid)
         in_graph = np.isin(seen.uid, measured)
-        inconsistent = self._add_factors(pose_key, seen.select(in_graph), entries, by_uid, graph, step)
+        inconsistent = self._add_factors(pose_key, seen.select(in_graph), entries, by_uid, graph, odometry_noise)
         if confirmed_now:
             for held in self._held:
                 self._add_factors(gtsam.symbol(POSE, held.index),
@@ -903,10 +957,11 @@ class LandmarkSlam:
         self._held.append(_Held(self._keyframe, self._keyframe_time, seen.select(~in_graph)))
         return inconsistent
 
-    def _add_factors(self, pose_key: int, seen: _Seen, entries, by_uid: dict, graph, step=None) -> int:
+    def _add_factors(self, pose_key: int, seen: _Seen, entries, by_uid: dict, graph, odometry_noise=None) -> int:
         """One fused factor per entry of the graph among ``seen``, taken at the keyframe ``pose_key``.
 
-        With ``step``, the odometry from the latest keyframe to the next (3,), ``seen`` are that keyframe's
+        With ``odometry_noise``, the covariance (3, 3) of the odometry from the latest keyframe to the next (in
+        the latest's frame), ``seen`` are that keyframe's
         sightings, and only those that agree with its estimate and with their entries' count in the graph
         (:meth:`_consistent`); the air's fit takes them all.  Returns how many did not agree.
         """
@@ -923,8 +978,8 @@ class LandmarkSlam:
         if self._plan is not None:
             self._keep_for_air(pose_key, seen, is_wall, entries.landmark_class[index])
         left_out = 0
-        if step is not None:
-            consistent = self._consistent(step, position, covariance, is_wall, entries.position[index],
+        if odometry_noise is not None:
+            consistent = self._consistent(odometry_noise, position, covariance, is_wall, entries.position[index],
                                           entries.normal[index])
             left_out = len(consistent) - int(np.count_nonzero(consistent))
             seen, position, covariance = seen.select(consistent), position[consistent], covariance[consistent]
@@ -936,15 +991,15 @@ class LandmarkSlam:
                 graph.add(wall_factor(pose_key, record.key, measurement, gtsam.noiseModel.Gaussian.Covariance(spread)))
         return left_out
 
-    def _consistent(self, step: np.ndarray, position: np.ndarray, covariance: np.ndarray, is_wall: np.ndarray,
+    def _consistent(self, odometry_noise: np.ndarray, position: np.ndarray, covariance: np.ndarray, is_wall: np.ndarray,
                     anchor: np.ndarray, normal: np.ndarray) -> np.ndarray:
         """:func:`consistent_sightings` seen from the latest keyframe's estimate in map, (n,) bool.
 
         The keyframe's estimate is off by the odometry since the keyframe before it (a slip moves every
-        sighting alike): the prior of its correction is the keyframe's covariance, the unmodelled error and the
-        odometry's over ``step`` (3,), the odometry from it to the next keyframe.
+        sighting alike): the prior of its correction is the keyframe's covariance, the unmodelled error and
+        ``odometry_noise`` (3, 3), the covariance of the odometry from it to the next keyframe.
         """
-        prior = self._keyframe_covariance + self._unmodelled + self._odometry_covariance(step, 0.0)
+        prior = self._keyframe_covariance + self._unmodelled + odometry_noise
         return consistent_sightings(self._keyframe_pose, prior, position, covariance, is_wall, anchor, normal,
                                     self.settings.sighting_gate_chi2)
 
@@ -1045,16 +1100,17 @@ class LandmarkSlam:
         """
         if self._last_odometry is None:
             return np.zeros(3), np.zeros((3, 3))
-        pose, covariance = self.pose_at(self._last_odometry)
+        pose, covariance = self.pose_at(self._last_odometry, self._last_odometry_covariance)
         return self._scaled_pose(pose), covariance * np.outer(*2 * [(self._scale(), self._scale(), 1.0)])
 
     def _scaled_pose(self, pose: np.ndarray) -> np.ndarray:
         return np.concatenate([self.scaled(pose[:2]), pose[2:]])
 
-    def pose_at(self, odometry) -> tuple[np.ndarray, np.ndarray]:
+    def pose_at(self, odometry, odometry_covariance=None) -> tuple[np.ndarray, np.ndarray]:
         """The robot's pose in the graph's ``map`` and its covariance (3, 3) at the odometry pose ``odometry``.
 
-        ``odometry`` in ``odom``; not :meth:`scaled` (the echo tests' pose).  Predicted from the latest
+        ``odometry`` in ``odom``, with its covariance there or None (as :meth:`add_ping`'s); not
+        :meth:`scaled` (the echo tests' pose).  Predicted from the latest
         keyframe's estimate and the odometry since; before the first ping,
         ``odometry`` itself (``map`` starts equal to ``odom``) with no uncertainty.
         """
@@ -1063,7 +1119,7 @@ class LandmarkSlam:
             return odometry.copy(), np.zeros((3, 3))
         step = relative_pose(self._keyframe_odometry, odometry)
         pose = compose(self._keyframe_pose, step)
-        return pose, self._keyframe_covariance_in_map() + self._odometry_covariance(step, pose[2])
+        return pose, self._pose_covariance(pose, step, self._measured_step(odometry, odometry_covariance))
 
     def map_to_odom(self, pose: np.ndarray) -> np.ndarray:
         """The transform ``map -> odom`` ``(x, y, yaw)``: where ``odom`` lies in ``map`` with the robot at ``pose``.

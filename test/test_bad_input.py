@@ -248,7 +248,8 @@ def test_mapper_integrates_a_ping_once_and_refuses_stale_and_future_ones(ros):
 
 def test_mapper_drops_odometry_that_places_nothing_and_goes_on(ros):
     """A position not finite, an orientation left all zeros, one with a huge component (whose yaw raised), a
-    position beyond 10^6 m (whose odometry noise raised OverflowError)."""
+    position beyond 10^6 m (whose odometry noise raised OverflowError); a covariance that is not one is counted,
+    its pose kept."""
     mapper = Mapper()
     peer = rclpy.create_node("odometry_peer")
     publisher = peer.create_publisher(Odometry, "odom", 10)
@@ -257,22 +258,30 @@ def test_mapper_drops_odometry_that_places_nothing_and_goes_on(ros):
         executor.add_node(node)
     assert spin_until(executor, lambda: publisher.get_subscription_count() > 0, timeout=10)
     start = peer.get_clock().now().nanoseconds - 10**9
-    stamps = [start + k * 10**7 for k in range(6)]
-    for stamp, (x, orientation) in zip(stamps, [(0.0, (0.0, 0.0, 0.0, 1.0)), (math.nan, (0.0, 0.0, 0.0, 1.0)),
-                                                (0.1, (0.0, 0.0, 0.0, 0.0)), (0.2, (0.0, 0.0, 1e200, 1.0)),
-                                                (1e300, (0.0, 0.0, 0.0, 1.0)), (0.3, (0.0, 0.0, 0.0, 1.0))],
-                                        strict=True):
+    stamps = [start + k * 10**7 for k in range(9)]
+    unit, planar = (0.0, 0.0, 0.0, 1.0), np.diag([1e-4, 1e-4, 0.0, 0.0, 0.0, 1e-3])
+    broken, skewed = planar.copy(), planar.copy()
+    broken[5, 5], skewed[0, 1] = math.inf, 1e-5
+    sent = [(0.0, unit, None), (math.nan, unit, None), (0.1, (0.0, 0.0, 0.0, 0.0), None),
+            (0.2, (0.0, 0.0, 1e200, 1.0), None), (1e300, unit, None), (0.3, unit, None),
+            (0.4, unit, broken), (0.5, unit, skewed), (0.6, unit, planar)]
+    for stamp, (x, orientation, covariance) in zip(stamps, sent, strict=True):
         message = Odometry(child_frame_id="base_link")
         message.header.frame_id = "odom"
         message.header.stamp.sec, message.header.stamp.nanosec = divmod(stamp, 10**9)
         message.pose.pose.position.x = x
         (message.pose.pose.orientation.x, message.pose.pose.orientation.y, message.pose.pose.orientation.z,
          message.pose.pose.orientation.w) = orientation
+        if covariance is not None:
+            message.pose.covariance = covariance.ravel().tolist()
         publisher.publish(message)
-    assert spin_until(executor, lambda: len(mapper.builder.history) == 2
+    assert spin_until(executor, lambda: len(mapper.builder.history) == 5
                       and problems(mapper).get("bad_odometry_pose") == 4, timeout=10), problems(mapper)
-    assert problems(mapper) == {"bad_odometry_pose": 4}
+    assert problems(mapper) == {"bad_odometry_pose": 4, "bad_odometry_covariance": 2}
     np.testing.assert_array_equal(mapper.builder.history.at(stamps[5]), [0.3, 0.0, 0.0])
+    assert mapper.builder.history.covariance_at(stamps[5]) is None  # all zeros: unknown
+    assert mapper.builder.history.covariance_at(stamps[6]) is None and mapper.builder.history.at(stamps[7])[0] == 0.5
+    np.testing.assert_array_equal(mapper.builder.history.covariance_at(stamps[8]), np.diag([1e-4, 1e-4, 1e-3]))
     for node in (mapper, peer):
         node.destroy_node()
 

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from geometry_msgs.msg import PoseWithCovarianceStamped
 from nav_msgs.msg import Odometry
 from numpy.testing import assert_array_equal
 from rclpy.serialization import deserialize_message, serialize_message
@@ -271,6 +272,45 @@ def test_malformed_and_misfit_messages_are_counted_not_fatal(sim_bag, tmp_path, 
     out = read_bag(tmp_path / "out")[1]
     assert len(out["/landmarks"]) == 4
     assert len(out["/slam/pose"]) == 4  # the odometry on either side of the lost ones places every ping
+
+
+def test_the_odometrys_covariance_gives_its_noise_where_it_grows(sim_bag, tmp_path, capsys):
+    """The odometry messages' pose covariance: a dead reckoning's (growing) is the odometry's noise, a fixed one
+    is not (the parameters' noise, noted), a broken one is counted and its pose kept."""
+    _, source = read_bag(sim_bag)
+    odometry = [deserialize_message(raw, Odometry) for _, raw in source["/odom"]]
+    growing, fixed, broken = tmp_path / "growing", tmp_path / "fixed", tmp_path / "broken"
+    for bag in (growing, fixed, broken):
+        with BagWriter(bag) as writer:
+            echoes = writer.connection("/echoes", TOPIC["echoes"].message, TOPIC["echoes"].qos)
+            odom = writer.connection("/odom", TOPIC["odom"].message, TOPIC["odom"].qos)
+            for time_ns, raw in source["/echoes"]:
+                writer.write(echoes, time_ns, raw)
+            travelled = 0.0
+            for k, ((time_ns, _), message) in enumerate(zip(source["/odom"], odometry, strict=True)):
+                if k:
+                    travelled += math.dist((message.pose.pose.position.x, message.pose.pose.position.y),
+                                           (odometry[k - 1].pose.pose.position.x, odometry[k - 1].pose.pose.position.y))
+                covariance = np.zeros(36)
+                # x, y and yaw of a dead reckoning from a pose known to 10 um, 0.1 mm per sqrt(m) since (the
+                # parameters': 2 cm; a straight drive, so it grows as a diagonal)
+                covariance[[0, 7, 35]] = 1e-10 + 1e-8 * travelled if bag is growing else 1e-4
+                if bag is broken and k == 5:
+                    covariance[0] = math.nan
+                message.pose.covariance = covariance.tolist()
+                writer.write(odom, time_ns, serialize_message(message))
+    printed = {}
+    for bag in (sim_bag, growing, fixed, broken):
+        code, printed[bag], err = run_cli(capsys, "process", str(bag), str(tmp_path / f"out_{bag.name}"), "--quiet")
+        assert code == 0, err
+    spread = {bag: [deserialize_message(raw, PoseWithCovarianceStamped).pose.covariance[0]
+                    for _, raw in read_bag(tmp_path / f"out_{bag.name}")[1]["/slam/pose"]]
+              for bag in (sim_bag, growing, fixed, broken)}
+    # Between keyframes the pose's variance grows with the odometry's noise since the last one.
+    assert np.median(np.diff(spread[growing])) < 1e-3 * np.median(np.diff(spread[sim_bag]))
+    assert spread[fixed] == spread[sim_bag] == spread[broken]
+    assert "odometry covariance not growing" in printed[fixed] and "bad_odometry_covariance" not in printed[fixed]
+    assert "refused: 1 bad_odometry_covariance\n" in printed[broken], printed[broken]
 
 
 def test_pings_the_odometry_does_not_cover_are_counted_not_mapped(sim_bag, tmp_path, capsys):

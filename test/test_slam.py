@@ -19,7 +19,15 @@ from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import CORNER, CORNER_OR_EDGE, EDGE, PLANE, UNKNOWN, Landmarks, make_landmarks
 from sonar_ring.map_builder import MapBuilder, MapperSettings
 from sonar_ring.ping_stage import Counts, PingStage
-from sonar_ring.poses import QUATERNION_NORM_TOLERANCE, compose, relative_pose, yaw_of
+from sonar_ring.poses import (
+    QUATERNION_NORM_TOLERANCE,
+    PoseHistory,
+    compose,
+    pose_covariance_at,
+    relative_pose,
+    step_covariance,
+    yaw_of,
+)
 from sonar_ring.realism import IDEAL, World, air_speed
 from sonar_ring.score import score_map, trajectory_error
 from sonar_ring.simulate import DIRECT, Noise, load_scene
@@ -136,6 +144,87 @@ def test_a_pose_offset_is_recovered_from_two_walls_and_a_corner():
     final = relative_pose(truth[-1], estimates[-1])
     assert math.hypot(final[0], final[1]) < 0.01 and abs(final[2]) < math.radians(0.3), final
     assert math.hypot(*offset[:2]) > 0.04  # what the odometry alone is off by
+
+
+def test_a_step_covariance_is_the_growth_of_dead_reckoning():
+    # Dead reckoning: a start pose with its covariance and a step with its own, sampled (small noise, so the
+    # linear propagation holds), give the end's covariance; the step's is recovered from the two poses' alone.
+    rng = np.random.default_rng(7)
+    start, step = np.array([1.0, -2.0, 2.5]), np.array([0.3, 0.05, 0.2])
+    start_covariance = np.diag([4e-6, 9e-6, 1e-6]) + 1e-6 * np.array([[0, 1, 0], [1, 0, -1], [0, -1, 0]])
+    step_noise = np.diag([1e-6, 4e-7, 2e-6]) + 2e-7 * np.array([[0, 1, 1], [1, 0, 0], [1, 0, 0]])
+    starts = rng.multivariate_normal(start, start_covariance, 200_000)
+    steps = rng.multivariate_normal(step, step_noise, 200_000)
+    c, s = np.cos(starts[:, 2]), np.sin(starts[:, 2])
+    ends = np.stack([starts[:, 0] + c * steps[:, 0] - s * steps[:, 1], starts[:, 1] + s * steps[:, 0]
+                     + c * steps[:, 1], starts[:, 2] + steps[:, 2]], -1)
+    end = compose(start, step)
+    c, s = math.cos(start[2]), math.sin(start[2])
+    turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    end_covariance = pose_covariance_at(start, start_covariance, step) + turn @ step_noise @ turn.T
+    assert_allclose(np.cov(ends.T), end_covariance, rtol=0.03, atol=3e-8)
+    assert_allclose(step_covariance(start, start_covariance, end, end_covariance), step_noise, rtol=1e-9,
+                    atol=1e-18)
+    # A covariance that does not grow so gives none: a fixed one, all zeros (unknown), one not finite.
+    for fixed in (start_covariance, np.zeros((3, 3))):
+        assert step_covariance(start, fixed, end, fixed) is None
+    assert step_covariance(start, start_covariance, end, np.full((3, 3), np.nan)) is None
+
+
+def test_the_pose_history_interpolates_covariances_where_both_poses_have_one():
+    history = PoseHistory(limit=2)
+    history.add(100, (0.0, 0.0, 0.0), np.eye(3))
+    history.add(200, (1.0, 0.0, 0.0), 3.0 * np.eye(3))
+    history.add(300, (2.0, 0.0, 0.0))
+    assert_allclose(history.covariance_at(150), 2.0 * np.eye(3))
+    assert_allclose(history.covariance_at(200), 3.0 * np.eye(3))
+    assert history.covariance_at(250) is None and history.covariance_at(300) is None
+    assert history.covariance_at(301) is None and history.at(301) is None
+    history.add(400, (3.0, 0.0, 0.0), np.eye(3))  # the limit drops the oldest poses with their covariances
+    assert history.too_old(150) and history.covariance_at(400) is not None and history.covariance_at(350) is None
+
+
+def test_the_odometrys_own_covariance_gives_its_noise_where_it_grows():
+    # As in the offset test above, the odometry reports every pose 4 cm and 1.5 deg off after a stretch, now
+    # with the covariance a dead reckoning reports (a step's noise proportional to its length, propagated).
+    # Odometry that claims to be ten thousand times better than the parameters' noise is believed over the
+    # walls; one about as good as they say is not (the offset recovered, as with the parameters); a
+    # covariance that does not grow (a fixed one) leaves the parameters' noise, bit for bit, and says so.
+    truth = np.array([[1.0 + 0.01 * k, 1.0 + 0.004 * k, math.radians(-100 + 0.3 * k)] for k in range(150)])
+    landmarks, _ = labelled_pings(CORNER_ROOM, truth)
+    offset = np.array([0.04, -0.02, math.radians(1.5)])
+    odometry = [pose if k < 100 else compose(pose, offset * min(1.0, (k - 100) / 10)) for k, pose in enumerate(truth)]
+
+    def reckoned(variance_per_metre):
+        covariances = [np.zeros((3, 3))]
+        for start, end in itertools.pairwise(odometry):
+            step = relative_pose(start, end)
+            c, s = math.cos(start[2]), math.sin(start[2])
+            turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+            covariances.append(pose_covariance_at(start, covariances[-1], step)
+                               + turn @ (variance_per_metre * math.hypot(*step[:2]) * np.eye(3)) @ turn.T)
+        return covariances
+
+    def estimated(covariances):
+        slam, estimates, keyframes, assumed = LandmarkSlam(), [], 0, 0
+        for k, (found, pose, covariance) in enumerate(zip(landmarks, odometry, covariances, strict=True)):
+            report = slam.add_ping(found, pose, k / RING.ping_rate, models=point_models(RING, found),
+                                   odometry_covariance=covariance)
+            estimates.append(report.pose)
+            keyframes += report.keyframe and k > 0
+            assumed += report.step_noise_assumed
+        final = relative_pose(truth[-1], estimates[-1])
+        return np.array(estimates), math.hypot(final[0], final[1]), keyframes, assumed
+
+    parameters, off, keyframes, assumed = estimated([None] * len(truth))
+    assert off < 0.01 and keyframes > 10 and assumed == 0
+    _, off, _, assumed = estimated(reckoned(1e-8))  # 0.1 mm per sqrt(m)
+    assert off > 0.04 and assumed == 0
+    _, off, _, assumed = estimated(reckoned(1e-4))  # 1 cm per sqrt(m), the parameters' 2 cm
+    assert off < 0.01 and assumed == 0
+    fixed, _, keyframes, assumed = estimated([np.diag([1e-4, 1e-4, 1e-4])] * len(truth))
+    np.testing.assert_array_equal(fixed, parameters)
+    assert assumed == keyframes
 
 
 def test_the_map_keeps_the_first_keyframes_heading_while_the_odometrys_drifts():

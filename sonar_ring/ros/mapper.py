@@ -69,11 +69,11 @@ SLAM_PARAMS = [
     Param(SLAM_PREFIX + "keyframe_turn", SlamSettings.keyframe_turn, "turn between keyframes, rad", low=0.01,
           high=3.0, read_only=True),
     Param(SLAM_PREFIX + "odometry_distance_noise", SlamSettings.odometry_distance_noise,
-          "odometry noise along the travel, m per sqrt(m) (the odometry message's covariance is not read)", low=1e-4,
+          "odometry noise along the travel, m per sqrt(m), where the odometry's covariance does not grow", low=1e-4,
           high=1.0, read_only=True),
     Param(SLAM_PREFIX + "odometry_heading_noise", SlamSettings.odometry_heading_noise,
-          "odometry heading noise, rad per sqrt(m) (the odometry message's covariance is not read)", low=1e-4, high=1.0,
-          read_only=True),
+          "odometry heading noise, rad per sqrt(m), where the odometry's covariance does not grow", low=1e-4,
+          high=1.0, read_only=True),
     Param(SLAM_PREFIX + "odometry_scale", SlamSettings.odometry_scale, "odometry distance scale error, fraction",
           low=0.0, high=0.5, read_only=True),
     Param(SLAM_PREFIX + "max_speed", SlamSettings.max_speed, "faster odometry is a fault (a jump), m/s", low=0.1,
@@ -168,19 +168,40 @@ def odometry_pose(msg: Odometry) -> tuple[float, float, float]:
     return pose.position.x, pose.position.y, yaw_of(pose.orientation)
 
 
-def usable_odometry_pose(msg: Odometry, health) -> tuple[float, float, float] | None:
-    """:func:`odometry_pose`, or None after counting ``bad_odometry_pose`` on ``health`` when it is unusable.
+_PLANAR_CELLS = [0, 1, 5, 6, 7, 11, 30, 31, 35]
+"""The cells of a pose's 6 x 6 covariance (x, y, z, roll, pitch, yaw; row-major) that are ``(x, y, yaw)``'s."""
 
-    Unusable: what the map does not take (:func:`~sonar_ring.mapping.usable_pose`; an orientation that is not a
-    rotation has a NaN yaw).  The mapper's input gate for odometry (the node's and ``sonar-ring process``'s):
-    such a message is dropped, so the odometry on either side of it places the pings around it.
+
+def odometry_covariance(msg: Odometry) -> np.ndarray:
+    """The ``(x, y, yaw)`` block (3, 3) of an Odometry message's pose covariance, m^2, m rad and rad^2."""
+    return np.asarray(msg.pose.covariance, dtype=float)[_PLANAR_CELLS].reshape(3, 3)
+
+
+def usable_odometry(msg: Odometry, health) -> tuple[tuple[float, float, float], np.ndarray | None] | None:
+    """:func:`odometry_pose` and :func:`odometry_covariance` as the map takes them; None for a message it does not.
+
+    The mapper's input gate for odometry (the node's and ``sonar-ring process``'s).  A pose the map does not
+    take (:func:`~sonar_ring.mapping.usable_pose`; an orientation that is not a rotation has a NaN yaw) drops
+    the message, counted ``bad_odometry_pose`` on ``health``: the odometry on either side of it places the
+    pings around it.  The covariance is None when all zeros (ROS's "unknown"), and when it is not a
+    covariance (not finite, not symmetric, a negative variance: counted ``bad_odometry_covariance``, the pose
+    kept); SLAM then takes the odometry's noise from its parameters.
     """
     pose = odometry_pose(msg)
-    if usable_pose(pose):
-        return pose
-    health.problem("bad_odometry_pose", "odometry position not finite or beyond 10^6 m, or orientation not a "
-                   "rotation")
-    return None
+    if not usable_pose(pose):
+        health.problem("bad_odometry_pose", "odometry position not finite or beyond 10^6 m, or orientation not a "
+                       "rotation")
+        return None
+    covariance = odometry_covariance(msg)
+    if not covariance.any():
+        return pose, None
+    # Symmetric to round-off: a filter's products need not give the two halves bit for bit alike.
+    if not (np.isfinite(covariance).all() and np.allclose(covariance, covariance.T, rtol=1e-6, atol=1e-15)
+            and (covariance.diagonal() >= 0.0).all()):
+        health.problem("bad_odometry_covariance", "odometry covariance not finite, not symmetric or with a "
+                       "negative variance: the odometry parameters' noise taken")
+        return pose, None
+    return pose, covariance
 
 
 def map_messages(builder: MapBuilder, header: Header) -> tuple[bytes, bytes, bytes]:
@@ -295,11 +316,11 @@ class Mapper(SonarNode):
     def _on_odometry(self, msg: Odometry, info: MessageInfo) -> None:
         if not self._odometry_check.admit(msg.header, info):
             return
-        pose = usable_odometry_pose(msg, self.health)
-        if pose is None:
+        odometry = usable_odometry(msg, self.health)
+        if odometry is None:
             return
         started = time.perf_counter()
-        placed = self.builder.add_odometry(stamp_ns(msg.header), pose)
+        placed = self.builder.add_odometry(stamp_ns(msg.header), *odometry)
         if placed:
             self._mapped(started, placed)
 

@@ -302,9 +302,11 @@ class OfflineGraph:
     namespace : str
         Namespace of the echoes topic; the outputs are written in it.
     odometry : tuple or None
-        ``(stamps, poses)``: odometry stamps (ns, increasing, list of int) and
-        robot poses (O, 3) ``(x, y, yaw)`` in the odometry frame (m, rad); None
-        to place every ping at the mapper's ``fixed_pose``.
+        ``(stamps, poses, covariances)``: odometry stamps (ns, increasing, list
+        of int), robot poses (O, 3) ``(x, y, yaw)`` in the odometry frame (m,
+        rad) and their covariances (list of (3, 3) or None, as
+        :func:`~sonar_ring.ros.mapper.usable_odometry`'s); None to place every
+        ping at the mapper's ``fixed_pose``.
     writer : BagWriter
         Where the outputs go.
     counts : Counts
@@ -321,9 +323,9 @@ class OfflineGraph:
         self._mapper = values["mapper"]
         settings = replace(mapper.mapper_settings(self._mapper), pose_history=None, layout=layout)
         self.builder = MapBuilder(settings, counts)
-        self._odometry = odometry if odometry is not None else ([], np.empty((0, 3)))
-        for stamp, pose in zip(*self._odometry, strict=True):
-            self.builder.add_odometry(stamp, pose)
+        self._odometry = odometry if odometry is not None else ([], np.empty((0, 3)), [])
+        for stamp, pose, covariance in zip(*self._odometry, strict=True):
+            self.builder.add_odometry(stamp, pose, covariance)
         self._odometry_written = 0
         self._writer = writer
         self._counts = counts
@@ -377,7 +379,7 @@ class OfflineGraph:
             self._static_written = True
             self._writer.write(self._connections["/tf_static"], time_ns, tf_message(static_transforms(
                 time_ns, self._mapper["base_frame"], sensor_frame, self._mapper["sensor_offset"], self._layout)))
-        stamps, poses = self._odometry
+        stamps, poses, _ = self._odometry
         while self._odometry_written < len(stamps) and stamps[self._odometry_written] <= time_ns:
             stamp, pose = stamps[self._odometry_written], poses[self._odometry_written]
             self._writer.write(self._connections["/tf"], stamp, tf_message([
@@ -444,10 +446,13 @@ def _namespace(topic: str) -> str:
 
 
 def _read_odometry(bag: BagReader, connections, mapper_values: dict, counts: Counts):
-    """Odometry stamps (ns, list) and poses (O, 3) of a topic, without what the mapper's input gate refuses."""
+    """Odometry stamps (ns, list), poses (O, 3) and covariances (list) of a topic, as the mapper's gate takes them.
+
+    (:func:`~sonar_ring.ros.mapper.usable_odometry`.)
+    """
     clock = BagTime()
     check = TopicCheck(clock, counts, "odom", mapper_values, frame_param="odom_frame")
-    stamps, poses = [], []
+    stamps, poses, covariances = [], [], []
     for _, time_ns, data in bag.messages(connections):
         try:
             msg = deserialize_message(data, Odometry)
@@ -455,10 +460,11 @@ def _read_odometry(bag: BagReader, connections, mapper_values: dict, counts: Cou
             counts.problem("undecodable_odometry")
             continue
         clock.nanoseconds = time_ns
-        if check.admit(msg.header) and (pose := mapper.usable_odometry_pose(msg, counts)) is not None:
+        if check.admit(msg.header) and (odometry := mapper.usable_odometry(msg, counts)) is not None:
             stamps.append(stamp_ns(msg.header))
-            poses.append(pose)
-    return stamps, np.array(poses, dtype=float).reshape(-1, 3)
+            poses.append(odometry[0])
+            covariances.append(odometry[1])
+    return stamps, np.array(poses, dtype=float).reshape(-1, 3), covariances
 
 
 def _layout_of(bag: BagReader, connections, layout):
