@@ -44,11 +44,13 @@ import numpy as np
 
 from sonar_ring.curvature import point_models
 from sonar_ring.explain import EchoTests, audible, explain_landmarks, known_map
+from sonar_ring.explain import load_kernels as load_explain_kernels
 from sonar_ring.geometry import Layout
 from sonar_ring.landmarks import Landmarks
 from sonar_ring.mapping import LandmarkMap, MapCounts, transform_landmarks, usable_pose
 from sonar_ring.poses import PoseHistory, compose, pose_covariance_at
 from sonar_ring.slam import LandmarkSlam, SlamSettings
+from sonar_ring.slam import load_kernels as load_slam_kernels
 
 PENDING_LIMIT = 32
 """Pings waiting for a later odometry message; the oldest is dropped (and counted) beyond this."""
@@ -149,6 +151,16 @@ class MapBuilder:
         self._heard = np.empty(0, np.int64)  # ... and those whose own echo it heard
         self._hearing: dict[int, list[int]] = {}  # uid -> [pings that should have heard it, pings that did]
         self._pings_explained = 0
+
+    def load_kernels(self) -> None:
+        """Load the compiled kernels this mapper runs now, instead of at its first pings.
+
+        The map's and SLAM's (:func:`sonar_ring.slam.load_kernels`) and, where the echo tests are on, theirs
+        (:func:`sonar_ring.explain.load_kernels`).
+        """
+        load_slam_kernels()
+        if self.settings.echo_tests is not None and self.settings.layout is not None:
+            load_explain_kernels()
 
     @property
     def frame(self) -> str:

@@ -100,7 +100,7 @@ def test_load_kernels_leaves_nothing_to_compile_at_the_first_ping(layout_name):
 
 _SLAM_MAPPER_FIRST_PINGS = """
 import numpy as np
-from sonar_ring import explain, pipeline, slam
+from sonar_ring import pipeline
 from sonar_ring.benchmark import worlds
 from sonar_ring.compiled import _DISPATCHERS
 from sonar_ring.explain import EchoTests
@@ -113,10 +113,9 @@ recorded = worlds.simulate_run("realistic", 0, laps=1, pings=70)
 layout = load_layout(worlds.LAYOUT)
 stage = PingStage(layout, pipeline.Settings(sigma_speed=pipeline.ROBOT_SIGMA_SPEED))
 labelled = [stage.label(echoes)[1] if echoes is not None else Landmarks.empty() for echoes in recorded.echoes]
-slam.load_kernels()
-explain.load_kernels()
-compiled = {key: len(dispatcher.signatures) for key, dispatcher in _DISPATCHERS.items()}
 builder = MapBuilder(MapperSettings(slam=True, pose_history=None, layout=layout, echo_tests=EchoTests()), Counts())
+builder.load_kernels()
+compiled = {key: len(dispatcher.signatures) for key, dispatcher in _DISPATCHERS.items()}
 for k, (landmarks, pose) in enumerate(zip(labelled, recorded.odometry, strict=True)):
     stamp = int(round(1e9 * (1.0 + k / layout.ping_rate)))
     builder.add_odometry(stamp, pose)

@@ -54,7 +54,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sonar_ring import explain, map_builder, pipeline, slam
+from sonar_ring import map_builder, pipeline
 from sonar_ring.benchmark import sections, worlds
 from sonar_ring.benchmark.environment import machine, revision, today
 from sonar_ring.geometry import load_layout
@@ -123,9 +123,9 @@ def new_builder() -> MapBuilder:
 
     Its compiled kernels are loaded first, as the node loads them at its start.
     """
-    slam.load_kernels()
-    explain.load_kernels()
-    return MapBuilder(MapperSettings(layout=load_layout(worlds.LAYOUT)), Counts())
+    builder = MapBuilder(MapperSettings(layout=load_layout(worlds.LAYOUT)), Counts())
+    builder.load_kernels()
+    return builder
 
 
 def _map_sizes(builder: MapBuilder) -> dict:

@@ -36,7 +36,6 @@ from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 from visualization_msgs.msg import MarkerArray
 
-from sonar_ring import explain
 from sonar_ring.explain import EchoTests
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import Landmarks
@@ -51,7 +50,7 @@ from sonar_ring.ros.markers import covariance_ellipses, explained_markers, landm
 from sonar_ring.ros.node import LATCHED, SonarNode
 from sonar_ring.ros.params import Param, declare
 from sonar_ring.ros.run import spin
-from sonar_ring.slam import SlamSettings, load_kernels
+from sonar_ring.slam import SlamSettings
 
 
 def _three_numbers(value) -> str | None:
@@ -264,9 +263,7 @@ class Mapper(SonarNode):
         self.health = NodeHealth(self, hardware_id="map")
         self.builder = MapBuilder(mapper_settings(self.params), self.health)
         self.health.extra_values = self._diagnostic_values
-        load_kernels()  # now, or the first ping would wait for them
-        if self.params["echo_tests"]:
-            explain.load_kernels()
+        self.builder.load_kernels()  # now, or the first pings would wait for them
         self._map_landmarks = self.create_publisher(LandmarkArray, "map/landmarks", LATCHED)
         self._map_markers = self.create_publisher(MarkerArray, "map/markers", LATCHED)
         self._map_points = self.create_publisher(PointCloud2, "map/points", LATCHED)

@@ -48,7 +48,6 @@ from nav_msgs.msg import Odometry
 from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import Header
 
-from sonar_ring import slam
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import Layout, LayoutError, load_layout, shipped_params
 from sonar_ring.landmarks import CLASS_NAMES, Landmarks
@@ -563,9 +562,12 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
                         yield ping, data, (graph, time_ns, ping[0])
                     bar.update(1)
 
-            # The map's kernels load while the workers localise the first batches.
+            def load_kernels():  # the mappers' kernels load while the workers localise the first batches
+                for graph in graphs.values():
+                    graph.builder.load_kernels()
+
             for (graph, time_ns, header), output in ordered_map(work, admitted(), workers, jobs,
-                                                                meanwhile=slam.load_kernels):
+                                                                meanwhile=load_kernels):
                 graph.take(time_ns, header, output)
             bar.close()
             for name, graph in graphs.items():
