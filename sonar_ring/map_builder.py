@@ -47,7 +47,7 @@ from sonar_ring.explain import EchoTests, audible, explain_landmarks, known_map
 from sonar_ring.explain import load_kernels as load_explain_kernels
 from sonar_ring.geometry import Layout
 from sonar_ring.landmarks import Landmarks
-from sonar_ring.mapping import LandmarkMap, MapCounts, transform_landmarks, usable_pose
+from sonar_ring.mapping import LandmarkMap, MapCounts, transform_landmarks, usable_covariance, usable_pose
 from sonar_ring.poses import PoseHistory, compose, pose_covariance_at
 from sonar_ring.slam import LandmarkSlam, SlamSettings
 from sonar_ring.slam import load_kernels as load_slam_kernels
@@ -177,9 +177,20 @@ class MapBuilder:
     def add_odometry(self, stamp: int, pose, covariance=None) -> int:
         """The robot's odometry pose ``(x, y, yaw)`` in ``odom`` at ``stamp`` (ns); returns the pings it placed.
 
-        ``covariance`` (3, 3): the pose's in ``odom`` when the odometry gives one, else None; SLAM takes the
-        odometry's noise from its growth (:meth:`~sonar_ring.slam.LandmarkSlam.add_ping`).
+        ``covariance`` (3, 3): the pose's in ``odom``, or None; SLAM takes the odometry's noise from its growth
+        (:meth:`~sonar_ring.slam.LandmarkSlam.add_ping`).  All zeros is none (ROS's "unknown"); one that is not
+        a covariance the map takes (:func:`~sonar_ring.mapping.usable_covariance`) is none too, counted
+        ``bad_odometry_covariance``: the pose is kept.
         """
+        if covariance is not None:
+            covariance = np.asarray(covariance, dtype=float)
+            if not covariance.any():
+                covariance = None
+            elif not usable_covariance(covariance):
+                self.health.problem("bad_odometry_covariance", "odometry covariance not finite, not symmetric, "
+                                    "with a negative variance or beyond (10^6 m)^2: the odometry parameters' noise "
+                                    "taken")
+                covariance = None
         self.history.add(stamp, pose, covariance)
         placed = 0
         while self._pending and self.history.at(self._pending[0][0]) is not None:

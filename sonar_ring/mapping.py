@@ -197,6 +197,26 @@ def usable_pose(pose) -> bool:
     return bool(np.all(np.isfinite(pose)) and np.all(np.abs(pose[:2]) <= MAX_COORDINATE))
 
 
+def usable_covariance(covariance) -> bool:
+    """Whether a pose's covariance (3, 3) of ``(x, y, yaw)`` is one the map takes.
+
+    Finite, symmetric to round-off (a filter's products need not give the two halves bit for bit alike), no
+    negative variance, and no cell beyond :data:`MAX_COORDINATE` squared (a pose uncertain by more is no pose;
+    the squares of its spread in the echo tests would overflow).
+    """
+    covariance = np.asarray(covariance, dtype=float)
+    if covariance.shape != (3, 3):
+        return False
+    # Nine floats: plain Python, where numpy's per-call overhead would be most of a ping's check.
+    values = covariance.ravel().tolist()
+    if not all(abs(value) <= MAX_COORDINATE ** 2 for value in values):  # NaN fails too
+        return False
+    (xx, xy, xt), (yx, yy, yt), (tx, ty, tt) = covariance.tolist()
+    round_off = 1e-6 * max(abs(value) for value in values) + 1e-15
+    return (xx >= 0.0 and yy >= 0.0 and tt >= 0.0 and abs(xy - yx) <= round_off and abs(xt - tx) <= round_off
+            and abs(yt - ty) <= round_off)
+
+
 # --------------------------------------------------------------------------- 2-D helpers
 
 def _rotation(yaw: float) -> np.ndarray:

@@ -97,7 +97,7 @@ from sonar_ring.air import AirSpeed
 from sonar_ring.curvature import PointModels
 from sonar_ring.landmarks import CORNER, EDGE, Landmarks
 from sonar_ring.localise import OK, PointEstimate, reflector_paths
-from sonar_ring.mapping import LandmarkMap, transform_landmarks
+from sonar_ring.mapping import LandmarkMap, transform_landmarks, usable_covariance
 from sonar_ring.mapping import load_kernels as load_map_kernels
 from sonar_ring.poses import compose, inverse, relative_pose, step_covariance, turned_covariances
 from sonar_ring.uncertainty import position_jacobian
@@ -680,10 +680,11 @@ class LandmarkSlam:
     def _measured_step(self, odometry, covariance) -> np.ndarray | None:
         """The odometry's covariance (3, 3) of its step from the keyframe to ``odometry`` (``covariance``).
 
-        In the keyframe's frame; None where either pose has no covariance or it did not grow
-        (:func:`~sonar_ring.poses.step_covariance`).
+        In the keyframe's frame; None where either pose has no covariance the map takes
+        (:func:`~sonar_ring.mapping.usable_covariance`) or it did not grow (:func:`~sonar_ring.poses.step_covariance`).
         """
-        if covariance is None or self._keyframe_odometry_covariance is None:
+        if not (covariance is not None and self._keyframe_odometry_covariance is not None
+                and usable_covariance(covariance) and usable_covariance(self._keyframe_odometry_covariance)):
             return None
         return step_covariance(self._keyframe_odometry, self._keyframe_odometry_covariance, odometry, covariance)
 

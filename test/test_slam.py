@@ -478,6 +478,29 @@ def test_an_odometry_pose_beyond_a_million_metres_is_refused_not_raised():
     assert dict(health.problems) == {"not_finite_pose": 1}
 
 
+def test_an_odometry_covariance_the_map_does_not_take_is_counted_and_its_pose_kept():
+    """Not finite, not symmetric, a negative variance, or beyond (10^6 m)^2 (whose squares raised OverflowError in
+    the echo tests' tolerance, found by fuzzing): counted, the pose mapped with the parameters' noise.  Given
+    to the SLAM core directly, such a covariance is left out alike (its docstring: nothing raises)."""
+    truth = np.array([[1.0 + 0.01 * k, 1.0, math.radians(-135)] for k in range(80)])
+    landmarks, _ = labelled_pings(CORNER_ROOM, truth)
+    huge = np.diag([1e200, 1e200, 1.0])
+    bad = {50: huge, 55: np.full((3, 3), np.nan), 60: np.array([[1e-4, 1e-5, 0.0], [0.0, 1e-4, 0.0], [0.0, 0.0, 1e-4]]),
+           65: np.diag([-1e-6, 1e-6, 1e-6])}
+    health = Counts()
+    builder = MapBuilder(MapperSettings(layout=RING, echo_tests=EchoTests(refresh_pings=1)), health)
+    for k, (found, pose) in enumerate(zip(landmarks, truth, strict=True)):
+        stamp = int(1e9 + k * 1e9 / RING.ping_rate)
+        builder.add_odometry(stamp, pose, bad.get(k, 1e-6 * (k + 1) * np.eye(3)))
+        assert builder.add_ping(stamp, found)
+    assert dict(health.problems) == {"bad_odometry_covariance": 4}
+    assert health.notes["multipath explained"] + health.notes["impossible"] > 0 or len(builder.snapshot()) > 0
+    slam = LandmarkSlam()
+    for k, (found, pose) in enumerate(zip(landmarks, truth, strict=True)):
+        slam.add_ping(found, pose, k / RING.ping_rate, odometry_covariance=huge if k >= 40 else np.eye(3) * 1e-6 * k)
+        assert np.all(np.isfinite(slam.pose_at(pose, huge)[1]))
+
+
 def test_the_yaw_of_a_quaternion_that_is_not_a_rotation_is_nan():
     """An odometry orientation left unset (all zeros), garbled or not finite gives no yaw, where it gave a wrong
     one (or, a component near 1e200, raised OverflowError in the mapper's odometry callback)."""

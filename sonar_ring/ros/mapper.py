@@ -176,31 +176,21 @@ def odometry_covariance(msg: Odometry) -> np.ndarray:
     return np.asarray(msg.pose.covariance, dtype=float)[_PLANAR_CELLS].reshape(3, 3)
 
 
-def usable_odometry(msg: Odometry, health) -> tuple[tuple[float, float, float], np.ndarray | None] | None:
-    """:func:`odometry_pose` and :func:`odometry_covariance` as the map takes them; None for a message it does not.
+def usable_odometry(msg: Odometry, health) -> tuple[tuple[float, float, float], np.ndarray] | None:
+    """:func:`odometry_pose` and :func:`odometry_covariance`; None for a message whose pose the map does not take.
 
     The mapper's input gate for odometry (the node's and ``sonar-ring process``'s).  A pose the map does not
     take (:func:`~sonar_ring.mapping.usable_pose`; an orientation that is not a rotation has a NaN yaw) drops
     the message, counted ``bad_odometry_pose`` on ``health``: the odometry on either side of it places the
-    pings around it.  The covariance is None when all zeros (ROS's "unknown"), and when it is not a
-    covariance (not finite, not symmetric, a negative variance: counted ``bad_odometry_covariance``, the pose
-    kept); SLAM then takes the odometry's noise from its parameters.
+    pings around it.  The covariance is the core's to judge
+    (:meth:`~sonar_ring.map_builder.MapBuilder.add_odometry`).
     """
     pose = odometry_pose(msg)
     if not usable_pose(pose):
         health.problem("bad_odometry_pose", "odometry position not finite or beyond 10^6 m, or orientation not a "
                        "rotation")
         return None
-    covariance = odometry_covariance(msg)
-    if not covariance.any():
-        return pose, None
-    # Symmetric to round-off: a filter's products need not give the two halves bit for bit alike.
-    if not (np.isfinite(covariance).all() and np.allclose(covariance, covariance.T, rtol=1e-6, atol=1e-15)
-            and (covariance.diagonal() >= 0.0).all()):
-        health.problem("bad_odometry_covariance", "odometry covariance not finite, not symmetric or with a "
-                       "negative variance: the odometry parameters' noise taken")
-        return pose, None
-    return pose, covariance
+    return pose, odometry_covariance(msg)
 
 
 def map_messages(builder: MapBuilder, header: Header) -> tuple[bytes, bytes, bytes]:
