@@ -1,6 +1,7 @@
 """Helpers of the tests that run nodes: spinning until a condition, the map's QoS, the executables."""
 
 import os
+import shutil
 import signal
 import subprocess
 import time
@@ -48,7 +49,9 @@ def stop_nodes(processes):
     """Ctrl-C to each process of :func:`start_node`; their exit codes, in order.
 
     A process still running :data:`EXIT_SECONDS` later is aborted (SIGABRT): its fault handler prints
-    every thread's stack into the test's output, and its code is ``-SIGABRT``.
+    every thread's stack into the test's output, and its code is ``-SIGABRT``.  Before that, where gdb is
+    installed, every thread's native stack is printed too: a node hung in the middleware's C++ (CI saw the
+    mapper's ``destroy_node`` not return once) shows only its Python caller to the fault handler.
     """
     for process in processes:
         process.send_signal(signal.SIGINT)
@@ -58,6 +61,17 @@ def stop_nodes(processes):
         try:
             codes.append(process.wait(timeout=max(deadline - time.monotonic(), 0.1)))
         except subprocess.TimeoutExpired:
+            _print_native_stacks(process.pid)
             process.send_signal(signal.SIGABRT)
             codes.append(process.wait(timeout=EXIT_SECONDS))
     return codes
+
+
+def _print_native_stacks(pid):
+    """Every thread's native stack of process ``pid`` (gdb attached in batch mode), printed; nothing without gdb."""
+    gdb = shutil.which("gdb")
+    if gdb is None:
+        return
+    done = subprocess.run([gdb, "-p", str(pid), "-batch", "-ex", "thread apply all bt"], capture_output=True,
+                          text=True, timeout=120, check=False)
+    print(f"native stacks of hung process {pid}:\n{done.stdout}{done.stderr}")

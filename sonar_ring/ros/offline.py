@@ -303,9 +303,9 @@ class OfflineGraph:
     odometry : tuple or None
         ``(stamps, poses, covariances)``: odometry stamps (ns, increasing, list
         of int), robot poses (O, 3) ``(x, y, yaw)`` in the odometry frame (m,
-        rad) and their covariances (list of (3, 3) or None, as
-        :func:`~sonar_ring.ros.mapper.usable_odometry`'s); None to place every
-        ping at the mapper's ``fixed_pose``.
+        rad) and their covariances (list of (3, 3), as the messages give them:
+        :meth:`~sonar_ring.map_builder.MapBuilder.add_odometry` judges them);
+        None to place every ping at the mapper's ``fixed_pose``.
     writer : BagWriter
         Where the outputs go.
     counts : Counts
