@@ -71,6 +71,9 @@ class MapperSettings:
         Estimate the pose (SLAM, map in ``map_frame``) or take the odometry's (map in ``odom_frame``).
     use_odometry : bool
         Place pings with the odometry; False: at ``fixed_pose``.
+    use_odometry_covariance : bool
+        With SLAM, take the odometry's noise from its pose covariance where that grows
+        (:meth:`MapBuilder.add_odometry`); False: always from ``slam_settings``' odometry noise.
     fixed_pose, sensor_offset : tuple of float
         The robot's pose without odometry, and the sensor's pose in the robot frame, ``(x, y, yaw)``.
     map_frame, odom_frame : str
@@ -100,6 +103,7 @@ class MapperSettings:
 
     slam: bool = True
     use_odometry: bool = True
+    use_odometry_covariance: bool = True
     fixed_pose: tuple = (0.0, 0.0, 0.0)
     sensor_offset: tuple = (0.0, 0.0, 0.0)
     map_frame: str = "map"
@@ -180,9 +184,12 @@ class MapBuilder:
         ``covariance`` (3, 3): the pose's in ``odom``, or None; SLAM takes the odometry's noise from its growth
         (:meth:`~sonar_ring.slam.LandmarkSlam.add_ping`).  All zeros is none (ROS's "unknown"); one that is not
         a covariance the map takes (:func:`~sonar_ring.mapping.usable_covariance`) is none too, counted
-        ``bad_odometry_covariance``: the pose is kept.
+        ``bad_odometry_covariance``: the pose is kept.  With ``use_odometry_covariance`` false every
+        covariance is none, unread.
         """
-        if covariance is not None:
+        if not self.settings.use_odometry_covariance:
+            covariance = None
+        elif covariance is not None:
             covariance = np.asarray(covariance, dtype=float)
             if not covariance.any():
                 covariance = None

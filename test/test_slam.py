@@ -184,6 +184,19 @@ def test_the_pose_history_interpolates_covariances_where_both_poses_have_one():
     assert history.too_old(150) and history.covariance_at(400) is not None and history.covariance_at(350) is None
 
 
+def dead_reckoning(odometry, variance_per_metre):
+    """The covariances (3, 3) dead reckoning reports along ``odometry`` (P, 3): each step's noise proportional to
+    its length, propagated from an exact start."""
+    covariances = [np.zeros((3, 3))]
+    for start, end in itertools.pairwise(odometry):
+        step = relative_pose(start, end)
+        c, s = math.cos(start[2]), math.sin(start[2])
+        turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+        covariances.append(pose_covariance_at(start, covariances[-1], step)
+                           + turn @ (variance_per_metre * math.hypot(*step[:2]) * np.eye(3)) @ turn.T)
+    return covariances
+
+
 def test_the_odometrys_own_covariance_gives_its_noise_where_it_grows():
     # As in the offset test above, the odometry reports every pose 4 cm and 1.5 deg off after a stretch, now
     # with the covariance a dead reckoning reports (a step's noise proportional to its length, propagated).
@@ -194,16 +207,6 @@ def test_the_odometrys_own_covariance_gives_its_noise_where_it_grows():
     landmarks, _ = labelled_pings(CORNER_ROOM, truth)
     offset = np.array([0.04, -0.02, math.radians(1.5)])
     odometry = [pose if k < 100 else compose(pose, offset * min(1.0, (k - 100) / 10)) for k, pose in enumerate(truth)]
-
-    def reckoned(variance_per_metre):
-        covariances = [np.zeros((3, 3))]
-        for start, end in itertools.pairwise(odometry):
-            step = relative_pose(start, end)
-            c, s = math.cos(start[2]), math.sin(start[2])
-            turn = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-            covariances.append(pose_covariance_at(start, covariances[-1], step)
-                               + turn @ (variance_per_metre * math.hypot(*step[:2]) * np.eye(3)) @ turn.T)
-        return covariances
 
     def estimated(covariances):
         slam, estimates, keyframes, assumed = LandmarkSlam(), [], 0, 0
@@ -218,13 +221,40 @@ def test_the_odometrys_own_covariance_gives_its_noise_where_it_grows():
 
     parameters, off, keyframes, assumed = estimated([None] * len(truth))
     assert off < 0.01 and keyframes > 10 and assumed == 0
-    _, off, _, assumed = estimated(reckoned(1e-8))  # 0.1 mm per sqrt(m)
+    _, off, _, assumed = estimated(dead_reckoning(odometry, 1e-8))  # 0.1 mm per sqrt(m)
     assert off > 0.04 and assumed == 0
-    _, off, _, assumed = estimated(reckoned(1e-4))  # 1 cm per sqrt(m), the parameters' 2 cm
+    _, off, _, assumed = estimated(dead_reckoning(odometry, 1e-4))  # 1 cm per sqrt(m), the parameters' 2 cm
     assert off < 0.01 and assumed == 0
     fixed, _, keyframes, assumed = estimated([np.diag([1e-4, 1e-4, 1e-4])] * len(truth))
     np.testing.assert_array_equal(fixed, parameters)
     assert assumed == keyframes
+
+
+def test_the_mapper_reads_the_odometrys_covariance_unless_told_not_to():
+    """A dead reckoning's covariance that claims precise odometry moves the mapper's poses; with
+    use_odometry_covariance false they are the parameters' poses, bit for bit, and nothing is counted."""
+    truth = np.array([[1.0 + 0.01 * k, 1.0, math.radians(-135)] for k in range(60)])
+    landmarks, _ = labelled_pings(CORNER_ROOM, truth)
+    odometry = [compose(pose, (0.0, 0.0, math.radians(0.02) * k)) for k, pose in enumerate(truth)]  # drifting
+
+    def poses(covariances, **settings):
+        health = Counts()
+        builder = MapBuilder(MapperSettings(layout=RING, **settings), health)
+        estimates = []
+        for k, (found, pose, covariance) in enumerate(zip(landmarks, odometry, covariances, strict=True)):
+            stamp = int(1e9 + k * 1e9 / RING.ping_rate)
+            builder.add_odometry(stamp, pose, covariance)
+            builder.add_ping(stamp, found)
+            estimates.append(builder.robot_pose)
+        return np.array(estimates), health
+
+    parameters, _ = poses([None] * len(truth))
+    precise = dead_reckoning(odometry, 1e-8)
+    believed, _ = poses(precise)
+    unread, health = poses(precise, use_odometry_covariance=False)
+    assert not np.array_equal(believed, parameters)
+    np.testing.assert_array_equal(unread, parameters)
+    assert not health.problems and "odometry covariance not growing" not in health.notes
 
 
 def test_the_map_keeps_the_first_keyframes_heading_while_the_odometrys_drifts():

@@ -109,6 +109,9 @@ PARAMS = [
     Param("odom_frame", "odom", "the odometry's frame (the map's without SLAM)"),
     Param("base_frame", "base_link", "the robot's frame (the odometry's child frame)", read_only=True),
     Param("use_odometry", True, "place pings with nav_msgs/Odometry on `odom`; false: at fixed_pose", read_only=True),
+    Param("use_odometry_covariance", True, "with SLAM, take the odometry's noise from the growth of its pose "
+          "covariance where it grows; false: always from the slam.odometry_* parameters (for odometry whose "
+          "covariance leaves out its systematic errors)", read_only=True),
     Param("fixed_pose", [0.0, 0.0, 0.0], "robot pose [x, y, yaw] (m, m, rad) when use_odometry is false",
           check=_three_numbers, read_only=True),
     Param("sensor_offset", [0.0, 0.0, 0.0], "sensor pose [x, y, yaw] in the robot frame", check=_three_numbers,
@@ -147,6 +150,7 @@ def mapper_settings(values: dict) -> MapperSettings:
     slam = SlamSettings(**noise, **{p.name.removeprefix(SLAM_PREFIX): values[p.name] for p in SLAM_PARAMS})
     tests = EchoTests(**noise, **{p.name.removeprefix(ECHO_TESTS_PREFIX): values[p.name] for p in ECHO_TESTS_PARAMS})
     return MapperSettings(slam=values["slam"], use_odometry=values["use_odometry"],
+                          use_odometry_covariance=values["use_odometry_covariance"],
                           layout=load_layout(values["layout"]),
                           fixed_pose=tuple(values["fixed_pose"]), sensor_offset=tuple(values["sensor_offset"]),
                           map_frame=values["map_frame"], odom_frame=values["odom_frame"],
