@@ -31,6 +31,16 @@ def pose_covariance_at(pose, covariance, step) -> np.ndarray:
     return jacobian @ np.asarray(covariance, dtype=float) @ jacobian.T
 
 
+def turned_pose_covariance(covariance, yaw: float) -> np.ndarray:
+    """``R C R^T``: a pose covariance ``C`` (3, 3) of ``(x, y, yaw)`` turned by ``yaw`` (rad), ``R`` turning x and y.
+
+    From a frame into its parent, for a frame at heading ``yaw`` there (``-yaw``: back).
+    """
+    c, s = math.cos(yaw), math.sin(yaw)
+    rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return rotation @ covariance @ rotation.T
+
+
 def step_covariance(start, start_covariance, end, end_covariance) -> np.ndarray | None:
     """Covariance (3, 3) of the step from ``start`` to ``end`` in ``start``'s frame, of the two poses' covariances.
 
@@ -40,11 +50,9 @@ def step_covariance(start, start_covariance, end, end_covariance) -> np.ndarray 
     rotation), hence ``C_step = R^T (C_end - J C_start J^T) R``.  None when that is not positive definite: a
     covariance that does not grow so (a fixed one, all zeros for unknown) says nothing of the step.
     """
-    c, s = math.cos(start[2]), math.sin(start[2])
-    rotation = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
     growth = np.asarray(end_covariance, dtype=float) - pose_covariance_at(start, start_covariance,
                                                                           relative_pose(start, end))
-    step = rotation.T @ (0.5 * (growth + growth.T)) @ rotation
+    step = turned_pose_covariance(0.5 * (growth + growth.T), -start[2])
     if not np.all(np.isfinite(step)) or np.linalg.eigvalsh(step)[0] <= 0.0:
         return None
     return step

@@ -99,7 +99,14 @@ from sonar_ring.landmarks import CORNER, EDGE, Landmarks
 from sonar_ring.localise import OK, PointEstimate, reflector_paths
 from sonar_ring.mapping import LandmarkMap, transform_landmarks, usable_covariance
 from sonar_ring.mapping import load_kernels as load_map_kernels
-from sonar_ring.poses import compose, inverse, relative_pose, step_covariance, turned_covariances
+from sonar_ring.poses import (
+    compose,
+    inverse,
+    relative_pose,
+    step_covariance,
+    turned_covariances,
+    turned_pose_covariance,
+)
 from sonar_ring.uncertainty import position_jacobian
 
 POSE, POINT, WALL = "x", "l", "w"
@@ -659,9 +666,7 @@ class LandmarkSlam:
         The marginal (body-frame tangent) turned into ``map``, plus ``unmodelled_position_sigma`` and
         ``unmodelled_yaw_sigma`` (:class:`SlamSettings`).
         """
-        c, s = math.cos(self._keyframe_pose[2]), math.sin(self._keyframe_pose[2])
-        rotate = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-        return rotate @ self._keyframe_covariance @ rotate.T + self._unmodelled
+        return turned_pose_covariance(self._keyframe_covariance, self._keyframe_pose[2]) + self._unmodelled
 
     def _pose_covariance(self, pose, step, measured) -> np.ndarray:
         """Covariance (3, 3) in ``map`` of the robot's ``pose`` there, the odometry ``step`` past the keyframe.
@@ -672,9 +677,7 @@ class LandmarkSlam:
         if measured is None:
             odometry = self._odometry_covariance(step, pose[2])
         else:
-            c, s = math.cos(self._keyframe_pose[2]), math.sin(self._keyframe_pose[2])
-            rotate = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-            odometry = rotate @ self._step_noise(step, measured) @ rotate.T
+            odometry = turned_pose_covariance(self._step_noise(step, measured), self._keyframe_pose[2])
         return self._keyframe_covariance_in_map() + odometry
 
     def _measured_step(self, odometry, covariance) -> np.ndarray | None:
