@@ -120,6 +120,28 @@ class MapperSettings:
     min_support_travel: float = 0.05
 
 
+@dataclass(frozen=True)
+class PublishedMap:
+    """The map as the mapper publishes it (:meth:`MapBuilder.published`).
+
+    Attributes
+    ----------
+    frame : str
+        The map's frame (:attr:`MapBuilder.frame`).
+    landmarks : Landmarks
+        Its entries (:meth:`MapBuilder.snapshot`), in ``frame``.
+    points : ndarray
+        (P, 2) costmap points (:meth:`MapBuilder.points`), m, in ``frame``.
+    explained : dict of str to ndarray
+        The latest ping's landmarks the map explained, by how: positions (P, 2), m, in ``frame``.
+    """
+
+    frame: str
+    landmarks: Landmarks
+    points: np.ndarray
+    explained: dict
+
+
 class MapBuilder:
     """Pings and odometry in, the map (and, with SLAM, the robot's pose in ``map``) out (module docstring).
 
@@ -369,6 +391,13 @@ class MapBuilder:
             return self.slam.snapshot(self.settings.min_observations)
         return self.landmark_map.snapshot(self.settings.min_observations, persistent=self._tested,
                                           decided=self._tested)
+
+    def published(self) -> PublishedMap:
+        """The map as published: its frame, :meth:`snapshot`, :meth:`points` and the latest ping's explained landmarks.
+
+        One value that leaves the mapper's process whole (``sonar-ring process`` maps in a process of its own).
+        """
+        return PublishedMap(self.frame, self.snapshot(), self.points(), self.explained)
 
     def snapshot_and_uids(self) -> tuple[Landmarks, np.ndarray]:
         """The map the echo tests compare a ping's sightings with, and the uids of its entries, in its order.

@@ -19,11 +19,12 @@ from numpy.testing import assert_array_equal
 from rclpy.serialization import deserialize_message, serialize_message
 from rosbags.rosbag2 import Reader
 from rosbags.typesys import Stores, get_typestore
+from sensor_msgs.msg import PointCloud2
 from sonar_ring.msg import Echoes, LandmarkArray
 from visualization_msgs.msg import MarkerArray
 
 from sonar_ring.cli import main
-from sonar_ring.ros import demo
+from sonar_ring.ros import demo, offline
 from sonar_ring.ros.bag import TOPIC, BagWriter
 from sonar_ring.ros.convert import echoes_from_cdr, landmarks_from_msg
 from sonar_ring.ros.offline import SIM_START_NS
@@ -165,6 +166,37 @@ def test_sqlite3_and_mcap_inputs_and_any_jobs_give_the_same_landmarks(sim_bag, t
     assert len(from_sqlite) == 12
     for stamp, message in from_sqlite.items():
         assert_same_landmarks(message, from_mcap[stamp])
+
+
+def test_where_the_mapper_and_the_localiser_run_does_not_change_a_byte(sim_bag, tmp_path):
+    # --jobs 1: everything here; 2: the mapper in a process of its own; 3: and a localiser worker.
+    outputs = {}
+    for jobs in (1, 2, 3):
+        assert main(["process", str(sim_bag), str(tmp_path / str(jobs)), "--quiet", "--jobs", str(jobs)]) == 0
+        outputs[jobs] = read_bag(tmp_path / str(jobs))[1]
+    here = outputs[1]
+    assert set(OUTPUTS) <= set(here) and len(here["/map/landmarks"]) >= 2 and len(here["/slam/pose"]) >= PINGS - 2
+    for jobs in (2, 3):
+        assert set(outputs[jobs]) == set(here)
+        for topic, messages in here.items():
+            got = outputs[jobs][topic]
+            assert [time for time, _ in got] == [time for time, _ in messages], topic
+            if topic == "/map/points":  # rclpy leaves the padding after the header's frame id unset
+                for (_, a), (_, b) in zip(got, messages, strict=True):
+                    a, b = deserialize_message(a, PointCloud2), deserialize_message(b, PointCloud2)
+                    assert a.header == b.header and bytes(a.data) == bytes(b.data) and a.width == b.width
+            else:
+                assert got == messages, topic
+
+
+def test_a_mapper_failing_in_its_process_fails_the_run_and_leaves_no_output(sim_bag, tmp_path, monkeypatch):
+    def fail(self, pings):
+        raise ValueError("the mapper broke")
+
+    monkeypatch.setattr(offline.MappingWork, "outputs", fail)  # forked: the mapper's process has it too
+    with pytest.raises(ValueError, match="the mapper broke"):
+        offline.process_bag(sim_bag, tmp_path / "out", jobs=2, progress=False)
+    assert not (tmp_path / "out").exists()
 
 
 def test_process_of_the_demo_bag_gives_the_live_graphs_messages(tmp_path):

@@ -39,7 +39,7 @@ from visualization_msgs.msg import MarkerArray
 from sonar_ring.explain import EchoTests
 from sonar_ring.geometry import load_layout
 from sonar_ring.landmarks import Landmarks
-from sonar_ring.map_builder import MapBuilder, MapperSettings
+from sonar_ring.map_builder import MapBuilder, MapperSettings, PublishedMap
 from sonar_ring.mapping import usable_pose
 from sonar_ring.msg import LandmarkArray
 from sonar_ring.poses import yaw_of
@@ -197,16 +197,15 @@ def usable_odometry(msg: Odometry, health) -> tuple[tuple[float, float, float], 
     return pose, odometry_covariance(msg)
 
 
-def map_messages(builder: MapBuilder, header: Header) -> tuple[bytes, bytes, bytes]:
+def map_messages(published: PublishedMap, header: Header) -> tuple[bytes, bytes, bytes]:
     """The map as published, serialized: ``map/landmarks``, ``map/markers`` and ``map/points``, in that order.
 
-    ``header`` names the map's frame and the stamp.
+    ``published`` is :meth:`~sonar_ring.map_builder.MapBuilder.published`; ``header`` names its frame and the stamp.
     """
-    snapshot = builder.snapshot()
-    markers = [*landmark_markers(snapshot, "map", lifetime=0.0), covariance_ellipses(snapshot, "map"),
-               *explained_markers(builder.explained, "map")]
-    return (serialize_landmarks(snapshot, header), serialize_markers(markers, header),
-            serialize_message(point_cloud(builder.points(), header)))
+    markers = [*landmark_markers(published.landmarks, "map", lifetime=0.0),
+               covariance_ellipses(published.landmarks, "map"), *explained_markers(published.explained, "map")]
+    return (serialize_landmarks(published.landmarks, header), serialize_markers(markers, header),
+            serialize_message(point_cloud(published.points, header)))
 
 
 def point_cloud(points: np.ndarray, header: Header) -> PointCloud2:
@@ -365,8 +364,9 @@ class Mapper(SonarNode):
         if not self.builder.changed:
             return
         self.builder.changed = False
-        header = Header(stamp=self.get_clock().now().to_msg(), frame_id=self.builder.frame)
-        messages = map_messages(self.builder, header)
+        published = self.builder.published()
+        header = Header(stamp=self.get_clock().now().to_msg(), frame_id=published.frame)
+        messages = map_messages(published, header)
         for publisher, message in zip((self._map_landmarks, self._map_markers, self._map_points), messages,
                                       strict=True):
             publisher.publish(message)

@@ -19,9 +19,11 @@ bag time with its echoes' header, and the map at ``map_rate`` ticks of bag time
 
 The localiser's work on a ping needs nothing of other pings
 (:class:`~sonar_ring.ping_stage.PingStage`), so ``process`` runs it on batches
-of pings at once (:class:`LocaliserWork`) and hands the batches to worker
-processes; the header check, the mapper and the file I/O stay in order in the
-main process.
+of pings at once (:class:`LocaliserWork`), in worker processes where there are
+cores to spare; the mapper needs every ping before, and is the longest work, so
+it runs in order in a process of its own (:class:`MappingWork`); the reading,
+the header check and the writing stay in order in the main process, which
+writes each ping's outputs once the mapper has mapped it.
 
 ``process`` also writes what tf would carry (:func:`~sonar_ring.ros.bag.tf_message`;
 the bag library's types give the schema, so without tf2_msgs): ``/tf_static``
@@ -39,7 +41,7 @@ import multiprocessing
 import os
 import time
 from collections import Counter, deque
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future, ProcessPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -51,7 +53,7 @@ from std_msgs.msg import Header
 from sonar_ring.echoes import EchoArrays
 from sonar_ring.geometry import Layout, LayoutError, load_layout, shipped_params
 from sonar_ring.landmarks import CLASS_NAMES, Landmarks
-from sonar_ring.map_builder import MapBuilder
+from sonar_ring.map_builder import MapBuilder, PublishedMap
 from sonar_ring.ping_stage import Counts, PingStage, check_ping
 from sonar_ring.progress import progress_bar
 from sonar_ring.realism import World, scene_realism
@@ -236,23 +238,23 @@ def _work(batch: list[bytes]) -> list[PingOutput]:
 
 
 @contextlib.contextmanager
-def stage_workers(work: LocaliserWork, jobs: int):
-    """``jobs - 1`` forked processes that run ``work`` (a process pool), or None when ``jobs`` is 1.
+def stage_workers(work: LocaliserWork, workers: int):
+    """``workers`` forked processes that run ``work`` (a process pool), or None when ``workers`` is 0.
 
     The workers start at once and load the stage's compiled kernels while this
     process opens the bag and reads the odometry, so the first batch does not
     wait for them.
     """
-    if jobs <= 1:
+    if workers < 1:
         yield None
         return
     context = multiprocessing.get_context("fork")
-    with ProcessPoolExecutor(jobs - 1, mp_context=context, initializer=_start_worker, initargs=(work,)) as pool:
+    with ProcessPoolExecutor(workers, mp_context=context, initializer=_start_worker, initargs=(work,)) as pool:
         pool.submit(int)  # the pool forks its workers at the first task
         yield pool
 
 
-def ordered_map(work: LocaliserWork, items, workers: ProcessPoolExecutor | None, jobs: int, meanwhile=None,
+def ordered_map(work: LocaliserWork, items, workers: ProcessPoolExecutor | None = None, ahead: int = 2,
                 batch: int = 64):
     """``(item, output)`` for ``(ping, data, item)`` in ``items``, in order: the work's output.
 
@@ -261,16 +263,12 @@ def ordered_map(work: LocaliserWork, items, workers: ProcessPoolExecutor | None,
 
     The work runs on ``batch`` messages at a time.
     Without ``workers`` it runs here; with them (:func:`stage_workers`) the
-    batches go to the workers (``jobs - 1`` of them) as serialized messages
-    (``data``), while this process, which reads, maps and writes and is the
-    busiest, goes on.  At most ``2 * jobs`` batches are in flight, so a long bag
-    is streamed, not loaded.  ``meanwhile`` (no arguments) runs once before the
-    first output: with workers, while they work on the first batches.
+    batches go to the workers as serialized messages (``data``), while this
+    process, which reads and writes, goes on.  At most ``ahead`` batches are
+    in flight, so a long bag is streamed, not loaded.
     """
     chunks = iter(lambda: list(itertools.islice(items, batch)), [])
     if workers is None:
-        if meanwhile:
-            meanwhile()
         for chunk in chunks:
             outputs = work.outputs([ping for ping, *_ in chunk])
             yield from zip([item for *_, item in chunk], outputs, strict=True)
@@ -279,20 +277,191 @@ def ordered_map(work: LocaliserWork, items, workers: ProcessPoolExecutor | None,
     for chunk in itertools.chain(chunks, [None]):
         if chunk is not None:
             pending.append(([item for *_, item in chunk], workers.submit(_work, [data for _, data, _ in chunk])))
-        while pending and (chunk is None or len(pending) >= 2 * jobs):
-            if meanwhile:
-                meanwhile()
-                meanwhile = None
+        while pending and (chunk is None or len(pending) >= ahead):
             chunk_items, future = pending.popleft()
             yield from zip(chunk_items, future.result(), strict=True)
 
 
-class OfflineGraph:
-    """The input check and the mapper of one echoes topic, and the writing of its outputs, in bag-time order.
+@dataclass(frozen=True)
+class MapperOutput:
+    """What the mapper publishes at one ping, for ``process`` to write.
 
-    The per-ping work between them is a :class:`~sonar_ring.ping_stage.PingStage`; the mapper is the
-    node's core (:class:`~sonar_ring.map_builder.MapBuilder`) with the whole
-    odometry of the bag.
+    Attributes
+    ----------
+    map : tuple or None
+        ``(time_ns, PublishedMap)``: the map at the ``map_rate`` tick of bag time before the ping
+        (:meth:`~sonar_ring.map_builder.MapBuilder.published`), when it changed since the tick before.
+    pose : tuple or None
+        With SLAM, once the ping is mapped: ``(stamp, pose, covariance, map_to_odom)``, the ping's stamp (ns),
+        the robot's pose ``(x, y, yaw)`` in ``map`` with its covariance (3, 3)
+        (:meth:`~sonar_ring.slam.LandmarkSlam.pose`) and the ``map -> odom`` transform ``(x, y, yaw)``.
+    """
+
+    map: tuple | None = None
+    pose: tuple | None = None
+
+
+class MappingWork:
+    """The mapper of each echoes topic over its pings, in bag-time order: the node's core and its map ticks.
+
+    The mappers' work is the longest of ``process`` and needs every ping before, so it runs on its own: in one
+    process (:func:`mapping_process`) beside this one's reading, localising and writing.
+
+    Parameters
+    ----------
+    values : dict
+        Parameter values by node name (:func:`node_values`).
+    layout : Layout
+    topics : list of str
+        The echoes topics, one mapper each.
+    """
+
+    def __init__(self, values: dict, layout: Layout, topics: list[str]) -> None:
+        settings = replace(mapper.mapper_settings(values["mapper"]), pose_history=None, layout=layout)
+        self.counts = Counts()
+        self._builders = {topic: MapBuilder(settings, self.counts) for topic in topics}
+        self._map_period = int(round(1e9 / values["mapper"]["map_rate"]))
+        self._next_map: dict[str, int | None] = dict.fromkeys(topics)
+
+    def load_kernels(self) -> None:
+        """Load the mappers' compiled kernels now (:meth:`~sonar_ring.map_builder.MapBuilder.load_kernels`)."""
+        for builder in self._builders.values():
+            builder.load_kernels()
+
+    def add_odometry(self, odometry: dict) -> None:
+        """Each topic's whole odometry: ``(stamps, poses, covariances)`` (:func:`_read_odometry`) or None, by topic."""
+        for topic, history in odometry.items():
+            for stamp, pose, covariance in zip(*history, strict=True) if history is not None else ():
+                self._builders[topic].add_odometry(stamp, pose, covariance)
+
+    def outputs(self, pings: list[tuple]) -> list[MapperOutput]:
+        """Map ``(topic, time_ns, stamp, labelled)`` pings in order, one output each.
+
+        ``time_ns`` is the ping's bag time, ``stamp`` its header's (ns), ``labelled`` its labelled landmarks
+        (:class:`PingOutput`), None when the localiser refused it (the map still ticks).
+        """
+        return [self._ping(*ping) for ping in pings]
+
+    def _ping(self, topic: str, time_ns: int, stamp: int, labelled: Landmarks | None) -> MapperOutput:
+        builder = self._builders[topic]
+        tick = self._tick(topic, time_ns)
+        if labelled is None or not builder.add_ping(stamp, labelled) or builder.slam is None:
+            return MapperOutput(tick)
+        pose, covariance = builder.slam.pose()
+        return MapperOutput(tick, (builder.latest_stamp, pose, covariance, builder.slam.map_to_odom(pose)))
+
+    def _tick(self, topic: str, time_ns: int) -> tuple | None:
+        """The map at the last tick up to ``time_ns`` if it changed (the ticks start ``1 / map_rate`` after a ping)."""
+        builder, next_map = self._builders[topic], self._next_map[topic]
+        if next_map is None:
+            self._next_map[topic] = time_ns + self._map_period
+            return None
+        if next_map > time_ns:
+            return None
+        self._next_map[topic] += ((time_ns - next_map) // self._map_period + 1) * self._map_period
+        return self._changed_map(builder, next_map)
+
+    @staticmethod
+    def _changed_map(builder: MapBuilder, time_ns: int) -> tuple | None:
+        if not builder.changed:
+            return None
+        builder.changed = False
+        return time_ns, builder.published()
+
+    def finish(self) -> tuple[dict, dict, dict]:
+        """The end of the bag: each topic's last map and final map, and the mappers' counts.
+
+        Returns ``({topic: (last, final)}, problems, notes)``: ``last`` the map at the tick after the last ping if
+        it changed (``(time_ns, PublishedMap)``, else None), ``final`` the map as published (Landmarks).  Pings
+        after the last odometry are not mapped (``no_odometry``).
+        """
+        maps = {}
+        for topic, builder in self._builders.items():
+            builder.give_up_waiting()
+            last = None if self._next_map[topic] is None else self._changed_map(builder, self._next_map[topic])
+            maps[topic] = last, builder.snapshot()
+        return maps, dict(self.counts.problems), dict(self.counts.notes)
+
+
+class _MappingHere:
+    """The mappers in this process (``--jobs 1``): each call runs at once, its result a done future."""
+
+    def __init__(self, work: MappingWork) -> None:
+        self._work = work
+
+    def submit(self, method: str, *args) -> Future:
+        done = Future()
+        done.set_result(getattr(self._work, method)(*args))
+        return done
+
+
+class _MappingProcess:
+    """The mappers in a forked process of their own: each call queued there, in order (a pool of one)."""
+
+    def __init__(self, pool: ProcessPoolExecutor) -> None:
+        self._pool = pool
+
+    def submit(self, method: str, *args) -> Future:
+        return self._pool.submit(_map, method, *args)
+
+
+_mapping: MappingWork | None = None
+"""The mappers of the mapping process (set by :func:`_start_mapping`)."""
+
+
+def _start_mapping(values: dict, layout: Layout, topics: list[str]) -> None:
+    global _mapping
+    _mapping = MappingWork(values, layout, topics)
+    _mapping.load_kernels()
+
+
+def _map(method: str, *args):
+    return getattr(_mapping, method)(*args)
+
+
+@contextlib.contextmanager
+def mapping_process(values: dict, layout: Layout, topics: list[str], separate: bool):
+    """The topics' mappers (:class:`MappingWork`): in a forked process of their own if ``separate``, else here.
+
+    Either takes ``submit(method, *args)`` and returns a future of the method's result; the calls run in order.
+    The process starts at once and loads the mappers' compiled kernels (numba's start, the largest fixed cost)
+    while this one reads the odometry and localises the first pings.
+    """
+    if not separate:
+        yield _MappingHere(MappingWork(values, layout, topics))
+        return
+    context = multiprocessing.get_context("fork")
+    with ProcessPoolExecutor(1, mp_context=context, initializer=_start_mapping,
+                             initargs=(values, layout, topics)) as pool:
+        pool.submit(int)  # the pool forks its process at the first task
+        yield _MappingProcess(pool)
+
+
+def mapped_in_order(mapping, items, batch: int = 64, ahead: int = 3):
+    """``(item, output, mapped)`` for ``((topic, time_ns, header), output)`` in ``items``: what the mapper made of it.
+
+    ``output`` is the ping's :class:`PingOutput`, ``mapped`` its :class:`MapperOutput`.  The pings go to
+    ``mapping`` (:func:`mapping_process`) ``batch`` at a time, at most ``ahead`` batches in flight, so the mappers
+    always have the next batch while this process writes the last one, and a long bag is streamed, not loaded.
+    """
+    chunks = iter(lambda: list(itertools.islice(items, batch)), [])
+    pending = deque()
+    for chunk in itertools.chain(chunks, [None]):
+        if chunk is not None:
+            pings = [(topic, time_ns, stamp_ns(header), output.labelled) for (topic, time_ns, header), output in chunk]
+            pending.append((chunk, mapping.submit("outputs", pings)))
+        while pending and (chunk is None or len(pending) >= ahead):
+            done, future = pending.popleft()
+            for (item, output), mapped in zip(done, future.result(), strict=True):
+                yield item, output, mapped
+
+
+class OfflineGraph:
+    """The input check of one echoes topic, and the writing of its outputs and its mapper's, in bag-time order.
+
+    The per-ping work between them is a :class:`~sonar_ring.ping_stage.PingStage`; the mapper's is
+    :class:`MappingWork` (the node's core, :class:`~sonar_ring.map_builder.MapBuilder`, with the whole
+    odometry of the bag).
 
     Parameters
     ----------
@@ -305,7 +474,7 @@ class OfflineGraph:
         of int), robot poses (O, 3) ``(x, y, yaw)`` in the odometry frame (m,
         rad) and their covariances (list of (3, 3), as the messages give them:
         :meth:`~sonar_ring.map_builder.MapBuilder.add_odometry` judges them);
-        None to place every ping at the mapper's ``fixed_pose``.
+        None where the mapper places every ping at its ``fixed_pose``.  Written on ``/tf``.
     writer : BagWriter
         Where the outputs go.
     counts : Counts
@@ -320,11 +489,7 @@ class OfflineGraph:
     def __init__(self, values: dict, namespace: str, odometry, writer: BagWriter, counts: Counts,
                  layout: Layout) -> None:
         self._mapper = values["mapper"]
-        settings = replace(mapper.mapper_settings(self._mapper), pose_history=None, layout=layout)
-        self.builder = MapBuilder(settings, counts)
         self._odometry = odometry if odometry is not None else ([], np.empty((0, 3)), [])
-        for stamp, pose, covariance in zip(*self._odometry, strict=True):
-            self.builder.add_odometry(stamp, pose, covariance)
         self._odometry_written = 0
         self._writer = writer
         self._counts = counts
@@ -332,8 +497,6 @@ class OfflineGraph:
         self._check = TopicCheck(self._clock, counts, "echoes", values["localiser"])
         self._connections = {name: writer.connection(absolute(name, namespace), TOPIC[name].message, TOPIC[name].qos)
                              for name in self.OUTPUTS + ("/tf", "/tf_static")}
-        self._map_period = int(round(1e9 / self._mapper["map_rate"]))
-        self._next_map: int | None = None
         self._layout = layout
         self._static_written = False
         self.per_class = np.zeros(len(CLASS_NAMES), dtype=np.int64)
@@ -346,9 +509,13 @@ class OfflineGraph:
         self._clock.nanoseconds = time_ns
         return self._check.take_echoes(data, None)
 
-    def take(self, time_ns: int, header: Header, output: PingOutput) -> None:
-        """Write a ping's outputs at ``time_ns``, map its landmarks (and write the map ticks before it)."""
-        self._maps_until(time_ns)
+    def write(self, time_ns: int, header: Header, output: PingOutput, mapped: MapperOutput) -> None:
+        """Write a ping's outputs at ``time_ns`` as the live graph publishes them.
+
+        The map's tick before the ping, the odometry's transforms, the localiser's messages and the mapper's pose.
+        """
+        if mapped.map is not None:
+            self._write_map(*mapped.map)
         self._transforms_until(time_ns, header.frame_id)
         self._counts.problems.update(output.problems)
         self._counts.notes.update(output.notes)
@@ -358,19 +525,17 @@ class OfflineGraph:
                               strict=True):
             self._writer.write(self._connections[name], time_ns, data)
         self.per_class += output.per_class
-        if self.builder.add_ping(stamp_ns(header), output.labelled) and self.builder.slam is not None:
-            self._write_pose(time_ns)
+        if mapped.pose is not None:
+            self._write_pose(time_ns, *mapped.pose)
 
-    def _write_pose(self, time_ns: int) -> None:
+    def _write_pose(self, time_ns: int, stamp: int, pose, covariance, map_to_odom) -> None:
         """``slam/pose`` and ``map -> odom`` on ``/tf`` at the latest ping mapped, as the live mapper publishes them."""
         header = Header(frame_id=self._mapper["map_frame"])
-        header.stamp.sec, header.stamp.nanosec = divmod(self.builder.latest_stamp, 10**9)
-        pose, covariance = self.builder.slam.pose()
-        self._writer.write(self._connections["slam/pose"], time_ns,
-                           mapper.serialize_pose(pose, covariance, header))
-        x, y, yaw = self.builder.slam.map_to_odom(pose)
+        header.stamp.sec, header.stamp.nanosec = divmod(stamp, 10**9)
+        self._writer.write(self._connections["slam/pose"], time_ns, mapper.serialize_pose(pose, covariance, header))
+        x, y, yaw = map_to_odom
         self._writer.write(self._connections["/tf"], time_ns, tf_message([
-            (self.builder.latest_stamp, self._mapper["map_frame"], self._mapper["odom_frame"], (x, y, 0.0, yaw))]))
+            (stamp, self._mapper["map_frame"], self._mapper["odom_frame"], (x, y, 0.0, yaw))]))
 
     def _transforms_until(self, time_ns: int, sensor_frame: str) -> None:
         """``/tf_static`` before the first ping; ``odom -> base_frame`` of every odometry up to ``time_ns``."""
@@ -385,37 +550,17 @@ class OfflineGraph:
                 (stamp, self._mapper["odom_frame"], self._mapper["base_frame"], (pose[0], pose[1], 0.0, pose[2]))]))
             self._odometry_written += 1
 
-    def finish(self) -> None:
-        """Write the map at the tick after the last ping, as the live mapper would, if it changed.
-
-        Pings after the last odometry are not mapped (``no_odometry``).
-        """
-        self.builder.give_up_waiting()
-        if self.builder.changed and self._next_map is not None:
-            self._write_map(self._next_map)
-
-    def _maps_until(self, time_ns: int) -> None:
-        """Write the map at the ticks up to ``time_ns`` (the last one that saw a change)."""
-        if self._next_map is None:
-            self._next_map = time_ns + self._map_period
-            return
-        if self._next_map > time_ns:
-            return
-        if self.builder.changed:
-            self._write_map(self._next_map)
-        self._next_map += ((time_ns - self._next_map) // self._map_period + 1) * self._map_period
-
-    def _write_map(self, time_ns: int) -> None:
-        header = Header(frame_id=self.builder.frame)
+    def _write_map(self, time_ns: int, published: PublishedMap) -> None:
+        header = Header(frame_id=published.frame)
         header.stamp.sec, header.stamp.nanosec = divmod(time_ns, 10**9)
-        messages = mapper.map_messages(self.builder, header)
-        for name, data in zip(("map/landmarks", "map/markers", "map/points"), messages, strict=True):
+        for name, data in zip(("map/landmarks", "map/markers", "map/points"), mapper.map_messages(published, header),
+                              strict=True):
             self._writer.write(self._connections[name], time_ns, data)
-        self.builder.changed = False
 
-    def map_per_class(self) -> np.ndarray:
-        """Landmarks of the map as published, per class code."""
-        return np.bincount(self.builder.snapshot().landmark_class, minlength=len(CLASS_NAMES))
+    def finish(self, last: tuple | None) -> None:
+        """Write the map at the tick after the last ping (``(time_ns, PublishedMap)``), if it changed."""
+        if last is not None:
+            self._write_map(*last)
 
 
 def _topics_by_name(bag: BagReader) -> dict:
@@ -506,10 +651,10 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
     storage : str
         ``mcap`` or ``sqlite3``, for the output.
     jobs : int, optional
-        Processes in all: this one (the map's association and fusion and the
-        file I/O, in order) and ``jobs - 1`` workers for the localiser's
-        work; 1 does everything here;
-        default one per CPU this process may use.
+        Processes in all: this one (reading, the input checks and writing, in
+        order), one for the mappers (:func:`mapping_process`) and ``jobs - 2``
+        workers for the localiser's work (2: it runs here); 1 does everything
+        here; default one per CPU this process may use.
     progress : bool
         Draw a progress bar on stderr (in a terminal: :func:`~sonar_ring.progress.progress_bar`).
 
@@ -542,39 +687,42 @@ def process_bag(in_path, out_path, *, layout=None, params_file=None, echoes_topi
         work = LocaliserWork(PingStage(sensor, localiser.settings_from(values["localiser"])),
                              values["localiser"]["marker_lifetime"])
         jobs = jobs or len(os.sched_getaffinity(0))
-        with stage_workers(work, jobs) as workers, BagWriter(out_path, storage) as writer:
-            graphs = {}
+        stage_jobs = max(jobs - 2, 0)
+        with mapping_process(values, sensor, chosen, separate=jobs > 1) as mapping, \
+                stage_workers(work, stage_jobs) as workers, BagWriter(out_path, storage) as writer:
+            graphs, odometry = {}, {}
             for name, namespace in zip(chosen, namespaces, strict=True):
-                odometry = None
+                odometry[name] = None
                 if values["mapper"]["use_odometry"]:
-                    odometry = _odometry_for(bag, topics, absolute(odom_topic or "odom", namespace),
-                                             values["mapper"], counts, report, explicit=odom_topic is not None)
-                graphs[name] = OfflineGraph(values, namespace, odometry, writer, counts, sensor)
+                    odometry[name] = _odometry_for(bag, topics, absolute(odom_topic or "odom", namespace),
+                                                  values["mapper"], counts, report, explicit=odom_topic is not None)
+                graphs[name] = OfflineGraph(values, namespace, odometry[name], writer, counts, sensor)
+            odometry_added = mapping.submit("add_odometry", odometry)
             bar = progress_bar(sum(c.msgcount for c in echo_connections), enabled=progress)
             times = []
 
             def admitted():
                 for connection, time_ns, data in bag.messages(echo_connections):
                     times.append(time_ns)
-                    graph = graphs[connection.topic]
-                    ping = graph.admit(time_ns, data)
+                    ping = graphs[connection.topic].admit(time_ns, data)
                     if ping is not None:
-                        yield ping, data, (graph, time_ns, ping[0])
+                        yield ping, data, (connection.topic, time_ns, ping[0])
                     bar.update(1)
 
-            def load_kernels():  # the mappers' kernels load while the workers localise the first batches
-                for graph in graphs.values():
-                    graph.builder.load_kernels()
-
-            for (graph, time_ns, header), output in ordered_map(work, admitted(), workers, jobs,
-                                                                meanwhile=load_kernels):
-                graph.take(time_ns, header, output)
+            localised = ordered_map(work, admitted(), workers, ahead=2 * stage_jobs)
+            for (name, time_ns, header), output, mapped in mapped_in_order(mapping, localised):
+                graphs[name].write(time_ns, header, output, mapped)
             bar.close()
+            odometry_added.result()
+            maps, problems, notes = mapping.submit("finish").result()
+            counts.problems.update(problems)
+            counts.notes.update(notes)
             for name, graph in graphs.items():
-                graph.finish()
-                report.maps[name] = graph.builder.snapshot()
+                last, report.maps[name] = maps[name]
+                graph.finish(last)
                 report.per_class.update(dict(zip(CLASS_NAMES, graph.per_class.tolist(), strict=True)))
-                report.map_per_class.update(dict(zip(CLASS_NAMES, graph.map_per_class().tolist(), strict=True)))
+                per_class = np.bincount(report.maps[name].landmark_class, minlength=len(CLASS_NAMES))
+                report.map_per_class.update(dict(zip(CLASS_NAMES, per_class.tolist(), strict=True)))
     report.pings = len(times)
     report.data_seconds = (times[-1] - times[0]) * 1e-9 if times else 0.0
     report.problems, report.notes = counts.problems, counts.notes
