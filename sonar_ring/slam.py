@@ -556,7 +556,8 @@ class LandmarkSlam:
         self._next_landmark = 0
         self._air_rows: list[_AirRows] = []  # the air's sightings measured since the last update
         self.air.start_session()
-        self._last_odometry = self._last_odometry_covariance = None
+        self._last_odometry = None
+        self._latest_pose = None  # (pose, covariance) in map at the latest ping: pose_at its odometry
         self._last_time = None
         self._last_seen_time = None
         self._ping = 0
@@ -600,17 +601,18 @@ class LandmarkSlam:
         keyframe = self._pings_since_keyframe == 0
         self._pings_since_keyframe += 1
         self._ping += 1
-        self._last_odometry, self._last_odometry_covariance, self._last_time = odometry, odometry_covariance, time
+        self._last_odometry, self._last_time = odometry, time
         step = relative_pose(self._keyframe_odometry, odometry)
         pose = compose(self._keyframe_pose, step)
+        covariance = self._pose_covariance(pose, step, self._measured_step(odometry, odometry_covariance))
+        self._latest_pose = pose, covariance  # what pose_at gives until the next ping: pose() returns it
         report = SlamReport(pose=self._scaled_pose(pose), keyframe=keyframe, inconsistent=inconsistent, fault=fault,
                             step_noise_assumed=assumed)
         if not len(landmarks):
             return report
         sensor = compose(pose, offset)
         in_map = transform_landmarks(landmarks, sensor)
-        extra = self._pose_spread(in_map.position, pose,
-                                  self._pose_covariance(pose, step, self._measured_step(odometry, odometry_covariance)))
+        extra = self._pose_spread(in_map.position, pose, covariance)
         widened = Landmarks(in_map.landmark_class, in_map.position, in_map.normal, in_map.covariance + extra,
                             in_map.confidence, in_map.segment, in_map.observations, in_map.group, in_map.echo,
                             in_map.valid, in_map.reason)
@@ -1100,11 +1102,11 @@ class LandmarkSlam:
     def pose(self) -> tuple[np.ndarray, np.ndarray]:
         """The robot's latest pose in ``map`` ``(x, y, yaw)`` and its covariance (3, 3), in ``map`` as published.
 
-        (:meth:`pose_at`, :meth:`scaled`.)
+        (:meth:`pose_at` the latest ping's odometry, kept from :meth:`add_ping`; :meth:`scaled`.)
         """
-        if self._last_odometry is None:
+        if self._latest_pose is None:
             return np.zeros(3), np.zeros((3, 3))
-        pose, covariance = self.pose_at(self._last_odometry, self._last_odometry_covariance)
+        pose, covariance = self._latest_pose
         return self._scaled_pose(pose), covariance * np.outer(*2 * [(self._scale(), self._scale(), 1.0)])
 
     def _scaled_pose(self, pose: np.ndarray) -> np.ndarray:
