@@ -189,6 +189,29 @@ def test_where_the_mapper_and_the_localiser_run_does_not_change_a_byte(sim_bag, 
                 assert got == messages, topic
 
 
+def test_two_echoes_topics_map_apart_in_one_mapper_process(sim_bag, tmp_path):
+    # The same recording under two namespaces: each one's outputs are those of the recording alone.
+    _, source = read_bag(sim_bag)
+    both = tmp_path / "both"
+    with BagWriter(both) as writer:
+        written = []
+        for namespace in ("/left", "/right"):
+            echoes = writer.connection(f"{namespace}/echoes", TOPIC["echoes"].message, TOPIC["echoes"].qos)
+            odom = writer.connection(f"{namespace}/odom", TOPIC["odom"].message, TOPIC["odom"].qos)
+            written += [(t, echoes, raw) for t, raw in source["/echoes"]]
+            written += [(t, odom, raw) for t, raw in source["/odom"]]
+        for time_ns, connection, raw in sorted(written, key=lambda item: item[0]):
+            writer.write(connection, time_ns, raw)
+    assert main(["process", str(sim_bag), str(tmp_path / "alone"), "--quiet", "--jobs", "1"]) == 0
+    alone = read_bag(tmp_path / "alone")[1]
+    for jobs in (1, 2):
+        assert main(["process", str(both), str(tmp_path / f"both_{jobs}"), "--quiet", "--jobs", str(jobs)]) == 0
+        outputs = read_bag(tmp_path / f"both_{jobs}")[1]
+        for namespace in ("/left", "/right"):
+            for topic in ("/landmarks", "/slam/pose", "/map/landmarks", "/map/markers"):
+                assert outputs[namespace + topic] == alone[topic], (jobs, namespace, topic)
+
+
 def test_a_mapper_failing_in_its_process_fails_the_run_and_leaves_no_output(sim_bag, tmp_path, monkeypatch):
     def fail(self, pings):
         raise ValueError("the mapper broke")
