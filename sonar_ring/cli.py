@@ -248,8 +248,8 @@ def _add_process(subparsers) -> None:
     p.add_argument("--odom-topic", metavar="TOPIC", help="nav_msgs/Odometry for the mapper, relative to the echoes' "
                    "namespace (default: odom if the bag has it, else the mapper's fixed_pose)")
     p.add_argument("--jobs", type=_positive_int, metavar="N", help="processes in all: this one (reading, writing), "
-                   "one mapping and N - 2 workers localising and classifying batches of pings (2: they run in this "
-                   "one); 1: all in this one (default: one per CPU)")
+                   "one mapping, and N - 2 workers localising and classifying batches of pings (with 2, this one "
+                   "localises); 1: all in this one (default: one per CPU)")
     p.add_argument("--scene", metavar="SCENE", help="score each final map against this scene (name or YAML path) "
                    "with sonar_ring.score, the map's frame taken as the scene's world frame (as in a bag from "
                    "sonar-ring record-sim, whose odometry starts at the true pose); every reflector of the scene "
