@@ -475,6 +475,11 @@ def _seen(landmarks: Landmarks, models: PointModels | None, uids: np.ndarray, se
                  models.edge, models.edge_covariance, models.corner, models.corner_covariance)
 
 
+def _usable(covariance) -> np.ndarray | None:
+    """``covariance`` where the map takes it (:func:`~sonar_ring.mapping.usable_covariance`), else None."""
+    return covariance if covariance is not None and usable_covariance(covariance) else None
+
+
 def _fused(uid: np.ndarray, measurement: np.ndarray, covariance: np.ndarray):
     """Each entry's measurements fused: information-weighted mean and its covariance.
 
@@ -547,7 +552,7 @@ class LandmarkSlam:
         self._held: list[_Held] = []  # the keyframes still in the smoother's window, oldest first
         self._keyframe = -1  # index of the latest keyframe
         self._keyframe_odometry = None  # its odometry pose
-        self._keyframe_odometry_covariance = None  # and that pose's covariance, when the odometry gives one
+        self._keyframe_odometry_covariance = None  # and that pose's covariance, when it is one the map takes
         self._keyframe_pose = None  # its estimate in map
         self._keyframe_covariance = np.zeros((3, 3))
         self._origin = np.zeros(2)  # the first keyframe's position in map: the published map's scale is about it
@@ -688,8 +693,7 @@ class LandmarkSlam:
         In the keyframe's frame; None where either pose has no covariance the map takes
         (:func:`~sonar_ring.mapping.usable_covariance`) or it did not grow (:func:`~sonar_ring.poses.step_covariance`).
         """
-        if not (covariance is not None and self._keyframe_odometry_covariance is not None
-                and usable_covariance(covariance) and usable_covariance(self._keyframe_odometry_covariance)):
+        if self._keyframe_odometry_covariance is None or _usable(covariance) is None:
             return None
         return step_covariance(self._keyframe_odometry, self._keyframe_odometry_covariance, odometry, covariance)
 
@@ -872,7 +876,7 @@ class LandmarkSlam:
         values.insert(key, pose)
         self._smoother.update(graph, values, {key: time})
         self._keyframe, self._keyframe_odometry, self._keyframe_time = 0, odometry.copy(), time
-        self._keyframe_odometry_covariance = covariance
+        self._keyframe_odometry_covariance = _usable(covariance)
         self._keyframe_pose = odometry.copy()
         self._origin = odometry[:2].copy()
         self._keyframe_covariance = np.diag([1e-8, 1e-8, 1e-10])
@@ -912,7 +916,7 @@ class LandmarkSlam:
             self._keyframe_covariance = adjoint @ self._keyframe_covariance @ adjoint.T
             self._fit_air(estimate)
             self.air_estimate = self.air.fit()
-        self._keyframe_odometry, self._keyframe_odometry_covariance = odometry.copy(), covariance
+        self._keyframe_odometry, self._keyframe_odometry_covariance = odometry.copy(), _usable(covariance)
         self._keyframe_time = time
         self._pings_since_keyframe = 0
         self._since_keyframe.clear()
