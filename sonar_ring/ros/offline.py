@@ -318,8 +318,8 @@ class MappingWork:
 
     def __init__(self, values: dict, layout: Layout, topics: list[str]) -> None:
         settings = replace(mapper.mapper_settings(values["mapper"]), pose_history=None, layout=layout)
-        self.counts = Counts()
-        self._builders = {topic: MapBuilder(settings, self.counts) for topic in topics}
+        self._counts = Counts()
+        self._builders = {topic: MapBuilder(settings, self._counts) for topic in topics}
         self._map_period = int(round(1e9 / values["mapper"]["map_rate"]))
         self._next_map: dict[str, int | None] = dict.fromkeys(topics)
 
@@ -380,7 +380,7 @@ class MappingWork:
             builder.give_up_waiting()
             last = None if self._next_map[topic] is None else self._changed_map(builder, self._next_map[topic])
             maps[topic] = last, builder.snapshot()
-        return maps, dict(self.counts.problems), dict(self.counts.notes)
+        return maps, dict(self._counts.problems), dict(self._counts.notes)
 
 
 class _MappingHere:
