@@ -358,7 +358,7 @@ def _gated_score_of(x, y, c00, c01, c10, c11, observations, distance, with_dista
 @kernel
 def _point_scores(rows, slots, seen_class, position, covariance, normal, distance, entry_class, by_motion, mean,
                   information, observations, anchor, line, line_information, extent, map_sigma, gate_chi2):
-    """:meth:`LandmarkMap._point_distances` of sightings ``rows`` (of the sightings' arrays) against points ``slots``.
+    """Gate distances ``d^2`` and scores of sightings ``rows`` (of the sightings' arrays) against points ``slots``.
 
     A sighting is tried as a point where the classes allow (not a plane; the
     point UNKNOWN, the sighting UNKNOWN or of its class, or the point's class
@@ -653,6 +653,46 @@ def _best_targets(count, row, candidate, d2, score, new_entry_gate_chi2):
         if target[r] < 0 and nearest[r] <= new_entry_gate_chi2:
             target[r] = _AMBIGUOUS
     return target
+
+
+@kernel
+def _best_entries(seen_class, position, covariance, normal, distance, point_active, latest, point_class, by_motion,
+                  mean, point_information, point_observations, point_anchor, point_line, point_line_information,
+                  point_extent, wall_active, wall_anchor, wall_line, wall_information, wall_tangent, wall_normal,
+                  wall_extent, wall_observations, max_points, map_sigma, search_radius, gate_chi2,
+                  new_entry_gate_chi2):
+    """:meth:`LandmarkMap._associate`: each sighting's entry (:func:`_best_targets`) among the points and walls.
+
+    The sightings' arrays (:class:`Sightings`) and the two tables' (``_Points``, ``_Walls``).  Candidates are
+    the active points whose latest sighting lies within ``search_radius`` (scored by :func:`_point_scores`:
+    ``d^2`` the smaller over the models the classes allow, inf if none, the score that of the best model
+    within the gate, :func:`_gated_score_of`) and, for UNKNOWN and PLANE sightings, the active walls whose
+    seen segment does (:func:`_wall_scores`).  A sighting is no candidate of a wall when an EDGE on the
+    wall's line lies between its seen extent and the sighting (:func:`_edges_past_extents`): the other side
+    of a doorway, the jamb's own echo placed along the line, is not this wall's, however near (a seen
+    extent grown across a doorway sighting by sighting reached the wall beyond it, 1.8 m past the wall's end
+    in one realistic run of 20); a sighting within the extent always may join.  One compiled call, as the
+    mapper makes it every ping.
+    """
+    point_slots = np.flatnonzero(point_active)
+    row, column = _pairs_within(position, latest[point_slots], search_radius)
+    point_candidate = point_slots[column]
+    point_d2, point_score = _point_scores(row, point_candidate, seen_class, position, covariance, normal, distance,
+                                          point_class, by_motion, mean, point_information, point_observations,
+                                          point_anchor, point_line, point_line_information, point_extent, map_sigma,
+                                          gate_chi2)
+    line_like = np.flatnonzero((seen_class == UNKNOWN) | (seen_class == PLANE))
+    wall_row, walls, wall_d2, wall_score = _wall_scores(line_like, np.flatnonzero(wall_active), position, covariance,
+                                                        normal, distance, wall_anchor, wall_line, wall_information,
+                                                        wall_tangent, wall_extent, wall_observations, map_sigma,
+                                                        search_radius, gate_chi2)
+    beyond = _edges_past_extents(walls, position[wall_row], wall_anchor, wall_tangent, wall_normal, wall_extent,
+                                 point_active, point_class, mean)
+    wall_d2[beyond] = np.inf
+    wall_score[beyond] = np.inf
+    return _best_targets(seen_class.size, np.concatenate((row, wall_row)),
+                         np.concatenate((point_candidate, max_points + walls)), np.concatenate((point_d2, wall_d2)),
+                         np.concatenate((point_score, wall_score)), new_entry_gate_chi2)
 
 
 @kernel
@@ -1225,6 +1265,116 @@ def _add_differences(difference, modelled, slots, pulled, statistic):
 
 
 @kernel
+def _fuse_point_sightings(slots, rows, seen_class, position, seen_information, confidence, normal, distance,
+                          covariance, segment, viewpoint, mean, information, chi2, latest, observations, entry_class,
+                          by_motion, curvature_decided, confidence_sum, confidence_count, line, line_information,
+                          line_chi2, anchor, across, extent, baseline, motion):
+    """Merge sightings ``rows`` (of the sightings' arrays, :class:`Sightings`) into points ``slots`` (K,), in place.
+
+    The points' arrays are the table's (``_Points``).  Each point's position takes its sightings in
+    information form (:func:`_fuse_information`, its chi-square summed), its latest sighting and their count;
+    an UNKNOWN point's plane hypothesis (only while UNKNOWN: :func:`_fuse_lines`), extent and motion
+    baseline (:func:`_add_motion`, each sighting weighted by its inverse variance across the first line of
+    sight) take them too.  A classified sighting names the class of a point that is UNKNOWN or was named by
+    motion alone (which cannot tell an edge from a corner), until the curvature decides; the confidences of
+    the classified sightings add up.
+    """
+    count = slots.size
+    distinct = np.unique(slots)
+    innovation = np.empty((count, 2))
+    weight = np.empty((count, 2, 2))
+    for k in range(count):
+        innovation[k, 0] = position[rows[k], 0] - mean[slots[k], 0]
+        innovation[k, 1] = position[rows[k], 1] - mean[slots[k], 1]
+        weight[k] = seen_information[rows[k]]
+    _fuse_information(mean, information, chi2, True, slots, distinct, innovation, weight)
+    for k in range(count):
+        latest[slots[k]] = position[rows[k]]
+        observations[slots[k]] += 1
+    still_open = np.flatnonzero(entry_class[slots] == UNKNOWN)
+    if still_open.size:
+        open_slots, open_rows = slots[still_open], rows[still_open]
+        _fuse_lines(line, line_information, line_chi2, True, anchor, across, extent, open_slots, open_rows, normal,
+                    position, distance, covariance, segment)
+        viewpoint_along = np.empty(still_open.size)
+        across_weight = np.empty(still_open.size)
+        for k in range(still_open.size):
+            slot, row = open_slots[k], open_rows[k]
+            across_x, across_y = across[slot, 0], across[slot, 1]
+            viewpoint_along[k] = ((viewpoint[row, 0] - anchor[slot, 0]) * across_x
+                                  + (viewpoint[row, 1] - anchor[slot, 1]) * across_y)
+            c = covariance[row]
+            across_weight[k] = 1.0 / (across_x * (c[0, 0] * across_x + c[0, 1] * across_y)
+                                      + across_y * (c[1, 0] * across_x + c[1, 1] * across_y))
+        _add_motion(baseline, motion, open_slots, viewpoint_along, across_weight)
+    namer = np.full(distinct.size, -1, dtype=np.int64)
+    any_classified = False
+    for k in range(count):
+        slot = slots[k]
+        if seen_class[rows[k]] == UNKNOWN:
+            continue
+        any_classified = True
+        if (entry_class[slot] == UNKNOWN or by_motion[slot]) and not curvature_decided[slot]:
+            index = np.searchsorted(distinct, slot)
+            namer[index] = max(namer[index], k)
+    for index in range(distinct.size):
+        if namer[index] >= 0:
+            slot = distinct[index]
+            entry_class[slot] = seen_class[rows[namer[index]]]
+            confidence_sum[slot] = confidence_count[slot] = 0.0
+            by_motion[slot] = False
+    if any_classified:
+        # per point, the sums first (in the sightings' order), then added to its totals
+        added = np.zeros((distinct.size, 2))
+        for k in range(count):
+            classified = seen_class[rows[k]] != UNKNOWN
+            index = np.searchsorted(distinct, slots[k])
+            added[index, 0] += confidence[rows[k]] if classified else 0.0
+            added[index, 1] += 1.0 if classified else 0.0
+        for index in range(distinct.size):
+            confidence_sum[distinct[index]] += added[index, 0]
+            confidence_count[distinct[index]] += added[index, 1]
+
+
+@kernel
+def _fuse_model_sightings(slots, rows, valid, corner, edge, corner_covariance, edge_covariance, separation_noise,
+                          curvature_decided, modelled, corner_fit, edge_fit, corner_information, edge_information,
+                          corner_chi2, edge_chi2, difference):
+    """Fuse the point models of sightings ``rows`` into points ``slots`` (K,), in place.
+
+    The models' arrays are :class:`~sonar_ring.curvature.PointModels`', the points' the table's (``_Points``).
+    Only the sightings that have both models, and into points the curvature has not decided (nothing reads
+    their two fits again): each model's fit in information form (:func:`_fuse_information`, started at a
+    point's first such sighting), and the sums of the corner model's pull ``W d`` and of ``d^T W d`` less the
+    separation noise of the differences ``d`` of the two models.
+    """
+    keep = np.flatnonzero(valid[rows] & ~curvature_decided[slots])
+    if keep.size == 0:
+        return
+    rows, slots = rows[keep], slots[keep]
+    weight = _inverse(corner_covariance[rows])
+    edge_weight = _inverse(edge_covariance[rows])
+    first = modelled[slots] == 0  # its first sighting with both models: the fits start there
+    for k in range(slots.size):
+        if first[k]:
+            corner_fit[slots[k]] = corner[rows[k]]
+            edge_fit[slots[k]] = edge[rows[k]]
+    distinct = np.unique(slots)
+    _fuse_information(corner_fit, corner_information, corner_chi2, True, slots, distinct,
+                      corner[rows] - corner_fit[slots], weight)
+    _fuse_information(edge_fit, edge_information, edge_chi2, True, slots, distinct, edge[rows] - edge_fit[slots],
+                      edge_weight)
+    pulled = np.empty((slots.size, 2))
+    statistic = np.empty(slots.size)
+    for k in range(slots.size):
+        d_x, d_y = edge[rows[k], 0] - corner[rows[k], 0], edge[rows[k], 1] - corner[rows[k], 1]
+        pulled[k, 0] = weight[k, 0, 0] * d_x + weight[k, 0, 1] * d_y
+        pulled[k, 1] = weight[k, 1, 0] * d_x + weight[k, 1, 1] * d_y
+        statistic[k] = (d_x * pulled[k, 0] + d_y * pulled[k, 1]) - separation_noise[rows[k]]
+    _add_differences(difference, modelled, slots, pulled, statistic)
+
+
+@kernel
 def _classes_of(uids, wall_uid, wall_active, point_uid, point_active, point_class):
     """:meth:`LandmarkMap.classes_of`: each active slot's uid found among the sorted ``uids`` (K,)."""
     is_wall = np.zeros(uids.size, dtype=np.bool_)
@@ -1641,50 +1791,18 @@ class LandmarkMap:
         """Covariance of the lines of walls ``slots``, with the floor, (K, 2, 2)."""
         return _line_entry_covariance(self._walls.information[slots], self._walls.extent[slots], self.map_sigma)
 
-    def _point_distances(self, s: Sightings, rows, slots):
-        """Gate distances and scores (K,) of sightings ``rows`` against points ``slots``.
-
-        ``d^2`` is the smaller over the models the classes allow (inf if none), the
-        score that of the best model within the gate (see :func:`_gated_score_of`).
-        """
-        p = self._points
-        return _point_scores(rows, slots, s.landmark_class, s.position, s.covariance, s.normal, s.distance,
-                             p.landmark_class, p.by_motion, p.mean, p.information, p.observations, p.anchor, p.line,
-                             p.line_information, p.extent, self.map_sigma, self.gate_chi2)
-
     def _associate(self, s: Sightings) -> np.ndarray:
-        """Best entry for each sighting, all sightings against the whole map at once.
+        """Best entry for each sighting, all sightings against the whole map at once (:func:`_best_entries`).
 
         Returns, per sighting, a point slot, ``max_points +`` a wall slot, -1 (start a
         new entry) or ``_AMBIGUOUS``.
         """
-        count = s.landmark_class.size
-        rows, targets, distances, scores = [], [], [], []
-        slots = np.flatnonzero(self._points.active)
-        if slots.size:
-            row, column = _pairs_within(s.position, self._points.latest[slots], self.search_radius)
-            d2, score = self._point_distances(s, row, slots[column])
-            rows.append(row)
-            targets.append(slots[column])
-            distances.append(d2)
-            scores.append(score)
-        slots = np.flatnonzero(self._walls.active)
-        line_like = np.flatnonzero((s.landmark_class == UNKNOWN) | (s.landmark_class == PLANE))
-        if slots.size and line_like.size:
-            w = self._walls
-            row, walls, d2, score = _wall_scores(line_like, slots, s.position, s.covariance, s.normal, s.distance,
-                                                 w.anchor, w.line, w.information, w.tangent, w.extent, w.observations,
-                                                 self.map_sigma, self.search_radius, self.gate_chi2)
-            beyond = self._past_an_edge(walls, s.position[row])
-            d2, score = np.where(beyond, np.inf, d2), np.where(beyond, np.inf, score)
-            rows.append(row)
-            targets.append(self.max_points + walls)
-            distances.append(d2)
-            scores.append(score)
-        if not rows:
-            return np.full(count, -1)
-        return _best_targets(count, *(np.concatenate(a) for a in (rows, targets, distances, scores)),
-                             self.new_entry_gate_chi2)
+        p, w = self._points, self._walls
+        return _best_entries(s.landmark_class, s.position, s.covariance, s.normal, s.distance, p.active, p.latest,
+                             p.landmark_class, p.by_motion, p.mean, p.information, p.observations, p.anchor, p.line,
+                             p.line_information, p.extent, w.active, w.anchor, w.line, w.information, w.tangent,
+                             w.normal, w.extent, w.observations, self.max_points, self.map_sigma, self.search_radius,
+                             self.gate_chi2, self.new_entry_gate_chi2)
 
     def _mark_seen(self, target, sensor) -> None:
         """The ping's matched entries: seen now, their support grown (a ping counts once per entry)."""
@@ -1822,75 +1940,32 @@ class LandmarkMap:
     # ------------------------------------------------------------------ fusion
 
     def _fuse_points(self, s: Sightings, rows, target):
-        """Merge sightings ``rows`` into their points; the slots of all points stored to this ping."""
+        """Merge sightings ``rows`` into their points; the slots of all points stored to this ping.
+
+        :func:`_fuse_point_sightings`, then the point models (:meth:`_fuse_models`).
+        """
         stored = target[(target >= 0) & (target < self.max_points)]
-        if rows.size == 0:
-            return np.unique(stored)
-        p = self._points
-        slots = target[rows]
-        groups = _Groups(slots, self.max_points)
-        _information_update(p.mean, p.information, p.chi2, groups, s.position[rows] - p.mean[slots],
-                            s.information[rows])
-        latest_slots, latest = groups.last()
-        p.latest[latest_slots] = s.position[rows[latest]]
-        p.observations[groups.rows] += groups.counts[groups.rows]
-        # The plane hypothesis and the baseline matter only while the point is UNKNOWN.
-        still_open = np.flatnonzero(p.landmark_class[slots] == UNKNOWN)
-        if still_open.size:
-            self._fuse_plane_hypotheses(s, rows[still_open], slots[still_open])
-        self._fuse_models(s, rows, slots)
-        seen = s.landmark_class[rows]
-        classified = seen != UNKNOWN
-        # A classified sighting names the class of a point that is UNKNOWN or was named by
-        # motion alone (which cannot tell an edge from a corner), until the curvature decides:
-        # the most confident one wins.
-        naming = np.flatnonzero(classified & ((p.landmark_class[slots] == UNKNOWN) | p.by_motion[slots])
-                                & ~p.curvature_decided[slots])
-        if naming.size:
-            by_confidence = naming[np.argsort(s.confidence[rows][naming], kind="stable")]
-            named_slots, namer = groups.last(by_confidence)
-            p.landmark_class[named_slots] = seen[namer]
-            p.confidence_sum[named_slots] = p.confidence_count[named_slots] = 0.0
-            p.by_motion[named_slots] = False
-        if np.any(classified):
-            p.confidence_sum[groups.rows] += groups.total(np.where(classified, s.confidence[rows], 0.0))
-            p.confidence_count[groups.rows] += groups.total(classified.astype(float))
+        if rows.size:
+            p, slots = self._points, target[rows]
+            _fuse_point_sightings(slots, rows, s.landmark_class, s.position, s.information, s.confidence, s.normal,
+                                  s.distance, s.covariance, s.segment, s.viewpoint, p.mean, p.information, p.chi2,
+                                  p.latest, p.observations, p.landmark_class, p.by_motion, p.curvature_decided,
+                                  p.confidence_sum, p.confidence_count, p.line, p.line_information, p.line_chi2,
+                                  p.anchor, p.across, p.extent, p.baseline, p.motion)
+            self._fuse_models(s, rows, slots)
         return np.unique(stored)
 
     def _fuse_models(self, s: Sightings, rows, slots) -> None:
         """Fuse the point models of sightings ``rows`` (those that have both) into points ``slots``.
 
-        Not into points the curvature has decided: nothing reads their two fits again.
+        (:func:`_fuse_model_sightings`.)
         """
         if s.models is None:
             return
-        modelled = s.models.valid[rows] & ~self._points.curvature_decided[slots]
-        if not modelled.any():
-            return
-        rows, slots = rows[modelled], slots[modelled]
         p, m = self._points, s.models
-        weight = _inverse(m.corner_covariance[rows])
-        edge_weight = _inverse(m.edge_covariance[rows])
-        first = p.modelled[slots] == 0  # its first sighting with both models: the fits start there
-        p.corner_fit[slots[first]] = m.corner[rows[first]]
-        p.edge_fit[slots[first]] = m.edge[rows[first]]
-        groups = _Groups(slots, self.max_points)
-        _information_update(p.corner_fit, p.corner_information, p.corner_chi2, groups,
-                            m.corner[rows] - p.corner_fit[slots], weight)
-        _information_update(p.edge_fit, p.edge_information, p.edge_chi2, groups, m.edge[rows] - p.edge_fit[slots],
-                            edge_weight)
-        difference = m.edge[rows] - m.corner[rows]
-        pulled = _apply(weight, difference)
-        _add_differences(p.difference, p.modelled, slots, pulled, _dot(difference, pulled) - m.separation_noise[rows])
-
-    def _fuse_plane_hypotheses(self, s: Sightings, rows, slots) -> None:
-        """Fuse sightings ``rows`` into the plane hypotheses, extents and baselines of ``slots``."""
-        p = self._points
-        _fuse_lines(p.line, p.line_information, p.line_chi2, True, p.anchor, p.across, p.extent, slots, rows,
-                    s.normal, s.position, s.distance, s.covariance, s.segment)
-        across = p.across[slots]
-        viewpoint_along = _dot(s.viewpoint[rows] - p.anchor[slots], across)
-        _add_motion(p.baseline, p.motion, slots, viewpoint_along, 1.0 / _quadratic(across, s.covariance[rows]))
+        _fuse_model_sightings(slots, rows, m.valid, m.corner, m.edge, m.corner_covariance, m.edge_covariance,
+                              m.separation_noise, p.curvature_decided, p.modelled, p.corner_fit, p.edge_fit,
+                              p.corner_information, p.edge_information, p.corner_chi2, p.edge_chi2, p.difference)
 
     def _fuse_walls(self, s: Sightings, rows, target):
         """Merge sightings ``rows`` into their walls; the walls whose segment grew."""
@@ -2048,22 +2123,10 @@ class LandmarkMap:
         on one line with an edge between their middles are the two sides of a doorway, however close their seen
         extents have come (an edge's echo placed a degree off, or a double bounce on the line, runs a seen extent
         past the wall's end), not one wall; and a sighting on the line beyond an edge past the wall's seen extent
-        is not this wall's (:meth:`_past_an_edge`).
+        is not this wall's (:func:`_best_entries`).
         """
         p, w = self._points, self._walls
         return _edges_between(walls, first, second, w.anchor, w.tangent, w.normal, p.active, p.landmark_class, p.mean)
-
-    def _past_an_edge(self, walls, position) -> np.ndarray:
-        """Whether an EDGE on the line of each wall ``walls`` (K,) lies between its seen extent and ``position`` (K, 2).
-
-        A sighting beyond such an edge (the other side of a doorway, the jamb's own echo placed along the line) is
-        not this wall's, however near: a seen extent grown across a doorway sighting by sighting reached the wall
-        beyond it (1.8 m past the wall's end in one realistic run of 20).  A sighting within the extent always may
-        join.
-        """
-        p, w = self._points, self._walls
-        return _edges_past_extents(walls, position, w.anchor, w.tangent, w.normal, w.extent, p.active,
-                                   p.landmark_class, p.mean)
 
     def _absorb_wall(self, keep: int, other: int) -> None:
         w = self._walls
