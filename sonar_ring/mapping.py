@@ -1375,6 +1375,93 @@ def _fuse_model_sightings(slots, rows, valid, corner, edge, corner_covariance, e
 
 
 @kernel
+def _clusters(position, covariance, seen_class, radius, gate_chi2):
+    """Each of K sightings' cluster: the index of the sighting that leads it.
+
+    In order, a sighting not yet in a cluster leads one, which every sighting not yet in one joins that lies
+    within ``radius`` and the Mahalanobis gate ``gate_chi2`` of it (their covariances summed) and is of its
+    class or UNKNOWN.  ``position`` (K, 2), ``covariance`` (K, 2, 2), ``seen_class`` (K,).  Returns (K,).
+    """
+    lead, member = _pairs_within(position, position, radius)  # by leader, each with itself
+    joins = ((_mahalanobis2(position[lead] - position[member], covariance[lead] + covariance[member]) <= gate_chi2)
+             & ((seen_class[member] == seen_class[lead]) | (seen_class[member] == UNKNOWN)))
+    lead, member = lead[joins], member[joins]
+    first = np.searchsorted(lead, np.arange(seen_class.size + 1))
+    cluster = np.full(seen_class.size, -1, dtype=np.int64)
+    for k in range(seen_class.size):
+        if cluster[k] < 0:
+            for pair in range(first[k], first[k + 1]):
+                if cluster[member[pair]] < 0:
+                    cluster[member[pair]] = k
+    return cluster
+
+
+@kernel
+def _start_point_rows(slots, rows, uids, ping, driven, sensor, seen_class, position, seen_information, normal, distance,
+                      covariance, segment, viewpoint, group, confidence, active, uid, entry_class, by_motion, mean,
+                      information, chi2, anchor, line, line_information, line_chi2, across, extent, baseline, motion,
+                      latest, observations, last_seen, pings, first_driven, origin, travel, explained, unexplained,
+                      entry_group, confidence_sum, confidence_count, corner_fit, edge_fit, corner_information,
+                      edge_information, corner_chi2, edge_chi2, difference, modelled, curvature_decided,
+                      decision_distance):
+    """New points ``slots`` (K,) from sightings ``rows`` (K,) of the ping ``ping``, in the table's arrays.
+
+    The sightings' arrays (:class:`Sightings`, the sensor at ``sensor``) and the points' (``_Points``), with
+    their new ``uids`` (K,) and the map's odometer ``driven`` (m).  Each point starts at its sighting: its
+    position and information, its plane hypothesis about it (:func:`_line_of_sight`), its extent and motion
+    baseline along the line of sight's tangent, its support (:func:`_start_support`'s columns), its
+    confidence where classified; its model fits empty.
+    """
+    value, jacobian = _line_of_sight(normal[rows], position[rows], position[rows], distance[rows])
+    plane_information = _inverse(_sandwich(jacobian, covariance[rows]))
+    for k in range(slots.size):
+        slot, row = slots[k], rows[k]
+        x, y = position[row, 0], position[row, 1]
+        tangent_x, tangent_y = -normal[row, 1], normal[row, 0]
+        classified = seen_class[row] != UNKNOWN
+        active[slot] = True
+        uid[slot] = uids[k]
+        entry_class[slot] = seen_class[row]
+        by_motion[slot] = False
+        mean[slot, 0], mean[slot, 1] = x, y
+        information[slot] = seen_information[row]
+        chi2[slot] = 0.0
+        anchor[slot, 0], anchor[slot, 1] = x, y
+        line[slot] = value[k]
+        line_information[slot] = plane_information[k]
+        line_chi2[slot] = 0.0
+        across[slot, 0], across[slot, 1] = tangent_x, tangent_y
+        first = (segment[row, 0, 0] - x) * tangent_x + (segment[row, 0, 1] - y) * tangent_y
+        second = (segment[row, 1, 0] - x) * tangent_x + (segment[row, 1, 1] - y) * tangent_y
+        extent[slot, 0], extent[slot, 1] = np.minimum(first, second), np.maximum(first, second)
+        viewpoint_along = (viewpoint[row, 0] - x) * tangent_x + (viewpoint[row, 1] - y) * tangent_y
+        baseline[slot, 0] = baseline[slot, 1] = viewpoint_along
+        c = covariance[row]
+        weight = 1.0 / (tangent_x * (c[0, 0] * tangent_x + c[0, 1] * tangent_y)
+                        + tangent_y * (c[1, 0] * tangent_x + c[1, 1] * tangent_y))
+        motion[slot, 0], motion[slot, 1] = weight, weight * viewpoint_along
+        motion[slot, 2] = weight * viewpoint_along ** 2
+        latest[slot, 0], latest[slot, 1] = x, y
+        observations[slot] = 1
+        last_seen[slot] = ping
+        pings[slot] = 1
+        first_driven[slot] = driven
+        origin[slot, 0], origin[slot, 1] = sensor[0], sensor[1]
+        travel[slot] = 0.0
+        explained[slot] = unexplained[slot] = 0
+        entry_group[slot] = group[row]
+        confidence_sum[slot] = confidence[row] if classified else 0.0
+        confidence_count[slot] = 1.0 if classified else 0.0
+        corner_fit[slot] = edge_fit[slot] = 0.0
+        corner_information[slot] = edge_information[slot] = 0.0
+        corner_chi2[slot] = edge_chi2[slot] = 0.0
+        difference[slot] = 0.0
+        modelled[slot] = 0
+        curvature_decided[slot] = False
+        decision_distance[slot] = np.nan
+
+
+@kernel
 def _classes_of(uids, wall_uid, wall_active, point_uid, point_active, point_class):
     """:meth:`LandmarkMap.classes_of`: each active slot's uid found among the sorted ``uids`` (K,)."""
     is_wall = np.zeros(uids.size, dtype=np.bool_)
@@ -1826,19 +1913,10 @@ class LandmarkMap:
             return target, leader, np.empty(0, np.int64)
         # Classified sightings lead; an UNKNOWN one may join a leader of any class.
         order = unmatched[np.argsort(s.landmark_class[unmatched] == UNKNOWN, kind="stable")]
-        position, covariance, seen = s.position[order], s.covariance[order], s.landmark_class[order]
-        lead, member = _pairs_within(position, position, self.search_radius)  # by leader, each with itself
-        joins = ((_mahalanobis2(position[lead] - position[member], covariance[lead] + covariance[member])
-                  <= self.gate_chi2) & ((seen[member] == seen[lead]) | (seen[member] == UNKNOWN)))
-        lead, member = lead[joins], member[joins]
-        first = np.searchsorted(lead, np.arange(order.size + 1))
-        cluster = np.full(order.size, -1)
-        for k in range(order.size):
-            if cluster[k] < 0:
-                mine = member[first[k]:first[k + 1]]
-                cluster[mine[cluster[mine] < 0]] = k
+        cluster = _clusters(s.position[order], s.covariance[order], s.landmark_class[order], self.search_radius,
+                            self.gate_chi2)
         heads = np.unique(cluster)
-        is_wall = seen[heads] == PLANE
+        is_wall = s.landmark_class[order[heads]] == PLANE
         slot_of_head = np.full(order.size, -1)
         slot_of_head[heads[~is_wall]] = self._start_points(s, order[heads[~is_wall]])
         wall_slots = self._start_walls(s, order[heads[is_wall]])
@@ -1873,42 +1951,15 @@ class LandmarkMap:
         out[:slots.size] = slots
         rows = rows[:slots.size]
         p = self._points
-        position = s.position[rows]
-        tangent = _left(s.normal[rows])
-        classified = s.landmark_class[rows] != UNKNOWN
-        p.active[slots] = True
-        p.uid[slots] = self._new_uids(slots.size)
-        p.landmark_class[slots] = s.landmark_class[rows]
-        p.by_motion[slots] = False
-        p.mean[slots] = position
-        p.information[slots] = s.information[rows]
-        p.chi2[slots] = 0.0
-        p.anchor[slots] = position
-        value, covariance = s.line(rows, position)
-        p.line[slots] = value
-        p.line_information[slots] = _inverse(covariance)
-        p.line_chi2[slots] = 0.0
-        p.across[slots] = tangent
-        along = _dot(s.segment[rows] - position[:, None, :], tangent[:, None, :])
-        p.extent[slots, 0], p.extent[slots, 1] = along.min(axis=1), along.max(axis=1)
-        viewpoint_along = _dot(s.viewpoint[rows] - position, tangent)
-        p.baseline[slots] = viewpoint_along[:, None]
-        weight = 1.0 / _quadratic(tangent, s.covariance[rows])
-        p.motion[slots] = np.stack([weight, weight * viewpoint_along, weight * viewpoint_along ** 2], axis=-1)
-        p.latest[slots] = position
-        p.observations[slots] = 1
-        p.last_seen[slots] = self._ping
-        _start_support(p, slots, s.sensor, self.driven)
-        p.group[slots] = s.group[rows]
-        p.confidence_sum[slots] = np.where(classified, s.confidence[rows], 0.0)
-        p.confidence_count[slots] = classified
-        p.corner_fit[slots] = p.edge_fit[slots] = 0.0
-        p.corner_information[slots] = p.edge_information[slots] = 0.0
-        p.corner_chi2[slots] = p.edge_chi2[slots] = 0.0
-        p.difference[slots] = 0.0
-        p.modelled[slots] = 0
-        p.curvature_decided[slots] = False
-        p.decision_distance[slots] = np.nan
+        _start_point_rows(slots, rows, self._new_uids(slots.size), self._ping, self.driven, s.sensor,
+                          s.landmark_class, s.position, s.information, s.normal, s.distance, s.covariance, s.segment,
+                          s.viewpoint, s.group, s.confidence, p.active, p.uid, p.landmark_class, p.by_motion, p.mean,
+                          p.information, p.chi2, p.anchor, p.line, p.line_information, p.line_chi2, p.across, p.extent,
+                          p.baseline, p.motion, p.latest, p.observations, p.last_seen, p.pings, p.first_driven,
+                          p.origin, p.travel, p.explained, p.unexplained, p.group, p.confidence_sum,
+                          p.confidence_count, p.corner_fit, p.edge_fit, p.corner_information, p.edge_information,
+                          p.corner_chi2, p.edge_chi2, p.difference, p.modelled, p.curvature_decided,
+                          p.decision_distance)
         self._fuse_models(s, rows, slots)
         return out
 
