@@ -94,6 +94,7 @@ import gtsam
 import numpy as np
 
 from sonar_ring.air import AirSpeed
+from sonar_ring.compiled import kernel
 from sonar_ring.curvature import PointModels
 from sonar_ring.landmarks import CORNER, EDGE, Landmarks
 from sonar_ring.localise import OK, PointEstimate, reflector_paths
@@ -414,22 +415,55 @@ def consistent_sightings(pose: np.ndarray, prior: np.ndarray, position: np.ndarr
     if not (math.isfinite(chi2) and chi2 > 0.0) or rounds < 1:
         raise ValueError(f"consistent_sightings: chi2 must be a positive number and rounds at least 1, got {chi2!r}"
                          f" and {rounds!r}")
+    return _agreeing(np.asarray(pose, dtype=float), np.asarray(prior, dtype=float), np.asarray(position, dtype=float),
+                     np.asarray(covariance, dtype=float), np.asarray(is_wall, dtype=bool),
+                     np.asarray(anchor, dtype=float), np.asarray(normal, dtype=float), float(chi2), int(rounds))
+
+
+@kernel
+def _agreeing(pose, prior, position, covariance, is_wall, anchor, normal, chi2, rounds):
+    """:func:`consistent_sightings` of checked arrays, in one compiled call (it runs at every keyframe)."""
+    count = position.shape[0]
     expected, jacobian = _expected_measurements(pose, is_wall, anchor, normal)
-    information = _inverse(covariance)
     error = position - expected
-    weighted = np.einsum("nji,njk->nik", jacobian, information)  # J^T W, (n, 3, 2)
-    normal_matrix, pulled = np.einsum("nij,njk->nik", weighted, jacobian), np.einsum("nij,nj->ni", weighted, error)
+    information = np.empty((count, 2, 2))
+    # J^T W J (3, 3) and J^T W e (3,) of each sighting
+    normal_matrix = np.zeros((count, 3, 3))
+    pulled = np.zeros((count, 3))
+    for n in range(count):
+        c = covariance[n]
+        determinant = c[0, 0] * c[1, 1] - c[0, 1] * c[1, 0]
+        information[n, 0, 0], information[n, 0, 1] = c[1, 1] / determinant, -c[0, 1] / determinant
+        information[n, 1, 0], information[n, 1, 1] = -c[1, 0] / determinant, c[0, 0] / determinant
+        for i in range(3):
+            weighted_x = jacobian[n, 0, i] * information[n, 0, 0] + jacobian[n, 1, i] * information[n, 1, 0]
+            weighted_y = jacobian[n, 0, i] * information[n, 0, 1] + jacobian[n, 1, i] * information[n, 1, 1]
+            for j in range(3):
+                normal_matrix[n, i, j] = weighted_x * jacobian[n, 0, j] + weighted_y * jacobian[n, 1, j]
+            pulled[n, i] = weighted_x * error[n, 0] + weighted_y * error[n, 1]
     prior_information = np.linalg.inv(prior)
-    agrees = np.ones(len(position), bool)
+    agrees = np.ones(count, dtype=np.bool_)
     for _ in range(rounds):
-        delta = np.linalg.solve(prior_information + normal_matrix[agrees].sum(axis=0), pulled[agrees].sum(axis=0))
-        left = error - jacobian @ delta
-        agrees = np.einsum("ni,nij,nj->n", left, information, left) <= chi2
+        system = prior_information.copy()
+        total = np.zeros(3)
+        for n in range(count):
+            if agrees[n]:
+                system += normal_matrix[n]
+                total += pulled[n]
+        delta = np.linalg.solve(system, total)
+        for n in range(count):
+            left_x = error[n, 0] - (jacobian[n, 0, 0] * delta[0] + jacobian[n, 0, 1] * delta[1]
+                                    + jacobian[n, 0, 2] * delta[2])
+            left_y = error[n, 1] - (jacobian[n, 1, 0] * delta[0] + jacobian[n, 1, 1] * delta[1]
+                                    + jacobian[n, 1, 2] * delta[2])
+            w = information[n]
+            agrees[n] = (left_x * (w[0, 0] * left_x + w[0, 1] * left_y)
+                         + left_y * (w[1, 0] * left_x + w[1, 1] * left_y)) <= chi2
     return agrees
 
 
-def _expected_measurements(pose: np.ndarray, is_wall: np.ndarray, anchor: np.ndarray,
-                           normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+@kernel
+def _expected_measurements(pose, is_wall, anchor, normal):
     """What entries measure from the robot at ``pose`` (3,), map: in its frame (n, 2), and d/d(pose) (n, 2, 3).
 
     A point at ``anchor`` (n, 2) its position; where ``is_wall`` (n,), the line through ``anchor`` with unit
@@ -437,18 +471,26 @@ def _expected_measurements(pose: np.ndarray, is_wall: np.ndarray, anchor: np.nda
     pose's body-frame tangent (GTSAM's ``Pose2.retract``): ``e = R^T (a - t)`` moves by ``-d - dtheta e^perp``, a
     foot point ``s m`` (``m = R^T n``, ``s = n . (a - t)``) by ``-(m . d) m - dtheta s m^perp``.
     """
-    c, s = math.cos(pose[2]), math.sin(pose[2])
-    turn = np.array([[c, -s], [s, c]])  # robot frame -> map
-    expected = (anchor - pose[:2]) @ turn
-    jacobian = np.zeros((len(anchor), 2, 3))
-    jacobian[:, 0, 0] = jacobian[:, 1, 1] = -1.0
-    jacobian[:, 0, 2], jacobian[:, 1, 2] = expected[:, 1], -expected[:, 0]
-    if is_wall.any():
-        facing = normal[is_wall] @ turn  # m
-        reach = np.einsum("ni,ni->n", normal[is_wall], anchor[is_wall] - pose[:2])
-        expected[is_wall] = reach[:, None] * facing
-        jacobian[is_wall, :, :2] = -facing[:, :, None] * facing[:, None, :]
-        jacobian[is_wall, 0, 2], jacobian[is_wall, 1, 2] = reach * facing[:, 1], -reach * facing[:, 0]
+    cos, sin = math.cos(pose[2]), math.sin(pose[2])
+    count = anchor.shape[0]
+    expected = np.empty((count, 2))
+    jacobian = np.zeros((count, 2, 3))
+    for n in range(count):
+        # the anchor in the robot frame: R^T (a - t)
+        offset_x, offset_y = anchor[n, 0] - pose[0], anchor[n, 1] - pose[1]
+        if is_wall[n]:
+            facing_x = normal[n, 0] * cos + normal[n, 1] * sin  # m = R^T n
+            facing_y = -normal[n, 0] * sin + normal[n, 1] * cos
+            reach = normal[n, 0] * offset_x + normal[n, 1] * offset_y
+            expected[n, 0], expected[n, 1] = reach * facing_x, reach * facing_y
+            jacobian[n, 0, 0], jacobian[n, 0, 1] = -facing_x * facing_x, -facing_x * facing_y
+            jacobian[n, 1, 0], jacobian[n, 1, 1] = -facing_y * facing_x, -facing_y * facing_y
+            jacobian[n, 0, 2], jacobian[n, 1, 2] = reach * facing_y, -reach * facing_x
+        else:
+            expected[n, 0] = offset_x * cos + offset_y * sin
+            expected[n, 1] = -offset_x * sin + offset_y * cos
+            jacobian[n, 0, 0] = jacobian[n, 1, 1] = -1.0
+            jacobian[n, 0, 2], jacobian[n, 1, 2] = expected[n, 1], -expected[n, 0]
     return expected, jacobian
 
 
@@ -507,7 +549,7 @@ def _inverse(matrix: np.ndarray) -> np.ndarray:
 
 
 def load_kernels() -> None:
-    """Load the map's compiled kernels (:func:`sonar_ring.mapping.load_kernels`) and the air's fit's now.
+    """Load the map's compiled kernels (:func:`sonar_ring.mapping.load_kernels`), the air's fit's and the gate's now.
 
     The air's fit (:meth:`LandmarkSlam._pair_geometry`) takes a sighting's Jacobian by its paths and the
     paths from compiled loops: one sighting 1 m in front of a pair, with the production argument types.
@@ -517,6 +559,8 @@ def load_kernels() -> None:
     position_jacobian(PointEstimate(position, np.ones(1, bool), np.full(1, OK, np.int8), "corner"), transmitter,
                       receivers[:, 0], receivers[:, 1])
     reflector_paths(transmitter, receivers, position, np.zeros(1, bool))
+    consistent_sightings(np.zeros(3), np.eye(3), position, np.tile(np.eye(2), (1, 1, 1)), np.zeros(1, bool), position,
+                         position, 4.0)
 
 
 class LandmarkSlam:
