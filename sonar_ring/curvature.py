@@ -41,7 +41,7 @@ Frames and units: the landmarks' frame (sensor frame per ping), m.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -181,34 +181,32 @@ def point_models(layout: Layout, landmarks: Landmarks, rows=None) -> PointModels
     -------
     PointModels
     """
-    count = len(landmarks)
-    models = PointModels(np.full((count, 2), np.nan), np.full((count, 2), np.nan), np.full((count, 2, 2), np.nan),
-                         np.full((count, 2, 2), np.nan), np.zeros(count), np.zeros(count, bool))
-    kind = landmarks.landmark_class
+    if layout.kind != "ring":
+        count = len(landmarks)
+        return PointModels(np.full((count, 2), np.nan), np.full((count, 2), np.nan),
+                           np.full((count, 2, 2), np.nan), np.full((count, 2, 2), np.nan), np.zeros(count),
+                           np.zeros(count, bool))
+    kind = np.asarray(landmarks.landmark_class)
     chosen = np.asarray(landmarks.valid, dtype=bool) & ((kind == UNKNOWN) | (kind == CORNER) | (kind == EDGE))
     if rows is not None:
         chosen &= np.asarray(rows, dtype=bool)
-    index = np.flatnonzero(chosen)
-    if layout.kind != "ring" or index.size == 0:
-        return models
-    group = np.asarray(landmarks.group, dtype=np.int64)[index]
-    landmark_class = np.asarray(landmarks.landmark_class)[index]
-    rx = layout.plan.receivers[group]  # (L, 2, 2)
-    found = solvers.point_model_rows(
-        np.ascontiguousarray(layout.plan.transmitters[group, 0]), np.ascontiguousarray(rx[:, 0]),
-        np.ascontiguousarray(rx[:, 1]), np.asarray(landmarks.position, dtype=float)[index], landmark_class == EDGE,
-        landmark_class == UNKNOWN, np.asarray(landmarks.covariance, dtype=float)[index])
-    for field, values in zip(fields(models), found, strict=True):
-        array = getattr(models, field.name)
-        array[index] = values
-    return models
+    # Copies (np.array) in the types load_kernels compiled, whatever arrays the caller's landmarks hold (a
+    # read-only one is another type to numba).
+    return PointModels(*solvers.point_model_rows(
+        chosen, np.array(landmarks.group, dtype=np.int64), layout.plan.transmitters, layout.plan.receivers,
+        np.array(landmarks.position, dtype=float), kind == EDGE, kind == UNKNOWN,
+        np.array(landmarks.covariance, dtype=float)))
 
 
 def load_kernels() -> None:
     """Load :func:`point_models`' compiled loop now instead of at the first ping, with the production argument types.
 
-    One sighting of a point 1 m in front of a pair.
+    One sighting of a point 1 m in front of the first pair of a ring (whose plan's arrays are read-only, a type
+    of their own to numba).
     """
-    solvers.point_model_rows(np.zeros((1, 2)), np.array([[0.0, 0.02]]), np.array([[0.0, -0.02]]),
+    from sonar_ring.geometry import load_layout
+
+    plan = load_layout("browne_ring").plan
+    solvers.point_model_rows(np.ones(1, dtype=bool), np.zeros(1, dtype=np.int64), plan.transmitters, plan.receivers,
                              np.array([[1.0, 0.0]]), np.zeros(1, dtype=bool), np.ones(1, dtype=bool),
                              np.tile(1e-6 * np.eye(2), (1, 1, 1)))

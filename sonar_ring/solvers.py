@@ -717,13 +717,17 @@ def _inverse(m, out):
 
 
 @kernel
-def point_model_rows(tx, rx1, rx2, position, is_edge, undecided, covariance):
-    """Both point models of L sightings of a single-emitter ring pair: :func:`sonar_ring.curvature.point_models`.
+def point_model_rows(chosen, group, transmitters, receivers, position, is_edge, undecided, covariance):
+    """Both point models of L sightings of a single-emitter ring: :func:`sonar_ring.curvature.point_models`.
 
     Parameters
     ----------
-    tx, rx1, rx2 : ndarray, shape (L, 2)
-        Each sighting's emitter and receivers, m.
+    chosen : ndarray of bool, shape (L,)
+        The sightings to solve (the others get none).
+    group : ndarray of int, shape (L,)
+        Each sighting's receiver group.
+    transmitters, receivers : ndarray, shape (G, M, 2) and (G, 2, 2)
+        The ring's emitters (the first of each group's) and receiver pairs, m (:class:`~sonar_ring.geometry.Plan`).
     position : ndarray, shape (L, 2)
         Its landmark's position, placed by the edge model where ``is_edge``
         (L,), else by the virtual image's (a corner or an ``undecided`` (L,)
@@ -756,8 +760,12 @@ def point_model_rows(tx, rx1, rx2, position, is_edge, undecided, covariance):
     gap_jacobian, paths, measured, gap, weight = (np.empty((2, 2)), np.empty((2, 2)), np.empty((2, 2)),
                                                   np.empty((2, 2)), np.empty((2, 2)))
     for n in range(count):
-        tx_x, tx_y, p_x, p_y = tx[n, 0], tx[n, 1], position[n, 0], position[n, 1]
-        r1_x, r1_y, r2_x, r2_y = rx1[n, 0], rx1[n, 1], rx2[n, 0], rx2[n, 1]
+        if not chosen[n]:
+            continue
+        tx_x, tx_y = transmitters[group[n], 0, 0], transmitters[group[n], 0, 1]
+        p_x, p_y = position[n, 0], position[n, 1]
+        r1_x, r1_y = receivers[group[n], 0, 0], receivers[group[n], 0, 1]
+        r2_x, r2_y = receivers[group[n], 1, 0], receivers[group[n], 1, 1]
         # The paths the landmark implies, solved by both models.
         d1 = _reflector_path(tx_x, tx_y, r1_x, r1_y, p_x, p_y, is_edge[n])
         d2 = _reflector_path(tx_x, tx_y, r2_x, r2_y, p_x, p_y, is_edge[n])
