@@ -1375,6 +1375,35 @@ def _fuse_model_sightings(slots, rows, valid, corner, edge, corner_covariance, e
 
 
 @kernel
+def _fuse_wall_sightings(slots, rows, seen_class, normal, position, distance, covariance, segment, confidence, line,
+                         information, anchor, wall_normal, tangent, extent, observations, confidence_sum,
+                         confidence_count):
+    """Merge sightings ``rows`` (of the sightings' arrays, :class:`Sightings`) into walls ``slots`` (K,), in place.
+
+    The walls' arrays are the table's (``_Walls``): each wall's line takes its sightings (:func:`_fuse_lines`),
+    its count and the confidences of the classified ones; its anchor moves to the middle of its seen
+    segment (:func:`_recentre`).  Returns the walls whose segment grew, ascending.
+    """
+    updated, grew = _fuse_lines(line, information, np.zeros(0), False, anchor, tangent, extent, slots, rows, normal,
+                                position, distance, covariance, segment)
+    # per wall, the sums first (in the sightings' order), then added to its totals
+    count = np.zeros(updated.size, dtype=np.int64)
+    added = np.zeros((updated.size, 2))
+    for k in range(slots.size):
+        index = np.searchsorted(updated, slots[k])
+        classified = seen_class[rows[k]] != UNKNOWN
+        count[index] += 1
+        added[index, 0] += confidence[rows[k]] if classified else 0.0
+        added[index, 1] += 1.0 if classified else 0.0
+    for index in range(updated.size):
+        observations[updated[index]] += count[index]
+        confidence_sum[updated[index]] += added[index, 0]
+        confidence_count[updated[index]] += added[index, 1]
+    _recentre(anchor, line, information, wall_normal, tangent, extent, updated)
+    return updated[grew]
+
+
+@kernel
 def _clusters(position, covariance, seen_class, radius, gate_chi2):
     """Each of K sightings' cluster: the index of the sighting that leads it.
 
@@ -2019,20 +2048,14 @@ class LandmarkMap:
                               p.corner_information, p.edge_information, p.corner_chi2, p.edge_chi2, p.difference)
 
     def _fuse_walls(self, s: Sightings, rows, target):
-        """Merge sightings ``rows`` into their walls; the walls whose segment grew."""
+        """Merge sightings ``rows`` into their walls (:func:`_fuse_wall_sightings`); the walls whose segment grew."""
         if rows.size == 0:
             return np.empty(0, np.int64)
         w = self._walls
-        slots = target[rows] - self.max_points
-        groups = _Groups(slots, self.max_walls)
-        updated, grew = _fuse_lines(w.line, w.information, np.zeros(0), False, w.anchor, w.tangent, w.extent, slots,
-                                    rows, s.normal, s.position, s.distance, s.covariance, s.segment)
-        w.observations[groups.rows] += groups.counts[groups.rows]
-        classified = s.landmark_class[rows] != UNKNOWN
-        w.confidence_sum[groups.rows] += groups.total(np.where(classified, s.confidence[rows], 0.0))
-        w.confidence_count[groups.rows] += groups.total(classified.astype(float))
-        w.recentre(groups.rows)
-        return updated[grew]
+        return _fuse_wall_sightings(target[rows] - self.max_points, rows, s.landmark_class, s.normal, s.position,
+                                    s.distance, s.covariance, s.segment, s.confidence, w.line, w.information,
+                                    w.anchor, w.normal, w.tangent, w.extent, w.observations, w.confidence_sum,
+                                    w.confidence_count)
 
     # ------------------------------------------------------------------ classes over motion
 
