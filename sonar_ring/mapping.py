@@ -451,7 +451,7 @@ def _fuse_lines(line, information, chi2, with_chi2, anchor, axis, extent, slots,
     """Fuse sightings ``rows`` (of the sightings' arrays) into the lines ``slots`` of a table, in place.
 
     Each entry's line ``(theta, delta)`` about its anchor takes the sightings' line
-    observations in information form (:func:`_information_update`, ``chi2`` where
+    observations in information form (:func:`_fuse_information`, ``chi2`` where
     ``with_chi2``), ``theta`` wrapped, and its extent along ``axis`` (its unit
     direction, per entry) grows to cover the sightings' segment ends.  Returns
     the entries updated (ascending) and whether each one's extent grew.
@@ -1237,24 +1237,6 @@ def _recentre(anchor, line, information, normal, tangent, extent, rows):
 
 
 @kernel
-def _last_of_each(slots, among, capacity):
-    """The distinct ``slots[among]`` (< ``capacity``), ascending, and the largest index of ``among`` going to each."""
-    last = np.full(capacity, -1, dtype=np.int64)
-    for index in among:
-        last[slots[index]] = max(last[slots[index]], index)
-    count = 0
-    for slot in range(capacity):
-        count += last[slot] >= 0
-    rows = np.empty(count, dtype=np.int64)
-    count = 0
-    for slot in range(capacity):
-        if last[slot] >= 0:
-            rows[count] = slot
-            count += 1
-    return rows, last[rows]
-
-
-@kernel
 def _add_differences(difference, modelled, slots, pulled, statistic):
     """Add each sighting's pull (K, 2) and statistic (K,) to ``difference[slot]`` (M, 3) and count it, in order."""
     for k in range(slots.size):
@@ -1276,8 +1258,8 @@ def _fuse_point_sightings(slots, rows, seen_class, position, seen_information, c
     an UNKNOWN point's plane hypothesis (only while UNKNOWN: :func:`_fuse_lines`), extent and motion
     baseline (:func:`_add_motion`, each sighting weighted by its inverse variance across the first line of
     sight) take them too.  A classified sighting names the class of a point that is UNKNOWN or was named by
-    motion alone (which cannot tell an edge from a corner), until the curvature decides; the confidences of
-    the classified sightings add up.
+    motion alone (which cannot tell an edge from a corner), until the curvature decides (of several in a ping,
+    the last); the confidences of the classified sightings add up.
     """
     count = slots.size
     distinct = np.unique(slots)
@@ -1510,56 +1492,18 @@ def _classes_of(uids, wall_uid, wall_active, point_uid, point_active, point_clas
     return is_wall, entry_class
 
 
-class _Groups:
-    """K observations grouped by the table slot (< ``capacity``) each goes to.
-
-    Attributes
-    ----------
-    slots : ndarray of int, shape (K,)
-        Slot of each observation.
-    counts : ndarray of int, shape (capacity,)
-        Observations per slot.
-    rows : ndarray of int, shape (U,)
-        The distinct slots, ascending.
-    """
-
-    def __init__(self, slots, capacity: int):
-        self.slots = slots
-        self.capacity = capacity
-        self.counts = np.bincount(slots, minlength=capacity)
-        self.rows = np.flatnonzero(self.counts)
-
-    def total(self, values):
-        """Per-slot sums of ``values`` (K,), shape (U,)."""
-        return np.bincount(self.slots, weights=values, minlength=self.capacity)[self.rows]
-
-    def last(self, among=None):
-        """The last observation of each slot, among ``among`` (index array, default all).
-
-        Returns the distinct slots (ascending) and the index of that observation.
-        """
-        among = np.arange(self.slots.size) if among is None else among
-        return _last_of_each(self.slots, among, self.capacity)
-
-
-def _information_update(mean, information, chi2, groups: _Groups, innovation, weight):
-    """Fuse observations into entries in information form, all at once.
+@kernel
+def _fuse_information(mean, information, chi2, with_chi2, slots, rows, innovation, weight):
+    """Fuse observations into entries in information form, all at once, in place.
 
     For each entry, minimises ``(x - x0)^T Lambda0 (x - x0) + sum (z_i - x)^T W_i (z_i - x)``
     (Barshan & Kuc eq 41 for vectors): ``Lambda = Lambda0 + sum W_i``,
     ``x = x0 + Lambda^-1 sum W_i nu_i`` with ``nu_i = z_i - x0``; the minimum is added
-    to ``chi2`` (when given), which makes it the batch residual sum of all sightings.
-    Arrays ``mean`` (M, 2), ``information`` (M, 2, 2), ``chi2`` (M,) are updated in
-    place at the slots of ``groups`` with innovations (K, 2) and weights (K, 2, 2).
+    to ``chi2`` where ``with_chi2``, which makes it the batch residual sum of all sightings.
+    Arrays ``mean`` (M, 2), ``information`` (M, 2, 2), ``chi2`` (M,) are updated at
+    ``slots`` (K,) with innovations (K, 2) and weights (K, 2, 2); ``rows`` are the
+    distinct ``slots``, ascending.
     """
-    _fuse_information(mean, information, np.zeros(0) if chi2 is None else chi2, chi2 is not None, groups.slots,
-                      groups.rows, np.ascontiguousarray(innovation, dtype=float),
-                      np.ascontiguousarray(weight, dtype=float))
-
-
-@kernel
-def _fuse_information(mean, information, chi2, with_chi2, slots, rows, innovation, weight):
-    """:func:`_information_update`; ``rows`` are the distinct ``slots``, ascending."""
     # Per row: sums of W (00, symmetric 01, 11), of W nu (x, y) and of nu^T W nu.
     sums = np.zeros((rows.size, 6))
     for k in range(slots.size):
@@ -2206,8 +2150,8 @@ class LandmarkMap:
         w = self._walls
         keep_row, other_row = np.array([keep]), np.array([other])
         _, _, innovation, covariance, along = self._wall_matches(keep_row, other_row)
-        _information_update(w.line, w.information, None, _Groups(keep_row, self.max_walls), innovation,
-                            _inverse(covariance))
+        _fuse_information(w.line, w.information, np.zeros(0), False, keep_row, keep_row,
+                          np.ascontiguousarray(innovation, dtype=float), _inverse(covariance))
         w.line[keep, 0] = _wrap(w.line[keep, 0])
         w.extent[keep] = min(w.extent[keep, 0], along.min()), max(w.extent[keep, 1], along.max())
         w.observations[keep] += w.observations[other]
