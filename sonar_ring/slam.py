@@ -426,15 +426,11 @@ def _agreeing(pose, prior, position, covariance, is_wall, anchor, normal, chi2, 
     count = position.shape[0]
     expected, jacobian = _expected_measurements(pose, is_wall, anchor, normal)
     error = position - expected
-    information = np.empty((count, 2, 2))
+    information = _inverse(covariance)
     # J^T W J (3, 3) and J^T W e (3,) of each sighting
     normal_matrix = np.zeros((count, 3, 3))
     pulled = np.zeros((count, 3))
     for n in range(count):
-        c = covariance[n]
-        determinant = c[0, 0] * c[1, 1] - c[0, 1] * c[1, 0]
-        information[n, 0, 0], information[n, 0, 1] = c[1, 1] / determinant, -c[0, 1] / determinant
-        information[n, 1, 0], information[n, 1, 1] = -c[1, 0] / determinant, c[0, 0] / determinant
         for i in range(3):
             weighted_x = jacobian[n, 0, i] * information[n, 0, 0] + jacobian[n, 1, i] * information[n, 1, 0]
             weighted_y = jacobian[n, 0, i] * information[n, 0, 1] + jacobian[n, 1, i] * information[n, 1, 1]
@@ -538,18 +534,22 @@ def _fused(uid: np.ndarray, measurement: np.ndarray, covariance: np.ndarray):
     return entries.tolist(), np.einsum("eij,ej->ei", fused_covariance, pulled), fused_covariance
 
 
-def _inverse(matrix: np.ndarray) -> np.ndarray:
-    """Inverses of (n, 2, 2) matrices in closed form."""
-    a, b, c, d = matrix[:, 0, 0], matrix[:, 0, 1], matrix[:, 1, 0], matrix[:, 1, 1]
-    determinant = a * d - b * c
-    return np.stack([np.stack([d, -b], -1), np.stack([-c, a], -1)], -2) / determinant[:, None, None]
+@kernel
+def _inverse(matrix):
+    """Inverses of (n, 2, 2) matrices in closed form (this module's kernels call it)."""
+    out = np.empty(matrix.shape)
+    for n in range(matrix.shape[0]):
+        determinant = matrix[n, 0, 0] * matrix[n, 1, 1] - matrix[n, 0, 1] * matrix[n, 1, 0]
+        out[n, 0, 0], out[n, 0, 1] = matrix[n, 1, 1] / determinant, -matrix[n, 0, 1] / determinant
+        out[n, 1, 0], out[n, 1, 1] = -matrix[n, 1, 0] / determinant, matrix[n, 0, 0] / determinant
+    return out
 
 
 # --------------------------------------------------------------------------- the SLAM
 
 
 def load_kernels() -> None:
-    """Load the map's compiled kernels (:func:`sonar_ring.mapping.load_kernels`), the air's fit's and the gate's now.
+    """Load the map's compiled kernels (:func:`sonar_ring.mapping.load_kernels`), the air's fit's and SLAM's own now.
 
     The air's fit (:meth:`LandmarkSlam._pair_geometry`) takes a sighting's Jacobian by its paths and the
     paths from compiled loops: one sighting 1 m in front of a pair, with the production argument types.
@@ -559,8 +559,9 @@ def load_kernels() -> None:
     position_jacobian(PointEstimate(position, np.ones(1, bool), np.full(1, OK, np.int8), "corner"), transmitter,
                       receivers[:, 0], receivers[:, 1])
     reflector_paths(transmitter, receivers, position, np.zeros(1, bool))
-    consistent_sightings(np.zeros(3), np.eye(3), position, np.tile(np.eye(2), (1, 1, 1)), np.zeros(1, bool), position,
-                         position, 4.0)
+    unit = np.tile(np.eye(2), (1, 1, 1))
+    consistent_sightings(np.zeros(3), np.eye(3), position, unit, np.zeros(1, bool), position, position, 4.0)
+    _inverse(unit)  # the keyframe's fused factors (_fused)
 
 
 class LandmarkSlam:
