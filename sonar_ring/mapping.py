@@ -288,6 +288,12 @@ def _quadratic(vector, matrix):
     return _dot(vector, _apply(matrix, vector))
 
 
+@kernel(inline=True)
+def _inverse_variance_along(x, y, covariance):
+    """``1 / (u^T C u)``: the inverse variance of ``covariance`` (2, 2) along the unit direction ``u = (x, y)``."""
+    return 1.0 / (x * (covariance[0, 0] * x + covariance[0, 1] * y) + y * (covariance[1, 0] * x + covariance[1, 1] * y))
+
+
 @kernel
 def _sandwich(jacobian, matrix):
     """``J M J^T`` for (K, 2, 2) arrays ``J`` and symmetric ``M``; exactly symmetric."""
@@ -1247,6 +1253,24 @@ def _add_differences(difference, modelled, slots, pulled, statistic):
 
 
 @kernel
+def _add_confidences(slots, rows, distinct, seen_class, confidence, confidence_sum, confidence_count):
+    """Add the confidences of the classified sightings ``rows`` (K,) and their count to their entries ``slots`` (K,).
+
+    ``distinct`` are the distinct ``slots``, ascending.  Per entry the sums come first, in the sightings'
+    order, then go to its totals ``confidence_sum`` and ``confidence_count`` (M,), in place.
+    """
+    added = np.zeros((distinct.size, 2))
+    for k in range(slots.size):
+        classified = seen_class[rows[k]] != UNKNOWN
+        index = np.searchsorted(distinct, slots[k])
+        added[index, 0] += confidence[rows[k]] if classified else 0.0
+        added[index, 1] += 1.0 if classified else 0.0
+    for index in range(distinct.size):
+        confidence_sum[distinct[index]] += added[index, 0]
+        confidence_count[distinct[index]] += added[index, 1]
+
+
+@kernel
 def _fuse_point_sightings(slots, rows, seen_class, position, seen_information, confidence, normal, distance,
                           covariance, segment, viewpoint, mean, information, chi2, latest, observations, entry_class,
                           by_motion, curvature_decided, confidence_sum, confidence_count, line, line_information,
@@ -1285,9 +1309,7 @@ def _fuse_point_sightings(slots, rows, seen_class, position, seen_information, c
             across_x, across_y = across[slot, 0], across[slot, 1]
             viewpoint_along[k] = ((viewpoint[row, 0] - anchor[slot, 0]) * across_x
                                   + (viewpoint[row, 1] - anchor[slot, 1]) * across_y)
-            c = covariance[row]
-            across_weight[k] = 1.0 / (across_x * (c[0, 0] * across_x + c[0, 1] * across_y)
-                                      + across_y * (c[1, 0] * across_x + c[1, 1] * across_y))
+            across_weight[k] = _inverse_variance_along(across_x, across_y, covariance[row])
         _add_motion(baseline, motion, open_slots, viewpoint_along, across_weight)
     namer = np.full(distinct.size, -1, dtype=np.int64)
     any_classified = False
@@ -1306,16 +1328,7 @@ def _fuse_point_sightings(slots, rows, seen_class, position, seen_information, c
             confidence_sum[slot] = confidence_count[slot] = 0.0
             by_motion[slot] = False
     if any_classified:
-        # per point, the sums first (in the sightings' order), then added to its totals
-        added = np.zeros((distinct.size, 2))
-        for k in range(count):
-            classified = seen_class[rows[k]] != UNKNOWN
-            index = np.searchsorted(distinct, slots[k])
-            added[index, 0] += confidence[rows[k]] if classified else 0.0
-            added[index, 1] += 1.0 if classified else 0.0
-        for index in range(distinct.size):
-            confidence_sum[distinct[index]] += added[index, 0]
-            confidence_count[distinct[index]] += added[index, 1]
+        _add_confidences(slots, rows, distinct, seen_class, confidence, confidence_sum, confidence_count)
 
 
 @kernel
@@ -1368,19 +1381,9 @@ def _fuse_wall_sightings(slots, rows, seen_class, normal, position, distance, co
     """
     updated, grew = _fuse_lines(line, information, np.zeros(0), False, anchor, tangent, extent, slots, rows, normal,
                                 position, distance, covariance, segment)
-    # per wall, the sums first (in the sightings' order), then added to its totals
-    count = np.zeros(updated.size, dtype=np.int64)
-    added = np.zeros((updated.size, 2))
     for k in range(slots.size):
-        index = np.searchsorted(updated, slots[k])
-        classified = seen_class[rows[k]] != UNKNOWN
-        count[index] += 1
-        added[index, 0] += confidence[rows[k]] if classified else 0.0
-        added[index, 1] += 1.0 if classified else 0.0
-    for index in range(updated.size):
-        observations[updated[index]] += count[index]
-        confidence_sum[updated[index]] += added[index, 0]
-        confidence_count[updated[index]] += added[index, 1]
+        observations[slots[k]] += 1
+    _add_confidences(slots, rows, updated, seen_class, confidence, confidence_sum, confidence_count)
     _recentre(anchor, line, information, wall_normal, tangent, extent, updated)
     return updated[grew]
 
@@ -1408,20 +1411,18 @@ def _clusters(position, covariance, seen_class, radius, gate_chi2):
 
 
 @kernel
-def _start_point_rows(slots, rows, uids, ping, driven, sensor, seen_class, position, seen_information, normal, distance,
-                      covariance, segment, viewpoint, group, confidence, active, uid, entry_class, by_motion, mean,
-                      information, chi2, anchor, line, line_information, line_chi2, across, extent, baseline, motion,
-                      latest, observations, last_seen, pings, first_driven, origin, travel, explained, unexplained,
-                      entry_group, confidence_sum, confidence_count, corner_fit, edge_fit, corner_information,
-                      edge_information, corner_chi2, edge_chi2, difference, modelled, curvature_decided,
-                      decision_distance):
+def _start_point_rows(slots, rows, uids, ping, seen_class, position, seen_information, normal, distance, covariance,
+                      segment, viewpoint, group, confidence, active, uid, entry_class, by_motion, mean, information,
+                      chi2, anchor, line, line_information, line_chi2, across, extent, baseline, motion, latest,
+                      observations, last_seen, entry_group, confidence_sum, confidence_count, corner_fit, edge_fit,
+                      corner_information, edge_information, corner_chi2, edge_chi2, difference, modelled,
+                      curvature_decided, decision_distance):
     """New points ``slots`` (K,) from sightings ``rows`` (K,) of the ping ``ping``, in the table's arrays.
 
-    The sightings' arrays (:class:`Sightings`, the sensor at ``sensor``) and the points' (``_Points``), with
-    their new ``uids`` (K,) and the map's odometer ``driven`` (m).  Each point starts at its sighting: its
-    position and information, its plane hypothesis about it (:func:`_line_of_sight`), its extent and motion
-    baseline along the line of sight's tangent, its support (:func:`_start_support`'s columns), its
-    confidence where classified; its model fits empty.
+    The sightings' arrays (:class:`Sightings`) and the points' (``_Points``), with their new ``uids`` (K,).
+    Each point starts at its sighting: its position and information, its plane hypothesis about it
+    (:func:`_line_of_sight`), its extent and motion baseline along the line of sight's tangent, its
+    confidence where classified; its model fits empty.  (Its support: :func:`_start_support`.)
     """
     value, jacobian = _line_of_sight(normal[rows], position[rows], position[rows], distance[rows])
     plane_information = _inverse(_sandwich(jacobian, covariance[rows]))
@@ -1447,19 +1448,12 @@ def _start_point_rows(slots, rows, uids, ping, driven, sensor, seen_class, posit
         extent[slot, 0], extent[slot, 1] = np.minimum(first, second), np.maximum(first, second)
         viewpoint_along = (viewpoint[row, 0] - x) * tangent_x + (viewpoint[row, 1] - y) * tangent_y
         baseline[slot, 0] = baseline[slot, 1] = viewpoint_along
-        c = covariance[row]
-        weight = 1.0 / (tangent_x * (c[0, 0] * tangent_x + c[0, 1] * tangent_y)
-                        + tangent_y * (c[1, 0] * tangent_x + c[1, 1] * tangent_y))
+        weight = _inverse_variance_along(tangent_x, tangent_y, covariance[row])
         motion[slot, 0], motion[slot, 1] = weight, weight * viewpoint_along
         motion[slot, 2] = weight * viewpoint_along ** 2
         latest[slot, 0], latest[slot, 1] = x, y
         observations[slot] = 1
         last_seen[slot] = ping
-        pings[slot] = 1
-        first_driven[slot] = driven
-        origin[slot, 0], origin[slot, 1] = sensor[0], sensor[1]
-        travel[slot] = 0.0
-        explained[slot] = unexplained[slot] = 0
         entry_group[slot] = group[row]
         confidence_sum[slot] = confidence[row] if classified else 0.0
         confidence_count[slot] = 1.0 if classified else 0.0
@@ -1924,15 +1918,14 @@ class LandmarkMap:
         out[:slots.size] = slots
         rows = rows[:slots.size]
         p = self._points
-        _start_point_rows(slots, rows, self._new_uids(slots.size), self._ping, self.driven, s.sensor,
-                          s.landmark_class, s.position, s.information, s.normal, s.distance, s.covariance, s.segment,
-                          s.viewpoint, s.group, s.confidence, p.active, p.uid, p.landmark_class, p.by_motion, p.mean,
-                          p.information, p.chi2, p.anchor, p.line, p.line_information, p.line_chi2, p.across, p.extent,
-                          p.baseline, p.motion, p.latest, p.observations, p.last_seen, p.pings, p.first_driven,
-                          p.origin, p.travel, p.explained, p.unexplained, p.group, p.confidence_sum,
-                          p.confidence_count, p.corner_fit, p.edge_fit, p.corner_information, p.edge_information,
-                          p.corner_chi2, p.edge_chi2, p.difference, p.modelled, p.curvature_decided,
-                          p.decision_distance)
+        _start_point_rows(slots, rows, self._new_uids(slots.size), self._ping, s.landmark_class, s.position,
+                          s.information, s.normal, s.distance, s.covariance, s.segment, s.viewpoint, s.group,
+                          s.confidence, p.active, p.uid, p.landmark_class, p.by_motion, p.mean, p.information, p.chi2,
+                          p.anchor, p.line, p.line_information, p.line_chi2, p.across, p.extent, p.baseline, p.motion,
+                          p.latest, p.observations, p.last_seen, p.group, p.confidence_sum, p.confidence_count,
+                          p.corner_fit, p.edge_fit, p.corner_information, p.edge_information, p.corner_chi2,
+                          p.edge_chi2, p.difference, p.modelled, p.curvature_decided, p.decision_distance)
+        _start_support(p, slots, s.sensor, self.driven)
         self._fuse_models(s, rows, slots)
         return out
 
